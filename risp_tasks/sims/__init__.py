@@ -1,0 +1,33 @@
+"""Differentiable simulators, one module per environment, behind one registry.
+
+    >>> from risp_tasks.sims import get_simulator
+    >>> sim = get_simulator("cube", effects=("friction",))
+    >>> states = sim.rollout(sim.default_params(), s0, None, steps=100)
+"""
+
+from __future__ import annotations
+
+import importlib
+
+from risp_data.envs import ENV_NAMES
+from risp_data.errors import RispError
+
+from .base import Effect, Simulator, SimulatorSpec
+
+
+def get_simulator(env: str, effects: tuple[str, ...] | list[str] = ()) -> Simulator:
+    """The simulator of environment ``env`` with the named extra effects switched on."""
+    if env not in ENV_NAMES:
+        raise RispError(f"unknown environment {env!r}; choose one of: {', '.join(ENV_NAMES)}")
+    module = importlib.import_module(f"{__name__}.{env}")
+    return module.make_simulator(tuple(effects))
+
+
+def available_effects(env: str) -> dict[str, Effect]:
+    if env not in ENV_NAMES:
+        raise RispError(f"unknown environment {env!r}; choose one of: {', '.join(ENV_NAMES)}")
+    module = importlib.import_module(f"{__name__}.{env}")
+    return dict(module.SPEC.available_effects)
+
+
+__all__ = ["Effect", "Simulator", "SimulatorSpec", "available_effects", "get_simulator"]
