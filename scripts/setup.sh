@@ -1,0 +1,52 @@
+#!/usr/bin/env bash
+# Install everything risp needs on a fresh Debian/Ubuntu-like machine, into ./.venv.
+#   - a libLLVM that Dr.Jit's CPU backend accepts (>= 16; drjit 1.5 refuses 14 and aborts on 15)
+#   - a Python virtual environment with risp and its dependencies (CPU torch unless a GPU is present)
+# Idempotent: a second run only checks.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+PY=${PYTHON:-python3}
+SUDO=""
+if [ "$(id -u)" -ne 0 ] && command -v sudo >/dev/null 2>&1; then SUDO="sudo"; fi
+
+llvm_ok() { "$PY" -c 'import sys; sys.path.insert(0, "."); from risp_data.llvm import ensure_llvm; ensure_llvm()' >/dev/null 2>&1; }
+
+# 1. System library: libLLVM >= 16 (docs/install.md)
+if ! llvm_ok; then
+  if command -v apt-get >/dev/null 2>&1; then
+    echo "[setup] installing libLLVM 19 for Dr.Jit (apt-get)"
+    $SUDO apt-get update -qq
+    $SUDO apt-get install -y -qq libllvm19 >/dev/null || $SUDO apt-get install -y -qq libllvm18 >/dev/null \
+      || $SUDO apt-get install -y -qq libllvm17 >/dev/null || $SUDO apt-get install -y -qq libllvm16 >/dev/null
+  fi
+  if ! llvm_ok; then
+    "$PY" -c 'import sys; sys.path.insert(0, "."); from risp_data.llvm import ensure_llvm; ensure_llvm()' 2>&1 | tail -n 1 >&2
+    echo "error: no usable libLLVM (>= 16) for Dr.Jit; install libllvm19 with your package manager" >&2
+    exit 1
+  fi
+fi
+
+# 2. Python environment
+if ! "$PY" -c 'import venv, ensurepip' >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1; then
+  $SUDO apt-get update -qq && $SUDO apt-get install -y -qq python3-venv >/dev/null
+fi
+if [ ! -x .venv/bin/python ]; then
+  echo "[setup] creating .venv"
+  "$PY" -m venv .venv
+fi
+VPY=.venv/bin/python
+"$VPY" -m pip install -q --upgrade pip >/dev/null 2>&1 || true
+if ! "$VPY" -c 'import torch' >/dev/null 2>&1; then
+  if command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi >/dev/null 2>&1; then
+    echo "[setup] installing torch (CUDA build)"
+    "$VPY" -m pip install -q "torch>=2.4"
+  else
+    # The CPU build avoids ~3 GB of CUDA wheels; fall back to the default build where no +cpu wheel is offered.
+    echo "[setup] installing torch (CPU build)"
+    "$VPY" -m pip install -q "torch==2.13.0+cpu" 2>/dev/null || "$VPY" -m pip install -q "torch>=2.4"
+  fi
+fi
+echo "[setup] installing risp and its dependencies"
+"$VPY" -m pip install -q -e ".[dev]"
+"$VPY" -c 'from risp_data.llvm import ensure_llvm; print("[setup] Dr.Jit will use", ensure_llvm())'
