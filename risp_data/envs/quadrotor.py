@@ -13,4 +13,80 @@ ROTOR_RADIUS = 0.12  # m
 BODY_HALF_EXTENTS = (0.08, 0.08, 0.04)  # m
 ROTOR_HEIGHT = 0.03  # m, rotor plane above the body centre
 
-# TODO(risp-data helper): make_environment()
+# --- Rendering (risp_data): mesh, camera, sampler -----------------------------------------------------
+
+import math  # noqa: E402
+import os  # noqa: E402
+from functools import lru_cache  # noqa: E402
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from ..errors import RispError  # noqa: E402
+from .base import Camera, Environment, Mesh  # noqa: E402
+from .meshes import (  # noqa: E402
+    RIGID_STATE_NAMES,
+    RIGID_TARGET_NAMES,
+    rigid_pose,
+    rigid_state_to_target,
+    rigid_target_to_state,
+    transform,
+    uniform_states,
+)
+
+SCENES_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "scenes")
+MESH_FILES = {"frame": "quadrotor_frame.ply", "rotors": "quadrotor_rotors.ply"}  # made by scenes/make_quadrotor.py
+MESH_MATERIALS = {"frame": "object", "rotors": "rotor"}
+
+# Sampler ranges (x, y, z [m], yaw, pitch, roll [rad]); the floor is at z = 0.
+STATE_LOW = (-1.0, -1.0, 0.5, -math.pi, -math.pi / 6, -math.pi / 6)
+STATE_HIGH = (1.0, 1.0, 2.5, math.pi, math.pi / 6, math.pi / 6)
+CAMERA = Camera(origin=(0.0, -4.6, 3.4), target=(0.0, 0.0, 1.3), up=(0.0, 0.0, 1.0), fov=42.0)
+
+
+@lru_cache(maxsize=None)
+def body_meshes() -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """The quadrotor's body-frame meshes {part: (vertices (V, 3) float64, faces (F, 3) int64)}."""
+    import trimesh
+
+    out = {}
+    for part, name in MESH_FILES.items():
+        path = os.path.join(SCENES_DIR, name)
+        try:
+            mesh = trimesh.load(path, process=False, force="mesh")
+        except Exception as e:  # noqa: BLE001 - trimesh raises many kinds
+            raise RispError(f"cannot read quadrotor mesh {path}: {e}") from None
+        out[part] = (np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64))
+    return out
+
+
+def meshes(states: torch.Tensor) -> list[Mesh]:
+    """World-space meshes of the quadrotor posed by states (..., 6): v_world = R(yaw, pitch, roll) v_body + p."""
+    R, t = rigid_pose(states)
+    out = []
+    for part, (v, f) in body_meshes().items():
+        verts = transform(torch.as_tensor(v, dtype=states.dtype), R, t)
+        out.append(Mesh(part, verts, torch.as_tensor(f), MESH_MATERIALS[part]))
+    return out
+
+
+def sample_states(rng: np.random.Generator, n: int) -> np.ndarray:
+    """(n, 6) states uniform in [STATE_LOW, STATE_HIGH] (free flight above the floor)."""
+    return uniform_states(rng, n, STATE_LOW, STATE_HIGH)
+
+
+def make_environment() -> Environment:
+    return Environment(
+        name="quadrotor",
+        state_names=RIGID_STATE_NAMES,
+        target_names=RIGID_TARGET_NAMES,
+        state_low=STATE_LOW,
+        state_high=STATE_HIGH,
+        camera=CAMERA,
+        state_to_target=rigid_state_to_target,
+        target_to_state=rigid_target_to_state,
+        meshes=meshes,
+        sample_states=sample_states,
+        floor_height=0.0,
+        description="rigid quadrotor (body, four arms, four rotors) in free flight above a floor",
+    )

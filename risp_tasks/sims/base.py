@@ -32,6 +32,11 @@ class Effect:
     defaults: tuple[float, ...]  # a typical non-zero magnitude
     ranges: tuple[tuple[float, float], ...]  # plausible physical range of each parameter
     description: str = ""
+    # Validity: closed interval [lo, hi] per parameter checked by ``check_inputs`` (None: any finite value).
+    bounds: tuple[tuple[float, float], ...] | None = None
+    units: tuple[str, ...] | None = None
+    # Extra state entries the effect appends to the full state (e.g. motor_lag's thrust states).
+    state_names: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -45,6 +50,10 @@ class SimulatorSpec:
     base_param_defaults: tuple[float, ...]
     action_dim: int
     available_effects: dict[str, Effect] = field(default_factory=dict)
+    # Validity interval [lo, hi] of each base parameter (None: any finite value) and plausible ranges.
+    base_param_bounds: tuple[tuple[float, float], ...] | None = None
+    base_param_ranges: tuple[tuple[float, float], ...] | None = None
+    base_param_units: tuple[str, ...] | None = None
 
 
 class Simulator:
@@ -72,7 +81,11 @@ class Simulator:
 
     @property
     def state_names(self) -> tuple[str, ...]:
-        return self.spec.state_names
+        """Base state entries, then the extra entries of each enabled effect (in ``effects`` order)."""
+        names = self.spec.state_names
+        for e in self.effects:
+            names += self.spec.available_effects[e].state_names
+        return names
 
     @property
     def action_dim(self) -> int:
@@ -90,6 +103,24 @@ class Simulator:
         for e in self.effects:
             vals += list(self.spec.available_effects[e].defaults)
         return torch.tensor(vals, dtype=dtype).expand(batch, -1).clone()
+
+    @property
+    def param_bounds(self) -> tuple[tuple[float, float], ...]:
+        """Validity interval [lo, hi] of every parameter, ordered as ``param_names``."""
+        inf = float("inf")
+        n = len(self.spec.base_param_names)
+        bounds = list(self.spec.base_param_bounds or ((-inf, inf),) * n)
+        for e in self.effects:
+            eff = self.spec.available_effects[e]
+            bounds += list(eff.bounds or ((-inf, inf),) * len(eff.param_names))
+        return tuple(bounds)
+
+    def default_state(self, batch: int = 1, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+        """A typical initial state (batch, X); simulators that have one override this."""
+        raise NotImplementedError(f"the {self.env} simulator defines no default state")
+
+    def check_state(self, s0: torch.Tensor) -> None:
+        """Hook for simulator-specific checks of the initial state (e.g. a non-zero quaternion)."""
 
     def param_index(self, name: str) -> int:
         try:
@@ -121,6 +152,14 @@ class Simulator:
             raise RispError(f"params contain NaN/inf in: {', '.join(bad)}")
         if not torch.isfinite(s0).all():
             raise RispError("s0 contains NaN/inf")
+        if not params.is_floating_point() or s0.dtype != params.dtype:
+            raise RispError(f"params and s0 must share one floating dtype, got {params.dtype} and {s0.dtype}")
+        for i, (lo, hi) in enumerate(self.param_bounds):
+            col = params[:, i]
+            if bool(((col < lo) | (col > hi)).any()):
+                bad = col[(col < lo) | (col > hi)][0].item()
+                raise RispError(f"params[:, {i}] ({self.param_names[i]}) must lie in [{lo:g}, {hi:g}], got {bad:g}")
+        self.check_state(s0)
         if self.action_dim == 0:
             if actions is not None:
                 raise RispError(f"{self.env} takes no actions; pass actions=None")
@@ -131,6 +170,8 @@ class Simulator:
                 raise RispError(f"actions must have shape (B={s0.shape[0]}, T>={steps}, {self.action_dim}), got {shape}")
             if not torch.isfinite(actions).all():
                 raise RispError("actions contain NaN/inf")
+            if actions.dtype != params.dtype:
+                raise RispError(f"actions must have the dtype of params ({params.dtype}), got {actions.dtype}")
 
     def rollout(self, params: torch.Tensor, s0: torch.Tensor, actions: torch.Tensor | None, steps: int) -> torch.Tensor:
         """Integrate ``steps`` steps; returns (B, steps + 1, X) with row 0 = s0."""

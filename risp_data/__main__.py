@@ -1,0 +1,5 @@
+"""``python -m risp_data`` = ``risp-data``."""
+
+from .cli import main
+
+main()

@@ -1,0 +1,112 @@
+"""``risp-data``: render shards, inspect them, verify their Jacobians (docs/cli-data.md).
+
+Thin layer: click options -> a frozen config -> a pure function in generate / inspect / verify.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+
+import click
+
+from .cli_util import RispGroup, run_cli
+
+
+@click.group(cls=RispGroup)
+def cli():
+    """Randomized Mitsuba renders with forward-mode Jacobian stacks, as webdataset and zarr shards."""
+
+
+@cli.command()
+@click.option("--env", "env", required=True, help="Environment: quadrotor, cube, hand or rod.")
+@click.option("--n", "n", required=True, type=int, help="Number of samples (> 0).")
+@click.option("--out", "out", required=True, help="Output folder (created; resumed if it holds this job).")
+@click.option("--format", "fmt", default="both", show_default=True, help="wds, zarr or both.")
+@click.option("--res", "resolution", default=64, show_default=True, type=int, help="Image width = height in pixels.")
+@click.option("--spp", default=16, show_default=True, type=int, help="Samples per pixel.")
+@click.option("--domain", default="train", show_default=True, help="train or target.")
+@click.option("--seed", default=0, show_default=True, type=int, help="Run seed (>= 0); sample i uses SeedSequence(seed, spawn_key=(i,)).")
+@click.option("--workers", default=None, type=int, help="Parallel workers (default: number of CPU cores).")
+@click.option("--shard-size", default=256, show_default=True, type=int, help="Samples per shard (= per task).")
+@click.option("--executor", default="local", show_default=True, help="local (process pool) or ray (needs risp[ray]).")
+@click.option("--no-jacobian", is_flag=True, help="Store images only (evaluation shards).")
+@click.option("--variant", default=None, help="Mitsuba variant: llvm_ad_rgb or cuda_ad_rgb (default: cuda if usable).")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def render(env, n, out, fmt, resolution, spp, domain, seed, workers, shard_size, executor, no_jacobian, variant, quiet):
+    """Render N samples of ENV into shards under OUT (resumable: rerun to complete missing shards)."""
+    from .errors import RispError
+    from .generate import RenderJob, run_job
+
+    formats = {"both": ("wds", "zarr"), "wds": ("wds",), "zarr": ("zarr",)}.get(fmt)
+    if formats is None:
+        raise RispError(f"--format must be wds, zarr or both; got {fmt!r}")
+    job = RenderJob(
+        env=env,
+        n=n,
+        out=out,
+        domain=domain,
+        formats=formats,
+        resolution=resolution,
+        spp=spp,
+        seed=seed,
+        workers=workers if workers is not None else (os.cpu_count() or 1),
+        shard_size=shard_size,
+        executor=executor,
+        jacobian=not no_jacobian,
+        variant=variant,
+    )
+    t0 = time.perf_counter()
+    before = None
+    if os.path.exists(os.path.join(out, "manifest.json")):
+        from .shards import load_manifest
+
+        try:
+            before = load_manifest(out)["counts"]["complete_samples"]
+        except (RispError, KeyError):
+            before = None
+    manifest = run_job(job, progress=not quiet, log=lambda s: click.echo(s, err=True))
+    dt = time.perf_counter() - t0
+    done = manifest["counts"]["complete_samples"] - (before or 0)
+    rate = done / dt if dt > 0 else float("nan")
+    click.echo(
+        f"{out}: {manifest['counts']['complete_samples']}/{manifest['n']} samples in "
+        f"{manifest['counts']['complete_shards']}/{manifest['num_shards']} shards; "
+        f"rendered {done} now in {dt:.1f} s ({rate:.2f} samples/s)"
+    )
+
+
+@cli.command()
+@click.argument("folder", type=click.Path())
+@click.option("--png", default=None, type=click.Path(dir_okay=False), help="Contact sheet path (default: FOLDER/contact_sheet.png).")
+@click.option("--samples", default=4, show_default=True, type=int, help="Rows (samples) in the contact sheet.")
+def inspect(folder, png, samples):
+    """Print the manifest summary of FOLDER and write a PNG contact sheet of images and Jacobians."""
+    from .inspect import InspectConfig, inspect_folder
+
+    summary, path = inspect_folder(InspectConfig(folder=folder, png=png, samples=samples))
+    click.echo(summary)
+    click.echo(f"contact sheet: {path}" if path else "contact sheet: none (no complete shard yet)")
+
+
+@cli.command()
+@click.argument("folder", type=click.Path())
+@click.option("--samples", default=8, show_default=True, type=int, help="Samples to re-render (evenly spaced).")
+@click.option("--eps", default=1e-3, show_default=True, type=float, help="Step, as a fraction of each psi's training range.")
+@click.option("--tol", default=0.05, show_default=True, type=float, help="Largest accepted relative error per psi.")
+@click.option("--checksums/--no-checksums", default=True, show_default=True, help="Also hash every shard file.")
+def verify(folder, samples, eps, tol, checksums):
+    """Compare stored Jacobians with central differences of re-renders (same seed); exit 1 beyond --tol."""
+    from .verify import VerifyConfig, format_report, verify_folder
+
+    report = verify_folder(VerifyConfig(folder=folder, samples=samples, eps=eps, tol=tol, checksums=checksums))
+    click.echo(format_report(report))
+    report.raise_if_failed()
+
+
+def main() -> None:
+    run_cli(cli)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,116 @@
+"""``risp-data inspect``: a manifest summary and a PNG contact sheet of images and Jacobian images."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import RispError
+from .shards import load_manifest
+from .shards.reader import complete_indices, read_samples
+
+
+@dataclass(frozen=True)
+class InspectConfig:
+    folder: str
+    png: str | None = None  # default: <folder>/contact_sheet.png
+    samples: int = 4
+
+
+def _folder_bytes(folder: str) -> int:
+    total = 0
+    for root, _, files in os.walk(folder):
+        total += sum(os.path.getsize(os.path.join(root, f)) for f in files)
+    return total
+
+
+def summarize(folder: str, m: dict) -> str:
+    """Human-readable manifest summary (one fact per line)."""
+    c = m["counts"]
+    lines = [
+        f"folder       {folder}  ({_folder_bytes(folder) / 2**20:.1f} MiB)",
+        f"environment  {m['env']}   domain {m['domain']}   variant {m['variant']}",
+        f"images       {m['resolution']}x{m['resolution']}, {m['spp']} spp, jacobian {'yes' if m['jacobian'] else 'no'}",
+        f"samples      {c['complete_samples']}/{m['n']} complete in {c['complete_shards']}/{m['num_shards']} shards "
+        f"of {m['shard_size']}{'' if m['complete'] else '  (INCOMPLETE: rerun render to resume)'}",
+        f"formats      {', '.join(m['formats'])}",
+        f"seed         {m['seed']}",
+        f"state        {', '.join(m['state_names'])}",
+        "psi          name                 nominal      low     high",
+    ]
+    p = m["psi"]
+    for j, name in enumerate(p["names"]):
+        lines.append(f"             {name:<18} {p['nominal'][j]:8.3f} {p['low'][j]:8.3f} {p['high'][j]:8.3f}")
+    versions = ", ".join(f"{k} {v}" for k, v in sorted(m.get("versions", {}).items()) if v)
+    lines.append(f"versions     {versions}")
+    lines.append(f"created      {m.get('created', '?')}   updated {m.get('updated', '?')}")
+    return "\n".join(lines)
+
+
+def _tonemap(image: np.ndarray) -> np.ndarray:
+    """Linear RGB -> sRGB-ish display values (gamma 2.2, clipped)."""
+    return np.clip(np.nan_to_num(image), 0.0, 1.0) ** (1.0 / 2.2)
+
+
+def contact_sheet(samples: list[dict], psi_names: list[str], path: str) -> str:
+    """One row per sample: the image, then ∂I/∂ψ_j per ψ_j (its strongest colour channel), drawn with a
+    diverging colormap and symmetric limits ±max|∂I/∂ψ_j| so zero is white."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cols = 1 + (len(psi_names) if samples[0]["jacobian"] is not None else 0)
+    fig, axes = plt.subplots(len(samples), cols, figsize=(1.6 * cols, 1.7 * len(samples)), squeeze=False)
+    for r, s in enumerate(samples):
+        ax = axes[r, 0]
+        ax.imshow(_tonemap(s["image"]), interpolation="nearest")
+        ax.set_title(s["key"], fontsize=7)
+        if s["jacobian"] is not None:
+            for j, name in enumerate(psi_names):
+                # the colour channel ψ_j moves most (object_r moves R only: an RGB mean would dilute it)
+                c = int(np.argmax(np.nansum(np.abs(s["jacobian"][j]), axis=(0, 1))))
+                d = s["jacobian"][j][..., c]
+                lim = float(np.nanmax(np.abs(d))) or 1.0
+                ax = axes[r, j + 1]
+                ax.imshow(d, cmap="RdBu_r", vmin=-lim, vmax=lim, interpolation="nearest")
+                ax.set_title(f"∂I_{'RGB'[c]}/∂{name}\n±{lim:.2g}", fontsize=6)
+    for ax in axes.flat:
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.tight_layout()
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".png", dir=folder)
+    os.close(fd)
+    try:
+        fig.savefig(tmp, dpi=110, format="png")
+        os.replace(tmp, path)
+    finally:
+        plt.close(fig)
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def inspect_folder(cfg: InspectConfig) -> tuple[str, str | None]:
+    """Summary text and the contact sheet path (None when no shard is complete yet)."""
+    if cfg.samples <= 0:
+        raise RispError(f"--samples must be a positive integer, got {cfg.samples}")
+    m = load_manifest(cfg.folder)
+    summary = summarize(cfg.folder, m)
+    indices = complete_indices(m)
+    if not indices:
+        return summary, None
+    chosen = [indices[int(i)] for i in np.linspace(0, len(indices) - 1, min(cfg.samples, len(indices)))]
+    chosen = sorted(set(chosen))
+    got = read_samples(cfg.folder, chosen)
+    path = cfg.png or os.path.join(cfg.folder, "contact_sheet.png")
+    try:
+        contact_sheet([got[i] for i in chosen], list(m["psi"]["names"]), path)
+    except OSError as e:
+        raise RispError(f"cannot write contact sheet {path}: {e.strerror or e}") from None
+    return summary, path

@@ -1,0 +1,50 @@
+"""Pick and set the Mitsuba variant: ``cuda_ad_rgb`` on a usable GPU, else ``llvm_ad_rgb``.
+
+Always call :func:`init_mitsuba` before touching ``mitsuba``: it first points Dr.Jit at a usable
+libLLVM (:func:`risp_data.llvm.ensure_llvm`), then imports Mitsuba lazily.  Nothing happens at import.
+"""
+
+from __future__ import annotations
+
+from .errors import RispError
+from .llvm import ensure_llvm
+
+VARIANTS: tuple[str, ...] = ("llvm_ad_rgb", "cuda_ad_rgb")
+_CHOSEN: str | None = None
+
+
+def _cuda_usable() -> bool:
+    """True when Dr.Jit can drive a CUDA device (no exception, at least one device)."""
+    try:
+        import drjit as dr
+
+        return bool(dr.has_backend(dr.JitBackend.CUDA))
+    except Exception:  # noqa: BLE001 - any failure simply means "no GPU"
+        return False
+
+
+def init_mitsuba(variant: str | None = None) -> str:
+    """Set the Mitsuba variant and return its name (idempotent).
+
+    ``variant=None`` picks ``cuda_ad_rgb`` when a CUDA GPU is usable, else ``llvm_ad_rgb``; an explicit
+    variant wins.  Unknown or unavailable variants raise :class:`RispError`.
+    """
+    global _CHOSEN
+    if variant is not None and variant not in VARIANTS:
+        raise RispError(f"unknown Mitsuba variant {variant!r}; choose one of: {', '.join(VARIANTS)}")
+    if variant is None and _CHOSEN is not None:
+        return _CHOSEN
+    ensure_llvm()
+    import mitsuba as mi
+
+    if variant is None:
+        variant = "cuda_ad_rgb" if _cuda_usable() else "llvm_ad_rgb"
+    if variant == "cuda_ad_rgb" and not _cuda_usable():
+        raise RispError("variant 'cuda_ad_rgb' needs a usable CUDA GPU; none was found (use llvm_ad_rgb)")
+    if mi.variant() != variant:
+        try:
+            mi.set_variant(variant)
+        except Exception as e:  # noqa: BLE001 - mitsuba raises plain exceptions
+            raise RispError(f"cannot set Mitsuba variant {variant!r}: {e}") from None
+    _CHOSEN = variant
+    return variant

@@ -1,0 +1,211 @@
+"""The shard folder's manifest (``manifest.json``) and per-shard completion markers.
+
+Completion protocol (docs/formats.md, "Completion and resume"):
+
+1. The parent writes ``manifest.json`` before any shard is rendered; it fixes the folder's identity
+   (environment, domain, resolution, spp, variant, Jacobian on/off, n, shard size, seed, formats).
+2. A worker renders one shard (a contiguous range of sample indices), writes its tar under a temporary
+   name and renames it, writes its zarr shard files, hashes every file, and only then writes the marker
+   ``complete/shard-NNNNNN.json`` (again temp name + rename).
+3. The parent adds the shard's record (files, sha256, sizes) to ``manifest.json`` (temp name + rename).
+
+Readers trust only shards listed in the manifest; a shard without a marker does not exist.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import os
+import tempfile
+from importlib import metadata as _md
+from typing import Any
+
+from ..errors import RispError
+
+MANIFEST = "manifest.json"
+MARKER_DIR = "complete"
+FORMAT_NAME = "risp-shards"
+FORMAT_VERSION = 1
+# Fields that define what a folder holds; resuming with any of them different is refused.
+IDENTITY_FIELDS = (
+    "env",
+    "domain",
+    "resolution",
+    "spp",
+    "variant",
+    "jacobian",
+    "n",
+    "shard_size",
+    "seed",
+    "formats",
+)
+_VERSION_PACKAGES = {
+    "risp": "risp",
+    "mitsuba": "mitsuba",
+    "drjit": "drjit",
+    "torch": "torch",
+    "numpy": "numpy",
+    "zarr": "zarr",
+    "webdataset": "webdataset",
+    "OpenEXR": "OpenEXR",
+}
+
+
+def package_versions() -> dict[str, str | None]:
+    """Installed versions of the packages that shape the samples (None when not installed)."""
+    out: dict[str, str | None] = {}
+    for label, dist in _VERSION_PACKAGES.items():
+        try:
+            out[label] = _md.version(dist)
+        except _md.PackageNotFoundError:
+            out[label] = None
+    return out
+
+
+def utc_now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat()
+
+
+def sha256_file(path: str, chunk: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while True:
+            block = f.read(chunk)
+            if not block:
+                break
+            h.update(block)
+    return h.hexdigest()
+
+
+def file_record(folder: str, rel: str) -> dict[str, Any]:
+    """``{"sha256": ..., "bytes": ...}`` of ``folder/rel``."""
+    path = os.path.join(folder, rel)
+    return {"sha256": sha256_file(path), "bytes": os.path.getsize(path)}
+
+
+def write_json_atomic(path: str, obj: Any) -> None:
+    """Write JSON to a temporary file in the same folder, fsync it, then rename over ``path``."""
+    folder = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".json", dir=folder)
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(obj, f, indent=1, sort_keys=True, allow_nan=False)
+            f.write("\n")
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _read_json(path: str, what: str) -> dict[str, Any]:
+    try:
+        with open(path) as f:
+            obj = json.load(f)
+    except FileNotFoundError:
+        raise RispError(f"{what} not found: {path}") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise RispError(f"corrupt {what} {path}: {e}") from None
+    if not isinstance(obj, dict):
+        raise RispError(f"corrupt {what} {path}: expected a JSON object")
+    return obj
+
+
+def load_manifest(folder: str) -> dict[str, Any]:
+    """Read ``folder/manifest.json``; RispError when it is missing, corrupt or not a risp shard manifest."""
+    path = os.path.join(folder, MANIFEST)
+    if not os.path.isdir(folder):
+        raise RispError(f"shard folder not found: {folder}")
+    m = _read_json(path, "manifest")
+    if m.get("format") != FORMAT_NAME:
+        raise RispError(f"corrupt manifest {path}: not a {FORMAT_NAME} manifest")
+    missing = [k for k in (*IDENTITY_FIELDS, "psi", "state_names", "shards") if k not in m]
+    if missing:
+        raise RispError(f"corrupt manifest {path}: missing field(s) {', '.join(missing)}")
+    if m.get("format_version", 0) > FORMAT_VERSION:
+        raise RispError(
+            f"manifest {path} has format_version {m['format_version']}; this risp reads <= {FORMAT_VERSION}"
+        )
+    return m
+
+
+def save_manifest(folder: str, manifest: dict[str, Any]) -> None:
+    manifest = dict(manifest)
+    manifest["updated"] = utc_now()
+    shards = sorted(manifest["shards"], key=lambda r: r["index"])
+    manifest["shards"] = shards
+    done = sum(r["stop"] - r["start"] for r in shards)
+    manifest["counts"] = {
+        "samples": manifest["n"],
+        "shards": manifest["num_shards"],
+        "complete_samples": done,
+        "complete_shards": len(shards),
+    }
+    manifest["complete"] = len(shards) == manifest["num_shards"]
+    write_json_atomic(os.path.join(folder, MANIFEST), manifest)
+
+
+def identity_mismatch(existing: dict[str, Any], wanted: dict[str, Any]) -> list[str]:
+    """Human-readable differences between two manifests' identity fields (empty when compatible)."""
+    diffs = []
+    for k in IDENTITY_FIELDS:
+        a, b = existing.get(k), wanted.get(k)
+        if isinstance(a, list):
+            a = tuple(a)
+        if isinstance(b, list):
+            b = tuple(b)
+        if a != b:
+            diffs.append(f"{k}={existing.get(k)!r} (folder) vs {wanted.get(k)!r} (requested)")
+    return diffs
+
+
+def marker_path(folder: str, shard_index: int) -> str:
+    return os.path.join(folder, MARKER_DIR, f"shard-{shard_index:06d}.json")
+
+
+def write_marker(folder: str, record: dict[str, Any]) -> None:
+    os.makedirs(os.path.join(folder, MARKER_DIR), exist_ok=True)
+    write_json_atomic(marker_path(folder, record["index"]), record)
+
+
+def read_marker(folder: str, shard_index: int) -> dict[str, Any] | None:
+    """A shard's completion record, or None when there is none or it does not match the files on disk.
+
+    Only sizes are compared here (cheap, used on resume); :func:`verify_checksums` hashes the files.
+    """
+    path = marker_path(folder, shard_index)
+    if not os.path.exists(path):
+        return None
+    try:
+        rec = _read_json(path, "shard marker")
+        for rel, info in rec["files"].items():
+            if os.path.getsize(os.path.join(folder, rel)) != info["bytes"]:
+                return None
+    except (RispError, OSError, KeyError, TypeError):
+        return None
+    return rec
+
+
+def verify_checksums(folder: str, manifest: dict[str, Any] | None = None) -> int:
+    """Hash every file of every complete shard and compare with the manifest; returns the number checked.
+
+    Raises RispError naming the first missing, truncated or corrupt file.
+    """
+    m = load_manifest(folder) if manifest is None else manifest
+    checked = 0
+    for rec in m["shards"]:
+        for rel, info in sorted(rec["files"].items()):
+            path = os.path.join(folder, rel)
+            if not os.path.exists(path):
+                raise RispError(f"shard file missing: {path}")
+            size = os.path.getsize(path)
+            if size != info["bytes"]:
+                raise RispError(f"truncated or corrupt shard file {path}: {size} bytes, manifest says {info['bytes']}")
+            if sha256_file(path) != info["sha256"]:
+                raise RispError(f"corrupt shard file {path}: sha256 differs from the manifest")
+            checked += 1
+    return checked

@@ -1,0 +1,218 @@
+"""webdataset shards: ``wds/shard-NNNNNN.tar``, one tar per shard task (docs/formats.md, "webdataset").
+
+Per sample ``sNNNNNNNN`` the tar holds, in this order (members sorted by key, then name):
+
+    sNNNNNNNN.image.exr      float32 RGB EXR (ZIP compression), channels R, G, B
+    sNNNNNNNN.jacobian.exr   one multi-channel float32 EXR; channel group ``<psi_name>`` = ∂I/∂ψ_j
+                             (channels ``<psi_name>.R/G/B``); absent in --no-jacobian shards
+    sNNNNNNNN.json           metadata (env, domain, index, seed, render_seed, names, aux, resolution,
+                             spp, member_sha256: the sha256 of every other member of the sample)
+    sNNNNNNNN.psi.npy        (K,) float64, np.save(allow_pickle=False)
+    sNNNNNNNN.state.npy      (S,) float64
+
+Tars are reproducible: sorted members, fixed mtime, uid/gid 0, no user names.  No pickle anywhere.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import tarfile
+import tempfile
+from typing import Any, Iterator
+
+import numpy as np
+
+from ..errors import RispError
+from .manifest import load_manifest
+from .sample import Sample
+
+WDS_DIR = "wds"
+MTIME = 0  # fixed member mtime: byte-identical tars for identical samples
+MEMBERS = ("image.exr", "jacobian.exr", "json", "psi.npy", "state.npy")
+
+
+def shard_name(shard_index: int) -> str:
+    return f"{WDS_DIR}/shard-{shard_index:06d}.tar"
+
+
+# --------------------------------------------------------------------------------------------- EXR
+
+
+def encode_exr(channels: dict[str, np.ndarray]) -> bytes:
+    """Float32 EXR bytes; ``channels`` maps a group name (``"RGB"`` or ``"<name>.RGB"``) to (H, W, 3)."""
+    import OpenEXR
+
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    pixels = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in channels.items()}
+    buf = io.BytesIO()
+    with OpenEXR.File(header, pixels) as f:
+        f.write(buf)
+    return buf.getvalue()
+
+
+def decode_exr(data: bytes) -> dict[str, np.ndarray]:
+    """Channel groups of an EXR (``"RGB"``, ``"<name>.RGB"``) as (H, W, 3) float32 arrays."""
+    import OpenEXR
+
+    with OpenEXR.File(io.BytesIO(data)) as f:
+        return {k: np.asarray(v.pixels, dtype=np.float32) for k, v in f.channels().items()}
+
+
+def encode_jacobian(jacobian: np.ndarray, psi_names: list[str]) -> bytes:
+    """The (K, H, W, 3) stack as one EXR with channel group ``<psi_name>`` per ψ_j."""
+    if jacobian.shape[0] != len(psi_names):
+        raise ValueError(f"jacobian has {jacobian.shape[0]} slices for {len(psi_names)} psi names")
+    return encode_exr({f"{name}.RGB": jacobian[j] for j, name in enumerate(psi_names)})
+
+
+def decode_jacobian(data: bytes, psi_names: list[str]) -> np.ndarray:
+    groups = decode_exr(data)
+    missing = [n for n in psi_names if f"{n}.RGB" not in groups]
+    if missing:
+        raise ValueError(f"jacobian EXR lacks channel group(s) {', '.join(missing)}")
+    return np.stack([groups[f"{n}.RGB"] for n in psi_names])
+
+
+# ------------------------------------------------------------------------------------------ writing
+
+
+def _npy_bytes(a: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, np.asarray(a, dtype=np.float64), allow_pickle=False)
+    return buf.getvalue()
+
+
+def sample_members(sample: Sample) -> dict[str, bytes]:
+    """The tar members of one sample, keyed by extension (without the key)."""
+    members = {
+        "image.exr": encode_exr({"RGB": sample.image}),
+        "psi.npy": _npy_bytes(sample.psi),
+        "state.npy": _npy_bytes(sample.state),
+    }
+    if sample.jacobian is not None:
+        members["jacobian.exr"] = encode_jacobian(sample.jacobian, sample.meta["psi_names"])
+    # EXR and .npy carry no checksum of their own: the json records one per member, so a flipped
+    # byte fails on read instead of decoding to wrong pixels.
+    meta = dict(sample.meta, member_sha256={k: hashlib.sha256(v).hexdigest() for k, v in sorted(members.items())})
+    members["json"] = json.dumps(meta, sort_keys=True, allow_nan=False).encode()
+    return members
+
+
+def write_wds_shard(folder: str, shard_index: int, samples: list[Sample]) -> str:
+    """Write one tar shard under a temporary name and rename it into place; returns its relative path."""
+    rel = shard_name(shard_index)
+    path = os.path.join(folder, rel)
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".tar", dir=os.path.dirname(path))
+    try:
+        with os.fdopen(fd, "wb") as f:
+            with tarfile.open(fileobj=f, mode="w", format=tarfile.USTAR_FORMAT) as tar:
+                for sample in sorted(samples, key=lambda s: s.index):
+                    for ext, data in sorted(sample_members(sample).items()):
+                        info = tarfile.TarInfo(f"{sample.key}.{ext}")
+                        info.size = len(data)
+                        info.mtime = MTIME
+                        info.mode = 0o644
+                        info.uid = info.gid = 0
+                        info.uname = info.gname = ""
+                        tar.addfile(info, io.BytesIO(data))
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return rel
+
+
+# ------------------------------------------------------------------------------------------ reading
+
+
+def _where(sample: dict[str, Any]) -> str:
+    return f"shard {sample.get('__url__', '<unknown shard>')} key {sample.get('__key__', '<unknown key>')}"
+
+
+def decode_wds_sample(sample: dict[str, Any]) -> dict[str, Any]:
+    """Decode a raw webdataset sample (bytes per member) into arrays; RispError naming shard and key.
+
+    Returns ``dict(key, image (H,W,3) float32, jacobian (K,H,W,3) float32 or None, state (S,) float64,
+    psi (K,) float64, meta dict)``.
+    """
+    for ext in ("image.exr", "json", "psi.npy", "state.npy"):
+        if ext not in sample:
+            raise RispError(f"corrupt or truncated webdataset sample ({_where(sample)}): missing member {ext}")
+    try:
+        meta = json.loads(sample["json"])
+        sums = meta.pop("member_sha256", {})
+        for ext, digest in sorted(sums.items()):
+            if ext not in sample:
+                raise ValueError(f"missing member {ext}")
+            if hashlib.sha256(sample[ext]).hexdigest() != digest:
+                raise ValueError(f"member {ext} does not match its sha256")
+        image = decode_exr(sample["image.exr"])["RGB"]
+        state = np.load(io.BytesIO(sample["state.npy"]), allow_pickle=False)
+        psi = np.load(io.BytesIO(sample["psi.npy"]), allow_pickle=False)
+        jacobian = None
+        if "jacobian.exr" in sample:
+            jacobian = decode_jacobian(sample["jacobian.exr"], list(meta["psi_names"]))
+        if state.shape != (len(meta["state_names"]),) or psi.shape != (len(meta["psi_names"]),):
+            raise ValueError(f"state/psi shapes {state.shape}/{psi.shape} disagree with the names in its json")
+    except RispError:
+        raise
+    except Exception as e:  # OpenEXR, numpy and json raise many types on corrupt bytes
+        raise RispError(f"corrupt webdataset sample ({_where(sample)}): {type(e).__name__}: {e}") from None
+    return {
+        "key": sample.get("__key__", ""),
+        "image": image,
+        "jacobian": jacobian,
+        "state": state.astype(np.float64, copy=False),
+        "psi": psi.astype(np.float64, copy=False),
+        "meta": meta,
+    }
+
+
+def wds_urls(folder: str) -> list[str]:
+    """Paths of the complete tar shards listed in the manifest, in shard order.
+
+    Each listed file must exist with the size the manifest records (a cheap truncation check; use
+    :func:`risp_data.shards.verify_checksums` for the full sha256 check).
+    """
+    m = load_manifest(folder)
+    if "wds" not in m["formats"]:
+        raise RispError(f"shard folder {folder} holds no webdataset shards (formats: {', '.join(m['formats'])})")
+    urls = []
+    for rec in m["shards"]:
+        for rel, info in rec["files"].items():
+            if not rel.startswith(WDS_DIR + "/"):
+                continue
+            path = os.path.join(folder, rel)
+            if not os.path.exists(path):
+                raise RispError(f"webdataset shard missing: {path}")
+            if os.path.getsize(path) != info["bytes"]:
+                raise RispError(f"truncated or corrupt webdataset shard {path}: size differs from the manifest")
+            urls.append(path)
+    return urls
+
+
+def _raise_with_url(exn: Exception) -> bool:
+    """webdataset handler: turn a tar-level failure into one RispError naming the shard file."""
+    if isinstance(exn, RispError):
+        raise exn
+    url = next((a for a in reversed(exn.args) if isinstance(a, str) and a.endswith(".tar")), None)
+    msg = str(exn.args[0]) if exn.args else type(exn).__name__
+    raise RispError(f"corrupt or truncated webdataset shard {url or '<unknown>'}: {msg}") from None
+
+
+def iter_wds(folder: str) -> Iterator[dict[str, Any]]:
+    """Decoded samples of all complete shards, in index order, through a plain ``webdataset.WebDataset``."""
+    import webdataset as wds
+
+    urls = wds_urls(folder)
+    if not urls:
+        return iter(())
+    ds = wds.WebDataset(urls, shardshuffle=False, handler=_raise_with_url, empty_check=False)
+    return iter(ds.map(decode_wds_sample, handler=_raise_with_url))

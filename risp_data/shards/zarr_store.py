@@ -1,0 +1,186 @@
+"""zarr v3 store ``data.zarr`` (docs/formats.md, "zarr").
+
+Arrays (float32 images and Jacobians, float64 states and ψ), each sharded along the sample axis with
+one zarr shard = one shard task = ``shard_size`` samples, and one inner chunk per sample:
+
+    images     (N, H, W, 3)      dimension_names (sample, y, x, channel)
+    jacobians  (N, K, H, W, 3)   dimension_names (sample, psi, y, x, channel)   [absent with --no-jacobian]
+    states     (N, S)            dimension_names (sample, state)
+    psi        (N, K)            dimension_names (sample, psi)
+
+Unwritten samples read as NaN (the fill value).  Each writer writes whole shards at once: writing one
+sample at a time rewrites the whole shard (5–26 ms/sample, ../shared/NOTES.md).  Inner chunks are
+zstd-compressed with the zstd frame checksum on, and the shard index carries a crc32c, so corrupt bytes
+fail loudly instead of decoding to wrong numbers.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import numpy as np
+
+from ..errors import RispError
+from .manifest import load_manifest
+
+ZARR_DIR = "data.zarr"
+_DIMS = {
+    "images": ("sample", "y", "x", "channel"),
+    "jacobians": ("sample", "psi", "y", "x", "channel"),
+    "states": ("sample", "state"),
+    "psi": ("sample", "psi"),
+}
+_RUNTIME = {"write_empty_chunks": True}  # a shard file always exists once written, even if all zeros
+
+
+def array_shapes(n: int, resolution: int, k: int, s: int, jacobian: bool) -> dict[str, tuple[int, ...]]:
+    shapes = {
+        "images": (n, resolution, resolution, 3),
+        "jacobians": (n, k, resolution, resolution, 3),
+        "states": (n, s),
+        "psi": (n, k),
+    }
+    if not jacobian:
+        del shapes["jacobians"]
+    return shapes
+
+
+def create_store(folder: str, manifest: dict[str, Any]) -> None:
+    """Create ``data.zarr`` with empty arrays for the manifest's job (metadata only, no chunk data)."""
+    import zarr
+    from zarr.codecs import ZstdCodec
+
+    psi_names = list(manifest["psi"]["names"])
+    state_names = list(manifest["state_names"])
+    root_attrs = {
+        k: manifest[k] for k in ("env", "domain", "resolution", "spp", "variant", "seed", "n", "shard_size")
+    }
+    root_attrs.update(psi_names=psi_names, state_names=state_names, risp_format=manifest["format"])
+    root = zarr.open_group(os.path.join(folder, ZARR_DIR), mode="w", attributes=root_attrs)
+    shapes = array_shapes(manifest["n"], manifest["resolution"], len(psi_names), len(state_names), manifest["jacobian"])
+    for name, shape in shapes.items():
+        dtype = "float32" if name in ("images", "jacobians") else "float64"
+        root.create_array(
+            name,
+            shape=shape,
+            dtype=dtype,
+            chunks=(1, *shape[1:]),
+            shards=(manifest["shard_size"], *shape[1:]),
+            compressors=ZstdCodec(level=3, checksum=True),
+            fill_value=float("nan"),
+            dimension_names=_DIMS[name],
+            attributes={"psi_names": psi_names, "state_names": state_names},
+        )
+
+
+def shard_file(folder: str, name: str, shard_index: int, ndim: int) -> str:
+    """Relative path of array ``name``'s zarr shard file for shard task ``shard_index``."""
+    return f"{ZARR_DIR}/{name}/c/" + "/".join([str(shard_index)] + ["0"] * (ndim - 1))
+
+
+def write_zarr_shard(folder: str, shard_index: int, start: int, arrays: dict[str, np.ndarray | None]) -> list[str]:
+    """Write one whole shard of every array (``arrays`` from :func:`stack_samples`); returns relative paths."""
+    import zarr
+
+    written = []
+    for name in _DIMS:
+        data = arrays.get(name)
+        if data is None:
+            continue
+        arr = zarr.open_array(os.path.join(folder, ZARR_DIR, name), mode="r+", config=_RUNTIME)
+        size = arr.shards[0]
+        if start != shard_index * size or data.shape[0] != min(size, arr.shape[0] - start):
+            raise ValueError(f"samples [{start}, {start + data.shape[0]}) are not zarr shard {shard_index} of {name}")
+        rel = shard_file(folder, name, shard_index, arr.ndim)
+        stale = os.path.join(folder, rel)
+        if os.path.exists(stale):  # a half-written shard from a killed run: never merge into it
+            os.unlink(stale)
+        arr[start : start + data.shape[0]] = data
+        written.append(rel)
+    return written
+
+
+class ZarrDataset:
+    """Map-style, torch-free reader over the complete shards of ``folder/data.zarr``.
+
+    ``ds[i]`` returns the same dict as :func:`risp_data.shards.decode_wds_sample` (``meta`` carries the
+    manifest-level fields and the sample's global index).  Only shards listed in the manifest are visible.
+    """
+
+    def __init__(self, folder: str):
+        self.folder = folder
+        self.manifest = load_manifest(folder)
+        m = self.manifest
+        if "zarr" not in m["formats"]:
+            raise RispError(f"shard folder {folder} holds no zarr store (formats: {', '.join(m['formats'])})")
+        self._arrays = self._open()
+        self._ranges = []  # (start, stop) of complete shards, ascending
+        for rec in m["shards"]:
+            for rel, info in rec["files"].items():
+                if rel.startswith(ZARR_DIR + "/"):
+                    p = os.path.join(folder, rel)
+                    if not os.path.exists(p):
+                        raise RispError(f"zarr shard file missing: {p}")
+                    if os.path.getsize(p) != info["bytes"]:
+                        raise RispError(f"truncated or corrupt zarr shard file {p}: size differs from the manifest")
+            self._ranges.append((rec["start"], rec["stop"], rec["index"]))
+        self._ranges.sort()
+        self._offsets = np.cumsum([0] + [b - a for a, b, _ in self._ranges])
+        self.psi_names = list(m["psi"]["names"])
+        self.state_names = list(m["state_names"])
+
+    def _open(self) -> dict:
+        import zarr
+
+        path = os.path.join(self.folder, ZARR_DIR)
+        try:
+            group = zarr.open_group(path, mode="r")
+            return {name: group[name] for name in _DIMS if name in group}
+        except Exception as e:
+            raise RispError(f"corrupt zarr store {path}: {type(e).__name__}: {e}") from None
+
+    def __getstate__(self) -> dict:
+        # DataLoader workers get a copy without open zarr handles and reopen the store themselves
+        state = dict(self.__dict__)
+        state["_arrays"] = None
+        return state
+
+    def __len__(self) -> int:
+        return int(self._offsets[-1])
+
+    def global_index(self, i: int) -> tuple[int, int]:
+        """(global sample index, shard index) of dataset position ``i``."""
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"index {i} out of range for {len(self)} complete samples")
+        i %= len(self)
+        r = int(np.searchsorted(self._offsets, i, side="right")) - 1
+        start, _, shard = self._ranges[r]
+        return start + i - int(self._offsets[r]), shard
+
+    def __getitem__(self, i: int) -> dict[str, Any]:
+        from .sample import sample_key
+
+        g, shard = self.global_index(i)
+        if self._arrays is None:
+            self._arrays = self._open()
+        out = {}
+        for name, arr in self._arrays.items():
+            try:
+                out[name] = np.asarray(arr[g])
+            except Exception as e:
+                rel = shard_file(self.folder, name, shard, arr.ndim)
+                raise RispError(
+                    f"corrupt zarr shard file {os.path.join(self.folder, rel)}: {type(e).__name__}: {e}"
+                ) from None
+        m = self.manifest
+        meta = {k: m[k] for k in ("env", "domain", "resolution", "spp", "seed", "variant")}
+        meta.update(index=g, state_names=self.state_names, psi_names=self.psi_names)
+        return {
+            "key": sample_key(g),
+            "image": out["images"],
+            "jacobian": out.get("jacobians"),
+            "state": out["states"],
+            "psi": out["psi"],
+            "meta": meta,
+        }

@@ -1,0 +1,241 @@
+"""Measured trajectories <-> simulator states, observation channels and actions.
+
+The simulators (risp_tasks.sims) expose their state layout by name (``sim.state_names``); measured files
+carry a rigid-body pose, velocities and (quadrotor) rotor thrusts in newtons.  This module is the one place
+that maps between them:
+
+* ``sim_states``: measured sample -> full simulator state (by name; quaternion or Euler attitude).
+* ``observe``: simulator state -> the observation channels compared with measurements
+  (position, attitude as a rotation vector, linear velocity, body angular velocity).
+* ``sim_actions``: measured commands -> the simulator's action units via its thrust mapping
+  (``sim.thrust_to_action`` when the simulator provides one, else identity = newtons).
+* ``substeps``: how many simulator steps make one measured sample interval (docs/diagnose.md §Time step).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import torch
+
+from risp_data.errors import RispError
+
+from ..measured import Trajectory
+
+#: Observation channels of rigid-body environments (cube, quadrotor), in order.
+RIGID_CHANNELS = ("x", "y", "z", "rx", "ry", "rz", "vx", "vy", "vz", "wx", "wy", "wz")
+#: Channel groups share one noise level and one unit.
+RIGID_GROUPS = {"position": (0, 1, 2), "attitude": (3, 4, 5), "velocity": (6, 7, 8), "angular velocity": (9, 10, 11)}
+GROUP_UNITS = {"position": "m", "attitude": "rad", "velocity": "m/s", "angular velocity": "rad/s"}
+
+_QUAT = ("qw", "qx", "qy", "qz")
+_EULER = ("yaw", "pitch", "roll")
+
+
+def substeps(sim, sample_dt: float) -> int:
+    """Simulator steps per measured sample: k = round(Δ / dt) (at least 1).
+
+    When k·dt differs from Δ by more than 0.5 %, :func:`matched_simulator` rescales the simulator's step
+    to Δ / k (a documented adapter; the step size stays within a factor of about 1.4 of the native one).
+    """
+    return max(1, int(round(sample_dt / sim.dt)))
+
+
+def matched_simulator(sim, sample_dt: float):
+    """Return ``(sim, k)`` with ``k`` simulator steps per sample interval exactly."""
+    k = substeps(sim, sample_dt)
+    if abs(k * sim.dt - sample_dt) > 5e-3 * sample_dt:
+        # the simulators read their step from ``self.spec.dt``; an instance-level spec with the matched
+        # step keeps the class spec untouched
+        sim.spec = dataclasses.replace(sim.spec, dt=sample_dt / k)
+    return sim, k
+
+
+def _quat_from_euler_np(ypr: np.ndarray) -> np.ndarray:
+    y, p, r = ypr[..., 0] / 2, ypr[..., 1] / 2, ypr[..., 2] / 2
+    cy, sy, cp, sp, cr, sr = np.cos(y), np.sin(y), np.cos(p), np.sin(p), np.cos(r), np.sin(r)
+    return np.stack([cy * cp * cr + sy * sp * sr, cy * cp * sr - sy * sp * cr, cy * sp * cr + sy * cp * sr, sy * cp * cr - cy * sp * sr], -1)
+
+
+def _euler_from_quat_np(q: np.ndarray) -> np.ndarray:
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    yaw = np.arctan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z))
+    pitch = np.arcsin(np.clip(-2 * (x * z - w * y), -1, 1))
+    roll = np.arctan2(2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
+    return np.stack([yaw, pitch, roll], -1)
+
+
+def measured_columns(traj: Trajectory) -> dict[str, np.ndarray]:
+    """All named per-sample quantities of a measured trajectory (N,) each."""
+    cols = {"t": traj.t}
+    if traj.pos is None:
+        cols.update(traj.extra)
+        return cols
+    for i, c in enumerate(("x", "y", "z")):
+        cols[c] = traj.pos[:, i]
+    for i, c in enumerate(_QUAT):
+        cols[c] = traj.quat[:, i]
+    for i, c in enumerate(("vx", "vy", "vz")):
+        cols[c] = traj.vel[:, i]
+    for i, c in enumerate(("wx", "wy", "wz")):
+        cols[c] = traj.omega[:, i]
+    ypr = _euler_from_quat_np(traj.quat)
+    for i, c in enumerate(_EULER):
+        cols[c] = ypr[:, i]
+    if traj.thrust is not None:
+        for i in range(traj.thrust.shape[1]):
+            cols[f"f{i}"] = traj.thrust[:, i]
+    cols.update(traj.extra)
+    return cols
+
+
+def sim_states(sim, traj: Trajectory, actions: np.ndarray | None = None) -> np.ndarray:
+    """(N, X) simulator states of every measured sample (float64).
+
+    State entries without a measured counterpart: motor/rotor thrust states (names starting with ``f``
+    or ``thrust``) are set to the commanded thrust of that sample (steady state); anything else is an
+    error naming the state.
+    """
+    cols = measured_columns(traj)
+    out = np.zeros((traj.n, len(sim.state_names)))
+    for j, name in enumerate(sim.state_names):
+        if name in cols:
+            out[:, j] = cols[name]
+            continue
+        idx = _rotor_index(name)
+        if idx is not None and actions is not None and idx < actions.shape[1]:
+            out[:, j] = actions[:, idx]
+            continue
+        raise RispError(f"the {sim.env} simulator's state {name!r} has no measured counterpart (diagnose adapter)")
+    return out
+
+
+def _rotor_index(name: str) -> int | None:
+    for prefix in ("thrust", "motor", "rotor", "f", "u"):
+        if name.startswith(prefix):
+            rest = name[len(prefix):].lstrip("_")
+            if rest.isdigit():
+                return int(rest)
+    return None
+
+
+def sim_actions(sim, traj: Trajectory, base_params: torch.Tensor | None = None) -> np.ndarray | None:
+    """(N, A) actions in the simulator's units, or None for passive environments.
+
+    Quadrotor thrusts are in newtons; a simulator whose action is not a thrust in newtons exposes
+    ``thrust_to_action(thrust (…, 4) N, params) -> action`` and it is used here.
+    """
+    if sim.action_dim == 0:
+        return None
+    if traj.thrust is not None:
+        f = traj.thrust
+        p = base_params if base_params is not None else sim.default_params(1)[0]
+        conv = getattr(sim, "thrust_to_action", None)
+        if conv is not None:
+            a = conv(torch.as_tensor(f, dtype=torch.float64), p.reshape(1, -1).expand(len(f), -1))
+            return np.asarray(a.detach().numpy(), dtype=np.float64)
+        if "k_f" in sim.param_names:
+            # the quadrotor's thrust mapping f_i = k_f · u_i (docs/models.md §2.2), inverted at the
+            # model's own k_f so that the simulated thrust equals the measured one in newtons
+            return f / float(p.reshape(-1)[sim.param_index("k_f")])
+        if f.shape[1] != sim.action_dim:
+            raise RispError(f"{traj.path}: {f.shape[1]} thrust columns but the simulator takes {sim.action_dim} actions")
+        return f
+    names = [f"u{i}" for i in range(sim.action_dim)]
+    missing = [n for n in names if n not in traj.extra]
+    if missing:
+        raise RispError(f"{traj.path}: missing action column(s) {', '.join(missing)}")
+    return np.stack([traj.extra[n] for n in names], 1)
+
+
+def consistent_start(sim, s0: torch.Tensor) -> torch.Tensor:
+    """Start states made consistent with the contact model (docs/diagnose.md §Start states).
+
+    Cube: measurement noise of a fraction of a millimetre pushes a resting corner into the floor, and the
+    stiff penalty contact (k_n ≈ 10⁶ N/m) turns that into a violent pop-up that is not in the data.  The
+    cube is lifted so that its lowest corner penetrates by no more than the static penetration
+    m·g/(4·k_n) of the default stiffness.  Other environments: unchanged.
+    """
+    if sim.env != "cube" or not hasattr(sim, "side"):
+        return s0
+    import itertools
+
+    half = 0.5 * float(sim.side)
+    corners = torch.tensor(list(itertools.product((-half, half), repeat=3)), dtype=s0.dtype)  # (8, 3)
+    q = s0[:, 3:7] / s0[:, 3:7].norm(dim=1, keepdim=True)
+    w, x, y, z = q.unbind(-1)
+    row2 = torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)  # world z of body axes
+    lowest = s0[:, 2] + (corners @ row2.T).min(0).values  # (B,)
+    rest = float(sim.mass) * 9.81 / (4 * 1e6)
+    lift = torch.clamp(-lowest - rest, min=0.0)
+    out = s0.clone()
+    out[:, 2] = s0[:, 2] + lift
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# observation channels (torch, differentiable)
+# ------------------------------------------------------------------------------------------------
+class Observer:
+    """Maps simulator states (..., X) to observation channels (..., C) and measures their errors."""
+
+    def __init__(self, sim):
+        names = list(sim.state_names)
+        self.names = names
+        self.rigid = all(n in names for n in ("x", "y", "z", "vx", "vy", "vz", "wx", "wy", "wz")) and (
+            all(n in names for n in _QUAT) or all(n in names for n in _EULER)
+        )
+        if self.rigid:
+            self.channels = RIGID_CHANNELS
+            self.groups = RIGID_GROUPS
+            self.i_pos = [names.index(n) for n in ("x", "y", "z")]
+            self.i_vel = [names.index(n) for n in ("vx", "vy", "vz")]
+            self.i_om = [names.index(n) for n in ("wx", "wy", "wz")]
+            self.quat = all(n in names for n in _QUAT)
+            self.i_att = [names.index(n) for n in (_QUAT if self.quat else _EULER)]
+        else:
+            # generalised coordinates and their rates: one noise level per kind
+            self.channels = tuple(names)
+            rate = [i for i, n in enumerate(names) if n.endswith(("_vel", "_dot", "_rate")) or n.startswith(("v", "d"))]
+            coord = [i for i in range(len(names)) if i not in rate]
+            self.groups = {g: tuple(idx) for g, idx in (("coordinate", coord), ("rate", rate)) if idx}
+
+    def quaternion(self, s: torch.Tensor) -> torch.Tensor:
+        a = s[..., self.i_att]
+        if self.quat:
+            return a / a.norm(dim=-1, keepdim=True)
+        from risp_data.envs.rotations import euler_to_quat
+
+        return euler_to_quat(a[..., 0], a[..., 1], a[..., 2])
+
+    def error(self, pred: torch.Tensor, meas: torch.Tensor) -> torch.Tensor:
+        """pred − meas per channel (..., C); attitude as the rotation vector 2·Im(q_meas* ⊗ q_pred)."""
+        if not self.rigid:
+            return pred - meas
+        qp, qm = self.quaternion(pred), self.quaternion(meas)
+        w1, x1, y1, z1 = qm[..., 0], -qm[..., 1], -qm[..., 2], -qm[..., 3]  # q_meas*
+        w2, x2, y2, z2 = qp.unbind(-1)
+        rel = torch.stack(
+            [
+                w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+                w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+                w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+            ],
+            -1,
+        )
+        sign = torch.where(rel[..., :1] < 0, -1.0, 1.0).to(rel.dtype)
+        rot = 2.0 * sign * rel[..., 1:]
+        return torch.cat([pred[..., self.i_pos] - meas[..., self.i_pos], rot, pred[..., self.i_vel] - meas[..., self.i_vel],
+                          pred[..., self.i_om] - meas[..., self.i_om]], -1)
+
+    def group_of_channel(self) -> list[str]:
+        out = [""] * len(self.channels)
+        for g, idx in self.groups.items():
+            for i in idx:
+                out[i] = g
+        return out
+
+
+__all__ = ["Observer", "matched_simulator", "measured_columns", "sim_actions", "sim_states", "substeps"]

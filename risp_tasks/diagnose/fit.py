@@ -1,0 +1,387 @@
+"""Fitting simulator parameters to measured trajectories by multiple shooting (docs/diagnose.md §Fit).
+
+A trajectory is cut into short segments of H samples.  Each segment starts from the *measured* state and is
+integrated by the simulator (k sub-steps per sample); the residual is the normalised prediction error at the
+H following samples,
+
+    e[s, h, c] = (obs(Φ_θ^{h·k}(x̃_s))_c − obs(x̃_{s+h})_c) / σ_c ,     h = 1 … H,
+
+with σ_c the measurement-noise level of channel c (estimated from the data, :func:`estimate_noise`).
+Short segments keep the problem well conditioned (no chaotic divergence of long rollouts, no contact
+timing mismatch accumulating).  θ is found by Levenberg–Marquardt on ½‖e‖²; the Jacobian ∂e/∂θ is exact,
+by forward-mode automatic differentiation through the simulator (one tangent per free parameter).
+The Gauss–Newton (Laplace) covariance s²(JᵀJ)⁻¹ gives the parameter uncertainty.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import torch.autograd.forward_ad as fwAD
+
+from risp_data.errors import RispError
+
+from ..measured import Trajectory, quat_mul
+from .adapter import Observer, consistent_start, sim_actions, sim_states
+
+DTYPE = torch.float64
+
+#: Samples of command history used to initialise latent effect states (motor thrusts) at a segment start.
+WARMUP_SAMPLES = 30
+
+#: Lower limits on the estimated noise level per channel group (SI units): data that is exactly
+#: noise-free (or quantised) must not get infinite weight.
+NOISE_FLOOR = {"position": 1e-5, "attitude": 1e-5, "velocity": 1e-4, "angular velocity": 1e-4,
+               "coordinate": 1e-6, "rate": 1e-5}
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    horizon: int = 10  # H: samples per multiple-shooting segment
+    stride: int | None = None  # samples between segment starts (default H: non-overlapping)
+    max_segments: int = 600  # cap on segments used (seeded random subset beyond it)
+    max_iters: int = 25  # Levenberg–Marquardt iterations
+    tol: float = 1e-5  # stop when the relative decrease of ‖e‖² falls below this
+
+
+@dataclass
+class Segments:
+    """Multiple-shooting segments cut from measured trajectories (all float64 tensors)."""
+
+    s0: torch.Tensor  # (S, X) measured simulator state at the segment start
+    actions: torch.Tensor | None  # (S, H·k, A) zero-order hold of the measured command
+    meas: torch.Tensor  # (S, H+1, X) measured states at the samples of the segment (row 0 = s0)
+    traj_index: np.ndarray  # (S,) index of the source trajectory
+    start: np.ndarray  # (S,) sample index of the segment start
+    horizon: int
+    k: int  # simulator sub-steps per sample
+    sample_dt: float
+    past_actions: torch.Tensor | None = None  # (S, W·k, A) commands of the W samples before the start
+
+    def with_states(self, s0: torch.Tensor, meas: torch.Tensor) -> "Segments":
+        return dataclasses.replace(self, s0=s0, meas=meas)
+
+    @property
+    def count(self) -> int:
+        return int(self.s0.shape[0])
+
+
+def make_segments(sim, trajs: list[Trajectory], horizon: int, k: int, stride: int | None = None,
+                  max_segments: int | None = None, rng: np.random.Generator | None = None,
+                  params: torch.Tensor | None = None) -> Segments:
+    """Cut every trajectory into segments of ``horizon`` samples starting every ``stride`` samples.
+
+    ``params`` (P,): the model's parameters, used to convert measured thrusts to commands."""
+    stride = stride or horizon
+    s0, acts, past, meas, ti, st = [], [], [], [], [], []
+    for j, tr in enumerate(trajs):
+        a = sim_actions(sim, tr, params)
+        x = sim_states(sim, tr, a)
+        if a is not None:
+            a_pad = np.concatenate([np.repeat(a[:1], WARMUP_SAMPLES, 0), a], 0)
+        for i in range(0, tr.n - horizon, stride):
+            s0.append(x[i])
+            meas.append(x[i : i + horizon + 1])
+            if a is not None:
+                acts.append(np.repeat(a[i : i + horizon], k, axis=0))
+                past.append(np.repeat(a_pad[i : i + WARMUP_SAMPLES], k, axis=0))
+            ti.append(j)
+            st.append(i)
+    if not s0:
+        raise RispError(f"no trajectory is longer than the segment horizon ({horizon} samples); use a smaller --horizon")
+    idx = np.arange(len(s0))
+    if max_segments is not None and len(idx) > max_segments:
+        if rng is None:
+            raise ValueError("a generator is needed to subsample segments")
+        idx = np.sort(rng.choice(len(idx), size=max_segments, replace=False))
+    t = lambda arr: torch.as_tensor(np.stack([arr[i] for i in idx]), dtype=DTYPE)  # noqa: E731
+    return Segments(
+        s0=consistent_start(sim, t(s0)),
+        actions=t(acts) if acts else None,
+        past_actions=t(past) if past else None,
+        meas=t(meas),
+        traj_index=np.asarray(ti)[idx],
+        start=np.asarray(st)[idx],
+        horizon=horizon,
+        k=k,
+        sample_dt=float(np.median([tr.dt for tr in trajs])),
+    )
+
+
+# ------------------------------------------------------------------------------------------------
+# measurement noise
+# ------------------------------------------------------------------------------------------------
+def estimate_noise(sim, trajs: list[Trajectory], window: int = 7) -> dict[str, float]:
+    """Measurement-noise standard deviation per channel group (docs/diagnose.md §Noise).
+
+    A local quadratic (Savitzky–Golay, ``window`` samples) is fitted around every sample; for white noise
+    of level σ the centre residual has variance σ²(1 − h), h the filter's centre weight.  The median of
+    the squared residuals (÷ 0.4549, the median of χ²₁) is robust to impacts and other rare jumps.
+    Attitude: the rotation vector between the measured and the smoothed (renormalised) quaternion.
+    """
+    from scipy.signal import savgol_coeffs
+
+    obs = Observer(sim)
+    coef = savgol_coeffs(window, 2)
+    h = coef[window // 2]
+    sq: dict[str, list[np.ndarray]] = {g: [] for g in obs.groups}
+    for tr in trajs:
+        if tr.n < window + 2:
+            continue
+        if obs.rigid:
+            series = {"position": tr.pos, "attitude": tr.quat, "velocity": tr.vel, "angular velocity": tr.omega}
+        else:
+            x = sim_states(sim, tr, sim_actions(sim, tr))
+            series = {g: x[:, list(idx)] for g, idx in obs.groups.items()}
+        for g, y in series.items():
+            smooth = np.stack([np.convolve(y[:, c], coef[::-1], mode="valid") for c in range(y.shape[1])], 1)
+            centre = y[window // 2 : len(y) - window // 2]
+            if obs.rigid and g == "attitude":
+                # rotation vector between the smoothed and the measured attitude, 2·Im(q_s* ⊗ q)
+                smooth = smooth / np.linalg.norm(smooth, axis=1, keepdims=True)
+                rel = quat_mul(smooth * np.array([1.0, -1.0, -1.0, -1.0]), centre)
+                r = 2.0 * np.sign(rel[:, :1] + 1e-300) * rel[:, 1:]
+            else:
+                r = centre - smooth
+            sq[g].append((r**2).ravel())
+    out = {}
+    for g in obs.groups:
+        if not sq[g]:
+            raise RispError(f"trajectories are too short to estimate the measurement noise (need > {window + 2} samples)")
+        var = np.median(np.concatenate(sq[g])) / 0.4549 / (1.0 - h)
+        out[g] = float(max(np.sqrt(var), NOISE_FLOOR.get(g, 1e-8)))
+    return out
+
+
+def channel_sigma(obs: Observer, noise: dict[str, float]) -> torch.Tensor:
+    return torch.tensor([noise[g] for g in obs.group_of_channel()], dtype=DTYPE)
+
+
+# ------------------------------------------------------------------------------------------------
+# the model: which parameters are free, how they are scaled
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class Model:
+    """A simulator with some effects switched on, its fixed parameter values and its free parameters.
+
+    Free parameters are optimised in a scaled space θ = θ₀ + scale ⊙ z (z ≈ O(1)) and kept inside
+    their plausible ranges by projection.
+    """
+
+    sim: object
+    base: torch.Tensor  # (P,) all parameter values (fixed ones from the sidecar / defaults)
+    free: tuple[str, ...]
+    scale: torch.Tensor  # (F,)
+    lower: torch.Tensor  # (F,)
+    upper: torch.Tensor  # (F,)
+    effects: tuple[str, ...] = ()
+    free_index: list[int] = field(default_factory=list)
+
+    def __post_init__(self):
+        self.free_index = [self.sim.param_index(n) for n in self.free]
+        # keep a hair inside the limits: θ = θ₀ + scale·z is recomputed from z and may round outward
+        pad = 1e-9 * (1.0 + torch.abs(self.lower))
+        self.lower = torch.where(torch.isfinite(self.lower), self.lower + pad, self.lower)
+        pad = 1e-9 * (1.0 + torch.abs(self.upper))
+        self.upper = torch.where(torch.isfinite(self.upper), self.upper - pad, self.upper)
+
+    @property
+    def name(self) -> str:
+        return "+".join(self.effects) if self.effects else "base"
+
+    def params(self, z: torch.Tensor) -> torch.Tensor:
+        """z (F,) -> full parameter vector (P,), differentiable in z."""
+        if not self.free:
+            return self.base
+        theta = self.base[self.free_index] + self.scale * z
+        p = self.base.clone()
+        return p.index_put((torch.tensor(self.free_index),), theta)
+
+    def clamp(self, z: torch.Tensor) -> torch.Tensor:
+        theta = self.base[self.free_index] + self.scale * z
+        theta = torch.maximum(torch.minimum(theta, self.upper), self.lower)
+        return (theta - self.base[self.free_index]) / self.scale
+
+
+# ------------------------------------------------------------------------------------------------
+# residuals and Levenberg–Marquardt
+# ------------------------------------------------------------------------------------------------
+def latent_start(sim, params: torch.Tensor, seg: Segments) -> torch.Tensor:
+    """Start states with the unmeasured (latent) entries of enabled effects filled in from the past.
+
+    quadrotor ``motor_lag``: the rotor thrusts f are not measured (the f columns are the commands);
+    they are the effect's own first-order filter f ← f + (1 − e^(−h/τ))·(k_f·u − f) run over the
+    commands of the WARMUP_SAMPLES samples before the segment, from steady state — differentiable in τ.
+    """
+    if "motor_lag" not in getattr(sim, "effects", ()) or seg.past_actions is None:
+        return seg.s0
+    names = list(sim.state_names)
+    idx = [names.index(f"f{i}") for i in range(4)]
+    tau = params[sim.param_index("motor_lag.tau")]
+    k_f = params[sim.param_index("k_f")]
+    alpha = -torch.expm1(-sim.dt / tau)
+    target = k_f * seg.past_actions  # (S, W·k, 4)
+    f = target[:, 0]
+    for j in range(1, target.shape[1]):
+        f = f + alpha * (target[:, j - 1] - f)
+    f = f + alpha * (target[:, -1] - f)
+    s0 = seg.s0.clone()
+    s0[:, idx] = f
+    return s0
+
+
+def predict(sim, params: torch.Tensor, seg: Segments, horizon: int | None = None) -> torch.Tensor:
+    """Simulated states at the segment's samples, (S, H+1, X), from the measured start states."""
+    H = seg.horizon if horizon is None else horizon
+    S = seg.count
+    p = params.unsqueeze(0).expand(S, -1)
+    acts = None if seg.actions is None else seg.actions[:, : H * seg.k]
+    states = sim.rollout(p, latent_start(sim, params, seg), acts, H * seg.k)
+    return states[:, :: seg.k]
+
+
+def residuals(sim, obs: Observer, params: torch.Tensor, seg: Segments, sigma: torch.Tensor) -> torch.Tensor:
+    """Normalised multiple-shooting residuals e (S, H, C)."""
+    pred = predict(sim, params, seg)
+    return obs.error(pred[:, 1:], seg.meas[:, 1:]) / sigma
+
+
+@dataclass
+class FitResult:
+    model: Model
+    z: torch.Tensor
+    params: torch.Tensor  # (P,) fitted full parameter vector
+    values: dict[str, float]  # free parameter -> fitted value
+    stds: dict[str, float]  # free parameter -> 1-σ uncertainty (Gauss–Newton, correlation-inflated)
+    rss: float  # fitting-data ‖e‖²
+    n: int
+    iterations: int
+    history: list[float]
+
+
+def _jacobian(fn, z: torch.Tensor) -> torch.Tensor:
+    """J (n, F) of fn: R^F -> R^n by forward mode, one tangent per column."""
+    cols = []
+    with fwAD.dual_level():
+        for j in range(z.numel()):
+            tangent = torch.zeros_like(z)
+            tangent[j] = 1.0
+            out = fn(fwAD.make_dual(z, tangent))
+            cols.append(fwAD.unpack_dual(out).tangent.reshape(-1))
+    return torch.stack(cols, 1)
+
+
+def fit_model(model: Model, obs: Observer, seg: Segments, sigma: torch.Tensor, cfg: FitConfig,
+              progress=None) -> FitResult:
+    """Levenberg–Marquardt on ½‖e(z)‖² with the exact forward-mode Jacobian."""
+    sim = model.sim
+    fn = lambda z: residuals(sim, obs, model.params(z), seg, sigma).reshape(-1)  # noqa: E731
+    F = len(model.free)
+    z = torch.zeros(F, dtype=DTYPE)
+    with torch.no_grad():
+        r = fn(z)
+    rss = float((r**2).sum())
+    history = [rss]
+    it = 0
+    J = None
+    lam = 1e-3
+    if F:
+        try:
+            J = _jacobian(fn, z)
+        except (RuntimeError, NotImplementedError):
+            # the simulator has no forward-mode derivative (e.g. an adjoint custom autograd Function)
+            return _fit_lbfgs(model, fn, seg, cfg, z, rss)
+        for it in range(1, cfg.max_iters + 1):
+            if it > 1:
+                J = _jacobian(fn, z)
+            if not bool(torch.isfinite(J).all()):
+                break  # the simulator is unstable around z: keep the last good point
+            A = J.T @ J
+            g = J.T @ r
+            improved = False
+            for _ in range(8):
+                D = torch.diag(torch.clamp(torch.diagonal(A), min=1e-12))
+                try:
+                    step = torch.linalg.solve(A + lam * D, -g)
+                except RuntimeError:
+                    lam *= 10
+                    continue
+                if not bool(torch.isfinite(step).all()):
+                    lam *= 10
+                    continue
+                z_new = model.clamp(z + step)
+                with torch.no_grad():
+                    r_new = fn(z_new)
+                rss_new = float((r_new**2).sum())
+                if np.isfinite(rss_new) and rss_new < rss:
+                    improved = True
+                    rel = (rss - rss_new) / max(rss, 1e-300)
+                    z, r, rss = z_new, r_new, rss_new
+                    lam = max(lam / 3, 1e-9)
+                    break
+                lam *= 4
+            history.append(rss)
+            if progress is not None:
+                progress(model.name, it, rss)
+            # a change of 0.01 in the normalised RSS (a χ² value) is statistically irrelevant
+            if not improved or rel < cfg.tol or rel * rss < 1e-2:
+                break
+        # J from the last iteration's start point: one step stale at most, fine for the covariance
+    n = r.numel()
+    params = model.params(z).detach()
+    values = {name: float(params[i]) for name, i in zip(model.free, model.free_index)}
+    stds = parameter_std(model, J, rss, n, seg.horizon) if F else {}
+    return FitResult(model, z.detach(), params, values, stds, rss, n, it, history)
+
+
+def parameter_std(model: Model, J: torch.Tensor, rss: float, n: int, horizon: int) -> dict[str, float]:
+    """1-σ of the free parameters from the Gauss–Newton / Laplace covariance s²(JᵀJ)⁻¹.
+
+    s² = RSS/(n − F) absorbs a mis-estimated noise level; residuals within one segment are correlated
+    (errors accumulate along the horizon), so the covariance is inflated by H — conservative.
+    """
+    F = J.shape[1]
+    s2 = rss / max(n - F, 1)
+    A = J.T @ J
+    cov_z = torch.linalg.pinv(A) * s2 * horizon
+    std = torch.sqrt(torch.clamp(torch.diagonal(cov_z), min=0)) * model.scale
+    return {name: float(v) for name, v in zip(model.free, std)}
+
+
+def _fit_lbfgs(model: Model, fn, seg: Segments, cfg: FitConfig, z0: torch.Tensor, rss0: float) -> FitResult:
+    """Fallback for simulators with reverse-mode derivatives only: L-BFGS-B on ½‖e‖² (exact gradient by
+    backpropagation); the covariance uses L-BFGS's inverse-Hessian estimate in place of (JᵀJ)⁻¹."""
+    from scipy.optimize import minimize
+
+    history = [rss0]
+
+    def f(zn):
+        z = torch.tensor(zn, dtype=DTYPE, requires_grad=True)
+        r = fn(z)
+        loss = 0.5 * (r**2).sum()
+        if not bool(torch.isfinite(loss)):
+            return 1e300, np.zeros_like(zn)
+        loss.backward()
+        history.append(2 * float(loss))
+        return float(loss), z.grad.numpy().copy()
+
+    lo = ((model.lower - model.base[model.free_index]) / model.scale).numpy()
+    hi = ((model.upper - model.base[model.free_index]) / model.scale).numpy()
+    bounds = [(None if not np.isfinite(a) else float(a), None if not np.isfinite(b) else float(b)) for a, b in zip(lo, hi)]
+    res = minimize(f, z0.numpy(), jac=True, method="L-BFGS-B", bounds=bounds, options={"maxiter": 3 * cfg.max_iters})
+    z = torch.tensor(res.x, dtype=DTYPE)
+    with torch.no_grad():
+        r = fn(z)
+    rss = float((r**2).sum())
+    n = r.numel()
+    params = model.params(z).detach()
+    values = {name: float(params[i]) for name, i in zip(model.free, model.free_index)}
+    F = len(model.free)
+    h_inv = torch.tensor(np.asarray(res.hess_inv.todense()), dtype=DTYPE)  # ≈ (JᵀJ)⁻¹ for ½‖e‖²
+    cov_z = h_inv * rss / max(n - F, 1) * seg.horizon
+    std = torch.sqrt(torch.clamp(torch.diagonal(cov_z), min=0)) * model.scale
+    stds = {name: float(v) for name, v in zip(model.free, std)}
+    return FitResult(model, z, params, values, stds, rss, n, int(res.nit), history)

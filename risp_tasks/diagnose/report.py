@@ -1,0 +1,262 @@
+"""report.md, report.json and the PNG plots of a diagnosis (written atomically: temp name, then os.replace)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .fit import make_segments, predict
+from .residuals import one_step, unit_of
+
+PLOTS = {
+    "residuals_time": "residuals_over_time.png",
+    "residuals_regressors": "residuals_vs_regressors.png",
+    "gain": "gain_overlay.png",
+    "ranking": "ranking.png",
+}
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def _savefig(fig, path: Path) -> None:
+    tmp = path.with_name(path.stem + ".tmp.png")
+    fig.savefig(tmp, dpi=110, bbox_inches="tight")
+    os.replace(tmp, path)
+
+
+def _json_default(o):
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(type(o))
+
+
+def _clean(o):
+    """NaN/inf -> None so that report.json is strict JSON."""
+    if isinstance(o, float):
+        return o if math.isfinite(o) else None
+    if isinstance(o, dict):
+        return {k: _clean(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_clean(v) for v in o]
+    return o
+
+
+# ------------------------------------------------------------------------------------------------
+# plots
+# ------------------------------------------------------------------------------------------------
+def plot_residuals_time(path: Path, os_base, os_ext, names: tuple[str, str]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    A = os_base.accel.shape[1]
+    fig, axes = plt.subplots(A, 1, figsize=(9, 1.6 * A + 0.6), sharex=True, squeeze=False)
+    trajs = np.unique(os_base.traj)[:3]
+    for c in range(A):
+        ax = axes[c, 0]
+        for j in trajs:
+            m = os_base.traj == j
+            ax.plot(os_base.t[m], os_base.accel[m, c], lw=0.8, color="C3", alpha=0.8, label=names[0] if j == trajs[0] else None)
+            if os_ext is not None:
+                ax.plot(os_ext.t[m], os_ext.accel[m, c], lw=0.8, color="C0", alpha=0.8, label=names[1] if j == trajs[0] else None)
+        ax.set_ylabel(os_base.accel_names[c], fontsize=8)
+        ax.axhline(0, color="k", lw=0.5)
+    axes[0, 0].legend(fontsize=7, loc="upper right")
+    axes[-1, 0].set_xlabel("time [s] (held-out trajectories, up to 3)")
+    fig.suptitle("one-step acceleration residuals a_meas − a_model (m/s², rad/s²)", fontsize=10)
+    _savefig(fig, path)
+    plt.close(fig)
+
+
+def plot_residuals_regressors(path: Path, os_base) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    regs = [k for k in os_base.regressors if np.ptp(os_base.regressors[k]) > 0]
+    A = os_base.accel.shape[1]
+    if not regs:
+        regs = ["time [s]"]
+    fig, axes = plt.subplots(A, len(regs), figsize=(2.4 * len(regs) + 0.5, 1.6 * A + 0.6), squeeze=False)
+    for c in range(A):
+        for r, name in enumerate(regs):
+            ax = axes[c, r]
+            x = os_base.regressors.get(name, os_base.t)
+            y = os_base.accel[:, c]
+            ax.plot(x, y, ".", ms=1.5, alpha=0.35, color="C3")
+            # binned means show the systematic part under the noise
+            if np.ptp(x) > 0:
+                edges = np.quantile(x, np.linspace(0, 1, 11))
+                idx = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, 9)
+                mids = [x[idx == b].mean() for b in range(10) if np.any(idx == b)]
+                means = [y[idx == b].mean() for b in range(10) if np.any(idx == b)]
+                ax.plot(mids, means, "-o", ms=2.5, color="k", lw=1)
+            ax.axhline(0, color="k", lw=0.4)
+            ax.tick_params(labelsize=6)
+            if c == A - 1:
+                ax.set_xlabel(name, fontsize=7)
+            if r == 0:
+                ax.set_ylabel(os_base.accel_names[c], fontsize=7)
+    fig.suptitle("base-model one-step acceleration residuals vs candidate regressors (black: binned means)", fontsize=9)
+    _savefig(fig, path)
+    plt.close(fig)
+
+
+def plot_gain(path: Path, base_ev, ext_ev, held_trajs, horizon: int) -> None:
+    """Measured vs base vs extended open-loop rollouts, restarted from the measured state every H_r samples."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    tr = max(held_trajs, key=lambda t: t.n)
+    H = max(1, min(horizon, tr.n - 1))
+    series = {}
+    for label, ev in (("base", base_ev), ("extended", ext_ev)):
+        sim = ev.fit.model.sim
+        seg = make_segments(sim, [tr], horizon=H, k=ev.k, stride=H, params=ev.fit.model.base)
+        with torch.no_grad():
+            pred = predict(sim, ev.fit.params, seg).numpy()  # (S, H+1, X)
+        series[label] = (seg, pred, list(sim.state_names))
+    seg, _, names = series["base"]
+    meas_names = names
+    chans = [n for n in ("x", "y", "z", "vx", "vy", "vz") if n in meas_names] or meas_names[:4]
+    fig, axes = plt.subplots(len(chans), 1, figsize=(9, 1.5 * len(chans) + 0.6), sharex=True, squeeze=False)
+    for c, name in enumerate(chans):
+        ax = axes[c, 0]
+        j = meas_names.index(name)
+        ax.plot(tr.t, _measured(tr, name, seg, series["base"][2]), color="k", lw=1.0, label="measured")
+        for label, color in (("base", "C3"), ("extended", "C0")):
+            sg, pred, nm = series[label]
+            jj = nm.index(name)
+            for s in range(sg.count):
+                i0 = sg.start[s]
+                tt = tr.t[i0 : i0 + H + 1]
+                ax.plot(tt, pred[s, : len(tt), jj], color=color, lw=0.9, alpha=0.9,
+                        label=(f"{label}: {ev_name(base_ev if label == 'base' else ext_ev)}" if s == 0 else None))
+        ax.set_ylabel(name, fontsize=8)
+        _ = j
+    axes[0, 0].legend(fontsize=7, loc="upper right")
+    axes[-1, 0].set_xlabel(f"time [s] — held-out trajectory {tr.name}; open-loop rollouts of {H} samples from measured states")
+    _savefig(fig, path)
+    plt.close(fig)
+
+
+def ev_name(ev) -> str:
+    return ev.fit.model.name
+
+
+def _measured(tr, name, seg, names):
+    from .adapter import measured_columns
+
+    return measured_columns(tr)[name]
+
+
+def plot_ranking(path: Path, report: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [r for r in report["ranking"] if r["model"] != "base"]
+    if not rows:
+        return
+    names = [r["model"] for r in rows][::-1]
+    vals = [r["delta_bic"] for r in rows][::-1]
+    fig, ax = plt.subplots(figsize=(7, 0.35 * len(rows) + 1.2))
+    ax.barh(names, vals, color=["C0" if v >= report["thresholds"]["delta_bic_min"] else "C7" for v in vals])
+    ax.axvline(report["thresholds"]["delta_bic_min"], color="k", ls="--", lw=0.8, label="ΔBIC threshold")
+    ax.set_xscale("symlog")
+    ax.set_xlabel("held-out ΔBIC vs base (larger is better)")
+    ax.legend(fontsize=7)
+    ax.set_title(f"cause: {report['cause']}", fontsize=10)
+    _savefig(fig, path)
+    plt.close(fig)
+
+
+# ------------------------------------------------------------------------------------------------
+# markdown
+# ------------------------------------------------------------------------------------------------
+def _fmt(v, digits=4) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "–"
+    return f"{v:.{digits}g}"
+
+
+def markdown(report: dict) -> str:
+    L = []
+    L.append(f"# Diagnosis: {report['env']}\n")
+    L.append(f"**Cause: `{report['cause']}`** — {report['reason']}.\n")
+    if report["parameters"]:
+        L.append("## Fitted parameters (model `" + report["selected_model"] + "`)\n")
+        L.append("| parameter | value | ± 1σ | unit |\n|---|---|---|---|")
+        for n, p in report["parameters"].items():
+            L.append(f"| {n} | {_fmt(p['value'])} | {_fmt(p['std'], 2)} | {p['unit']} |")
+        L.append("")
+    L.append("## Held-out error: base vs `" + report["compared_model"] + "`\n")
+    L.append("| quantity | group | base | extended | gain |\n|---|---|---|---|---|")
+    be, ee, g = report["base_error"], report["extended_error"], report["gain"]
+    for key, label in (("one_step", "one-step error"), ("one_step_acceleration", "one-step acceleration residual"),
+                       ("rollout", f"rollout error after {be['rollout_horizon_samples']} samples ({be['rollout_horizon_s']:.3g} s)")):
+        for grp in be[key]:
+            unit = unit_of(grp) if key != "one_step_acceleration" else ("m/s²" if grp == "acceleration" else "rad/s²")
+            L.append(f"| {label} | {grp} [{unit}] | {_fmt(be[key][grp])} | {_fmt(ee[key][grp])} | {g[key][grp]:+.1%} |")
+    L.append(f"| normalised held-out RSS | all | {_fmt(be['normalized_rss'])} | {_fmt(ee['normalized_rss'])} | {g['normalized_rss']:+.1%} |")
+    L.append(f"| residual / noise floor ρ | all | {_fmt(be['noise_floor_ratio'], 3)} | {_fmt(ee['noise_floor_ratio'], 3)} | |\n")
+    L.append("## Ranking (held-out BIC)\n")
+    L.append("| model | k | held-out RSS | ΔBIC vs base | RSS reduction | ρ (noise floor ratio) |\n|---|---|---|---|---|---|")
+    for r in report["ranking"]:
+        L.append(f"| {r['model']} | {r['k']} | {_fmt(r['held_out_rss'])} | {r['delta_bic']:.1f} | {r['rss_reduction']:+.1%} | {_fmt(r['noise_floor_ratio'], 3)} |")
+    t = report["thresholds"]
+    L.append(f"\nThresholds: ΔBIC ≥ {t['delta_bic_min']:g} and RSS reduction ≥ {t['min_rss_reduction']:.0%} to beat a model; "
+             f"ρ ≤ {t['noise_floor_ratio_max']:g} counts as explained (docs/diagnose.md).\n")
+    if report["candidate_parameters"]:
+        L.append("## Fitted parameters of every candidate\n")
+        L.append("| model | parameter | value | ± 1σ |\n|---|---|---|---|")
+        for m, ps in report["candidate_parameters"].items():
+            for n, p in ps.items():
+                L.append(f"| {m} | {n} | {_fmt(p['value'])} | {_fmt(p['std'], 2)} |")
+        L.append("")
+    s = report["split"]
+    L.append("## Data and split\n")
+    L.append(f"- {len(report['data']['files'])} file(s), {report['data']['samples']} samples, Δ = {report['data']['sample_interval_s']:.5g} s; sidecar: {report['data']['sidecar']}")
+    L.append(f"- split by {s['mode']} (seed {s['seed']}): fitting {', '.join(s['fit'])}; held out {', '.join(s['held_out'])}")
+    n = report["noise"]
+    L.append("- estimated measurement noise (1σ): " + ", ".join(f"{k} {_fmt(v, 3)} {unit_of(k)}" for k, v in n.items()))
+    f = report["fit"]
+    L.append(f"- multiple shooting: segments of {f['horizon_samples']} samples, {f['substeps_per_sample']} simulator step(s) of {f['sim_dt_s']:.4g} s per sample")
+    L.append(f"- runtime {report['runtime_s']:.1f} s\n")
+    L.append("## Plots\n")
+    for key, fn in PLOTS.items():
+        L.append(f"![{key}]({fn})")
+    return "\n".join(L) + "\n"
+
+
+def write_report(report: dict, cfg, evaluated, base_ev, ext_ev, fit_trajs, held_trajs) -> None:
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if cfg.plots:
+        os_b = one_step(base_ev.fit.model.sim, base_ev.obs, base_ev.fit.params, held_trajs, base_ev.k)
+        os_e = None
+        if ext_ev is not base_ev:
+            os_e = one_step(ext_ev.fit.model.sim, ext_ev.obs, ext_ev.fit.params, held_trajs, ext_ev.k)
+        plot_residuals_time(out / PLOTS["residuals_time"], os_b, os_e, ("base", ext_ev.fit.model.name))
+        plot_residuals_regressors(out / PLOTS["residuals_regressors"], os_b)
+        plot_gain(out / PLOTS["gain"], base_ev, ext_ev, held_trajs, report["base_error"]["rollout_horizon_samples"])
+        plot_ranking(out / PLOTS["ranking"], report)
+        report["plots"] = {k: str(out / v) for k, v in PLOTS.items()}
+    _atomic_write_text(out / "report.json", json.dumps(_clean(report), indent=2, default=_json_default))
+    _atomic_write_text(out / "report.md", markdown(report))

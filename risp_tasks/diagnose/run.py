@@ -1,0 +1,240 @@
+"""The diagnose pipeline: fit the base model, analyse residuals, try the candidate effects, name the cause.
+
+``DiagnoseConfig`` (plain values) -> :func:`diagnose` -> report dict (and files under ``out``).
+Method, statistics and thresholds: docs/diagnose.md.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from risp_data.errors import RispError
+
+from ..measured import Trajectory, load_measured
+from . import candidates as cands
+from .adapter import Observer
+from .fit import FitConfig, FitResult, channel_sigma, estimate_noise, fit_model, make_segments
+from .residuals import accel_rms, group_rms, one_step, rollout_error
+from .select import RHO_MAX, Score, decide, held_out_score, noise_floor
+
+
+@dataclass(frozen=True)
+class DiagnoseConfig:
+    data: tuple[str, ...]
+    env: str
+    out: str | None
+    seed: int
+    held_out: float = 0.3  # fraction of trajectories (or of the time span of a single one) held out
+    horizon: int = 10  # multiple-shooting segment length [samples]
+    rollout_horizon: int | None = None  # open-loop horizon of the reported rollout error (default 3·horizon)
+    max_segments: int = 600
+    max_iters: int = 25
+    pairs_top: int = 3  # pairs are formed among this many best single effects
+    effects: tuple[str, ...] | None = None  # restrict the candidate library (None: all of the simulator's)
+    limit: int | None = None  # use only the first N files
+    side: float | None = None  # cube sidecar overrides [m]
+    mass: float | None = None  # [kg]
+    plots: bool = True
+    progress: bool = True
+
+
+# ------------------------------------------------------------------------------------------------
+# split
+# ------------------------------------------------------------------------------------------------
+def split_trajectories(trajs: list[Trajectory], held_out: float, seed: int) -> tuple[list[Trajectory], list[Trajectory], dict]:
+    """Whole trajectories (seeded permutation) when there are several, else the last part of the one."""
+    if not 0.0 < held_out < 1.0:
+        raise RispError(f"--held-out must lie in (0, 1), got {held_out}")
+    if len(trajs) >= 2:
+        rng = np.random.default_rng(np.random.SeedSequence([int(seed), 1]))
+        order = rng.permutation(len(trajs))
+        n_held = min(max(1, int(round(held_out * len(trajs)))), len(trajs) - 1)
+        held = sorted(order[:n_held].tolist())
+        fit = sorted(order[n_held:].tolist())
+        info = {"mode": "trajectories", "fit": [trajs[i].name for i in fit], "held_out": [trajs[i].name for i in held],
+                "held_out_fraction": held_out, "seed": int(seed)}
+        return [trajs[i] for i in fit], [trajs[i] for i in held], info
+    tr = trajs[0]
+    cut = int(round((1.0 - held_out) * tr.n))
+    if cut < 10 or tr.n - cut < 10:
+        raise RispError(f"{tr.path}: too short ({tr.n} samples) to split by time into fitting and held-out parts")
+    info = {"mode": "time", "fit": [f"{tr.name}[0:{cut}]"], "held_out": [f"{tr.name}[{cut}:{tr.n}]"],
+            "split_time_s": float(tr.t[cut]), "held_out_fraction": held_out, "seed": int(seed)}
+    return [tr.slice(0, cut, "[fit]")], [tr.slice(cut, tr.n, "[held-out]")], info
+
+
+# ------------------------------------------------------------------------------------------------
+# one model: fit, score, noise floor, errors
+# ------------------------------------------------------------------------------------------------
+@dataclass
+class Evaluated:
+    fit: FitResult
+    score: Score
+    k: int
+    obs: Observer
+
+
+def _segments(model, trajs, cfg: DiagnoseConfig, k: int, salt: int):
+    rng = np.random.default_rng(np.random.SeedSequence([int(cfg.seed), 2, salt]))
+    return make_segments(model.sim, trajs, cfg.horizon, k, max_segments=cfg.max_segments, rng=rng, params=model.base)
+
+
+def evaluate_model(effects: tuple[str, ...], fit_trajs, held_trajs, cfg: DiagnoseConfig, noise, bar=None) -> Evaluated:
+    sidecar = fit_trajs[0].sidecar
+    model, k = cands.build_model(cfg.env, effects, sidecar, fit_trajs[0].dt)
+    obs = Observer(model.sim)
+    sigma = channel_sigma(obs, noise)
+    seg_fit = _segments(model, fit_trajs, cfg, k, salt=0)
+    seg_held = _segments(model, held_trajs, cfg, k, salt=1)
+
+    def progress(name, it, rss):
+        if bar is not None:
+            bar.set_postfix_str(f"{name} it {it} rss {rss:.4g}")
+
+    fit = fit_model(model, obs, seg_fit, sigma, FitConfig(horizon=cfg.horizon, max_segments=cfg.max_segments,
+                                                          max_iters=cfg.max_iters), progress)
+    score = held_out_score(fit, obs, seg_held, sigma)
+    score.noise_rss = noise_floor(fit, obs, seg_held, sigma, noise, seed=cfg.seed)
+    score.rho = score.rss / max(score.noise_rss, 1e-300)
+    return Evaluated(fit, score, k, obs)
+
+
+def errors(ev: Evaluated, held_trajs, cfg: DiagnoseConfig) -> dict:
+    """Held-out one-step residuals and multi-step rollout error of a fitted model (SI units)."""
+    sim, params = ev.fit.model.sim, ev.fit.params
+    os_ = one_step(sim, ev.obs, params, held_trajs, ev.k)
+    H_r = cfg.rollout_horizon or 3 * cfg.horizon
+    H_r = min(H_r, min(tr.n for tr in held_trajs) - 1)
+    return {
+        "one_step": group_rms(ev.obs, os_.error),
+        "one_step_acceleration": accel_rms(ev.obs, os_),
+        "rollout": rollout_error(sim, ev.obs, params, held_trajs, ev.k, H_r),
+        "rollout_horizon_samples": int(H_r),
+        "rollout_horizon_s": float(H_r * held_trajs[0].dt),
+        "normalized_rss": ev.score.rss,
+        "noise_floor_ratio": ev.score.rho,
+    }
+
+
+def gain(base: dict, ext: dict) -> dict:
+    """Relative reduction 1 − ext/base of every held-out error (positive = the extended model is better)."""
+    out = {}
+    for key in ("one_step", "one_step_acceleration", "rollout"):
+        out[key] = {g: (1.0 - ext[key][g] / base[key][g]) if base[key][g] > 0 else 0.0 for g in base[key]}
+    out["normalized_rss"] = 1.0 - ext["normalized_rss"] / base["normalized_rss"] if base["normalized_rss"] > 0 else 0.0
+    return out
+
+
+def _score_row(s: Score, base: Score) -> dict:
+    return {"model": s.name, "effects": list(s.effects), "k": s.k, "held_out_rss": s.rss, "bic": s.bic,
+            "delta_bic": s.delta_bic(base), "rss_reduction": s.rss_reduction(base), "noise_floor_ratio": s.rho}
+
+
+# ------------------------------------------------------------------------------------------------
+# the pipeline
+# ------------------------------------------------------------------------------------------------
+def diagnose(cfg: DiagnoseConfig) -> dict:
+    """Run the whole diagnosis; writes report.md/report.json/plots under ``cfg.out`` when it is set.
+
+    Runs single-threaded: the simulators' many tiny batched ops are 10–100× slower with intra-op
+    threads on a loaded 2-core machine (thread hand-off dominates); the previous setting is restored.
+    """
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return _diagnose(cfg)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _diagnose(cfg: DiagnoseConfig) -> dict:
+    t0 = time.perf_counter()
+    torch.manual_seed(int(cfg.seed))  # nothing below draws from it; set so that stray use is reproducible
+    overrides = {"side": cfg.side, "mass": cfg.mass} if cfg.env == "cube" else {}
+    trajs = load_measured(cfg.data, cfg.env, overrides=overrides, limit=cfg.limit)
+    if cfg.horizon < 1:
+        raise RispError(f"--horizon must be at least 1, got {cfg.horizon}")
+    cands.check_supported(cfg.env, trajs[0].sidecar)
+    fit_trajs, held_trajs, split = split_trajectories(trajs, cfg.held_out, cfg.seed)
+
+    library = cands.effect_names(cfg.env)
+    if cfg.effects is not None:
+        unknown = [e for e in cfg.effects if e not in library]
+        if unknown:
+            raise RispError(f"unknown effect(s) {', '.join(unknown)} for {cfg.env}; choose from: {', '.join(library)}")
+        library = tuple(cfg.effects)
+
+    base_model, _ = cands.build_model(cfg.env, (), fit_trajs[0].sidecar, fit_trajs[0].dt)
+    noise = estimate_noise(base_model.sim, fit_trajs)
+
+    n_total = 1 + len(library) + len(cands.pair_candidates(list(library), cfg.pairs_top))
+    bar = tqdm(total=n_total, desc="diagnose: fitting models", disable=not cfg.progress, leave=False)
+    evaluated: dict[str, Evaluated] = {}
+
+    def run(effects):
+        ev = evaluate_model(effects, fit_trajs, held_trajs, cfg, noise, bar)
+        evaluated[ev.fit.model.name] = ev
+        bar.update(1)
+        return ev
+
+    base = run(())
+    singles = [run((e,)) for e in library]
+    ranked_singles = [s.score.name for s in sorted(singles, key=lambda ev: ev.score.bic)]
+    pairs = [run(p) for p in cands.pair_candidates(ranked_singles, cfg.pairs_top)]
+    bar.close()
+
+    decision = decide(base.score, [s.score for s in singles], [p.score for p in pairs])
+    chosen = evaluated[decision.selected.name]
+    ext_for_gain = chosen if decision.selected.name != "base" else (
+        evaluated[decision.best_candidate.name] if decision.best_candidate is not None else base)
+
+    base_err = errors(base, held_trajs, cfg)
+    ext_err = errors(ext_for_gain, held_trajs, cfg)
+    ranking = [_score_row(ev.score, base.score) for ev in sorted(evaluated.values(), key=lambda ev: ev.score.bic)]
+
+    def params_of(ev: Evaluated) -> dict:
+        sim = ev.fit.model.sim
+        units = {}
+        for e in ev.fit.model.effects:
+            eff = sim.spec.available_effects[e]
+            for p, u in zip(eff.param_names, eff.units or ("",) * len(eff.param_names)):
+                units[f"{e}.{p}"] = u
+        return {n: {"value": v, "std": ev.fit.stds.get(n, float("nan")), "unit": units.get(n, "")}
+                for n, v in ev.fit.values.items()}
+
+    report = {
+        "env": cfg.env,
+        "cause": decision.cause,
+        "reason": decision.reason,
+        "selected_model": decision.selected.name,
+        "compared_model": ext_for_gain.fit.model.name,
+        "parameters": params_of(chosen) if decision.cause not in ("none",) else {},
+        "candidate_parameters": {name: params_of(ev) for name, ev in evaluated.items() if ev.fit.model.effects},
+        "fixed_parameters": {n: float(v) for n, v in zip(base.fit.model.sim.param_names, base.fit.model.base)},
+        "ranking": ranking,
+        "base_error": base_err,
+        "extended_error": ext_err,
+        "gain": gain(base_err, ext_err),
+        "noise": noise,
+        "thresholds": {"delta_bic_min": 10.0, "min_rss_reduction": 0.05, "noise_floor_ratio_max": RHO_MAX},
+        "split": split,
+        "seed": int(cfg.seed),
+        "data": {"files": [tr.path for tr in trajs], "samples": int(sum(tr.n for tr in trajs)),
+                 "sample_interval_s": float(trajs[0].dt), "sidecar": trajs[0].sidecar.source,
+                 "velocities_estimated": bool(any(tr.vel_estimated for tr in trajs if tr.vel is not None))},
+        "fit": {"horizon_samples": cfg.horizon, "substeps_per_sample": base.k, "sim_dt_s": base.fit.model.sim.dt,
+                "fit_segments": None, "iterations": {n: ev.fit.iterations for n, ev in evaluated.items()}},
+        "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg).items()},
+        "runtime_s": None,
+    }
+    report["runtime_s"] = time.perf_counter() - t0
+    if cfg.out is not None:
+        from .report import write_report
+
+        write_report(report, cfg, evaluated, base, ext_for_gain, fit_trajs, held_trajs)
+    return report

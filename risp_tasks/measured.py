@@ -1,0 +1,432 @@
+"""Measured trajectories: CSV files with a header in SI units plus a JSON sidecar (docs/measured-data.md).
+
+    >>> from risp_tasks.measured import load_measured
+    >>> trajs = load_measured(["data/cube-tosses"], env="cube")
+
+Every trajectory is validated on reading; anything a user can fix (missing column, non-increasing time,
+NaN, a quaternion that is not unit length, a value in the wrong unit) raises :class:`RispError` with one
+line naming the file and the column.  Velocities absent from the file are estimated by central
+differences of the positions (linear, world frame) and of the quaternion (angular, body frame,
+ω = 2·Im(q* ⊗ q̇)) and flagged as estimated.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from risp_data.errors import RispError
+
+POSE_COLUMNS = ("t", "x", "y", "z", "qw", "qx", "qy", "qz")
+VEL_COLUMNS = ("vx", "vy", "vz")
+OMEGA_COLUMNS = ("wx", "wy", "wz")
+THRUST_COLUMNS = ("f0", "f1", "f2", "f3")
+
+#: Constants of the real cube in data/cube-tosses (its README); used when that folder has no sidecar.
+CONTACTNETS_CUBE = {"env": "cube", "side": 0.1048, "mass": 0.37, "gravity": 9.81}
+
+# Plausible ranges of sidecar values in SI units: outside them the value is almost surely in another
+# unit (a cube side of 104.8 "m" is millimetres), so reading stops with an error naming the key.
+SIDECAR_RANGES: dict[str, dict[str, tuple[float, float]]] = {
+    "cube": {"side": (0.005, 2.0), "mass": (0.001, 100.0), "gravity": (1.0, 30.0)},
+    "quadrotor": {
+        "mass": (0.01, 50.0),
+        "arm_length": (0.02, 3.0),
+        "inertia": (1e-6, 20.0),
+        "yaw_torque_coefficient": (0.0, 1.0),
+        "gravity": (1.0, 30.0),
+    },
+    "hand": {"gravity": (0.0, 30.0)},
+    "rod": {"gravity": (0.0, 30.0)},
+}
+REQUIRED_SIDECAR_KEYS = {"cube": ("side", "mass"), "quadrotor": ("mass",), "hand": (), "rod": ()}
+
+MAX_ABS_POSITION = 1000.0  # m
+MAX_SPEED = 100.0  # m/s
+MAX_ANGULAR_SPEED = 300.0  # rad/s
+QUAT_NORM_TOL = 1e-2  # | |q| - 1 | above this is not a unit quaternion (rounding in CSVs is ~1e-7)
+
+
+@dataclass(frozen=True)
+class Sidecar:
+    """The JSON sidecar: environment name and nominal physical parameters (SI units)."""
+
+    env: str
+    values: dict
+    source: str  # path of the JSON file, or a note saying where the values came from
+
+    def get(self, key: str, default=None):
+        return self.values.get(key, default)
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """One measured trajectory, validated, SI units.
+
+    ``extra`` holds further numeric columns keyed by name (for environments whose state is not a rigid
+    body pose: hand, rod; columns named as the simulator's state names, actions ``u0…``).
+    """
+
+    name: str
+    path: str
+    t: np.ndarray  # (N,)
+    pos: np.ndarray | None  # (N, 3) world frame (None: environment without a rigid-body pose)
+    quat: np.ndarray | None  # (N, 4) scalar-first, body to world, unit, sign-continuous
+    vel: np.ndarray | None  # (N, 3) world frame
+    omega: np.ndarray | None  # (N, 3) body frame
+    thrust: np.ndarray | None  # (N, 4) newtons (quadrotor) or None
+    sidecar: Sidecar
+    vel_estimated: bool = False
+    omega_estimated: bool = False
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        return len(self.t)
+
+    @property
+    def dt(self) -> float:
+        """Median sampling interval [s]."""
+        return float(np.median(np.diff(self.t)))
+
+    def slice(self, start: int, stop: int, suffix: str) -> "Trajectory":
+        """Samples [start, stop) as a new trajectory (time kept as measured)."""
+        sl = slice(start, stop)
+        return Trajectory(
+            name=f"{self.name}{suffix}",
+            path=self.path,
+            t=self.t[sl],
+            pos=None if self.pos is None else self.pos[sl],
+            quat=None if self.quat is None else self.quat[sl],
+            vel=None if self.vel is None else self.vel[sl],
+            omega=None if self.omega is None else self.omega[sl],
+            thrust=None if self.thrust is None else self.thrust[sl],
+            sidecar=self.sidecar,
+            vel_estimated=self.vel_estimated,
+            omega_estimated=self.omega_estimated,
+            extra={k: v[sl] for k, v in self.extra.items()},
+        )
+
+
+# ------------------------------------------------------------------------------------------------
+# file discovery and sidecars
+# ------------------------------------------------------------------------------------------------
+def expand_paths(paths: list[str] | tuple[str, ...]) -> list[Path]:
+    """Files and folders -> sorted list of CSV files (folders contribute their ``*.csv``)."""
+    if not paths:
+        raise RispError("no measured data given: pass one or more CSV files or folders")
+    files: list[Path] = []
+    for p in map(Path, paths):
+        if p.is_dir():
+            found = sorted(p.glob("*.csv"))
+            if not found:
+                raise RispError(f"{p}: folder contains no .csv files")
+            files += found
+        elif p.is_file():
+            if p.suffix.lower() != ".csv":
+                raise RispError(f"{p}: expected a .csv file")
+            files.append(p)
+        else:
+            raise RispError(f"{p}: no such file or folder")
+    seen, unique = set(), []
+    for f in files:
+        if f.resolve() not in seen:
+            seen.add(f.resolve())
+            unique.append(f)
+    return unique
+
+
+def _is_contactnets_folder(folder: Path) -> bool:
+    readme = folder / "README.md"
+    try:
+        return readme.is_file() and "ContactNets" in readme.read_text(errors="replace")[:4000]
+    except OSError:
+        return False
+
+
+def find_sidecar(csv_path: Path, env: str, overrides: dict | None = None) -> Sidecar:
+    """``foo.csv`` -> ``foo.json``, else ``sidecar.json`` in the same folder; see docs/measured-data.md.
+
+    Without either, a cube folder recognised as the ContactNets tosses (its README) gets that cube's
+    constants; otherwise the values must come from ``overrides`` (command-line ``--side/--mass``).
+    Overrides always win over file values.
+    """
+    overrides = {k: v for k, v in (overrides or {}).items() if v is not None}
+    for cand in (csv_path.with_suffix(".json"), csv_path.parent / "sidecar.json"):
+        if cand.is_file():
+            try:
+                values = json.loads(cand.read_text())
+            except (OSError, json.JSONDecodeError) as e:
+                raise RispError(f"{cand}: sidecar is not valid JSON ({e})") from None
+            if not isinstance(values, dict):
+                raise RispError(f"{cand}: sidecar must be a JSON object")
+            source = str(cand)
+            break
+    else:
+        if env == "cube" and _is_contactnets_folder(csv_path.parent):
+            values, source = dict(CONTACTNETS_CUBE), "default: ContactNets cube constants (folder README)"
+        elif env == "cube" and overrides:
+            values, source = {"env": "cube"}, "command line"
+        else:
+            raise RispError(
+                f"{csv_path}: no sidecar ({csv_path.with_suffix('.json').name} or sidecar.json) "
+                f"naming the environment and its nominal parameters"
+                + (" (or pass --side and --mass)" if env == "cube" else "")
+            )
+    values = {**values, **overrides}
+    file_env = values.get("env", env)
+    if file_env != env:
+        raise RispError(f"{source}: sidecar says env {file_env!r} but --env is {env!r}")
+    values["env"] = env
+    _check_sidecar(values, env, source)
+    return Sidecar(env=env, values=values, source=source)
+
+
+def _check_sidecar(values: dict, env: str, source: str) -> None:
+    for key in REQUIRED_SIDECAR_KEYS.get(env, ()):
+        if key not in values:
+            raise RispError(f"{source}: sidecar lacks {key!r} (required for {env})")
+    for key, (lo, hi) in SIDECAR_RANGES.get(env, {}).items():
+        if key not in values:
+            continue
+        raw = values[key]
+        vals = raw if isinstance(raw, (list, tuple)) else [raw]
+        for v in vals:
+            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v):
+                raise RispError(f"{source}: sidecar key {key!r} must be a finite number, got {raw!r}")
+            if not lo <= v <= hi:
+                raise RispError(
+                    f"{source}: sidecar key {key!r} = {v} is outside the plausible range [{lo}, {hi}] "
+                    f"in SI units (check the unit)"
+                )
+
+
+# ------------------------------------------------------------------------------------------------
+# CSV reading and validation
+# ------------------------------------------------------------------------------------------------
+def read_csv_columns(path: Path) -> dict[str, np.ndarray]:
+    """Header + numeric rows -> {column: float64 array}. Errors name the file, row and column."""
+    try:
+        with open(path, newline="") as fh:
+            reader = csv.reader(fh)
+            try:
+                header = [h.strip() for h in next(reader)]
+            except StopIteration:
+                raise RispError(f"{path}: empty file (expected a header row)") from None
+            if len(set(header)) != len(header):
+                dup = sorted({h for h in header if header.count(h) > 1})
+                raise RispError(f"{path}: duplicate column(s) {', '.join(dup)}")
+            rows = []
+            for i, row in enumerate(reader, start=2):
+                if not row or all(not c.strip() for c in row):
+                    continue
+                if len(row) != len(header):
+                    raise RispError(f"{path}: line {i} has {len(row)} fields, header has {len(header)} (truncated file?)")
+                vals = []
+                for col, c in zip(header, row):
+                    try:
+                        vals.append(float(c))
+                    except ValueError:
+                        raise RispError(f"{path}: line {i}, column {col}: not a number ({c!r})") from None
+                rows.append(vals)
+    except OSError as e:
+        raise RispError(f"{path}: cannot read ({e.strerror})") from None
+    if len(rows) < 3:
+        raise RispError(f"{path}: needs at least 3 rows of data, found {len(rows)}")
+    data = np.asarray(rows, dtype=np.float64)
+    return {h: data[:, j] for j, h in enumerate(header)}
+
+
+def _require(cols: dict, names: tuple[str, ...], path: Path) -> None:
+    missing = [c for c in names if c not in cols]
+    if missing:
+        raise RispError(f"{path}: missing column(s) {', '.join(missing)}")
+
+
+def _check_finite(cols: dict, path: Path) -> None:
+    for name, v in cols.items():
+        bad = np.flatnonzero(~np.isfinite(v))
+        if bad.size:
+            raise RispError(f"{path}: column {name} has NaN/inf at data row {bad[0] + 1}")
+
+
+def _check_time(t: np.ndarray, path: Path) -> None:
+    d = np.diff(t)
+    bad = np.flatnonzero(d <= 0)
+    if bad.size:
+        raise RispError(f"{path}: column t is not strictly increasing (data row {bad[0] + 2}: {t[bad[0] + 1]} after {t[bad[0]]})")
+    dt = float(np.median(d))
+    if not 1e-5 <= dt <= 1.0:
+        raise RispError(f"{path}: column t has a median step of {dt:g} s; expected seconds (1e-5 … 1 s)")
+    if d.max() > 5 * dt:
+        i = int(np.argmax(d))
+        raise RispError(f"{path}: column t has a gap of {d[i]:g} s at data row {i + 2} (median step {dt:g} s); split the file there")
+
+
+def _check_quat(q: np.ndarray, path: Path) -> np.ndarray:
+    norm = np.linalg.norm(q, axis=1)
+    bad = np.flatnonzero(np.abs(norm - 1.0) > QUAT_NORM_TOL)
+    if bad.size:
+        raise RispError(
+            f"{path}: columns qw,qx,qy,qz are not a unit quaternion at data row {bad[0] + 1} (|q| = {norm[bad[0]]:.4g})"
+        )
+    q = q / norm[:, None]
+    # q and -q are the same rotation: make the sequence continuous so differences are meaningful
+    for i in range(1, len(q)):
+        if np.dot(q[i], q[i - 1]) < 0:
+            q[i] = -q[i]
+    return q
+
+
+def _check_range(cols: dict, names: tuple[str, ...], limit: float, unit: str, path: Path) -> None:
+    for name in names:
+        if name in cols:
+            m = float(np.max(np.abs(cols[name])))
+            if m > limit:
+                raise RispError(f"{path}: column {name} reaches {m:g}, implausible in {unit} (limit {limit:g}); check the unit")
+
+
+def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product of scalar-first quaternions (..., 4)."""
+    aw, ax, ay, az = np.moveaxis(a, -1, 0)
+    bw, bx, by, bz = np.moveaxis(b, -1, 0)
+    return np.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        -1,
+    )
+
+
+def body_rates_from_quat(t: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """ω_body = 2 · Im(q* ⊗ q̇) with q̇ by central differences (q̇ = ½ q ⊗ (0, ω))."""
+    qdot = np.gradient(q, t, axis=0)
+    conj = q * np.array([1.0, -1.0, -1.0, -1.0])
+    return 2.0 * quat_mul(conj, qdot)[:, 1:]
+
+
+def _check_consistency(env: str, cols: dict, side: Sidecar, path: Path) -> None:
+    if env == "cube":
+        s = float(side.get("side"))
+        zmin = float(np.min(cols["z"]))
+        if zmin < -s:
+            raise RispError(f"{path}: column z goes to {zmin:g} m, more than a side ({s} m) below the floor z = 0; check the unit")
+    if env == "quadrotor":
+        mg = float(side.get("mass")) * float(side.get("gravity", 9.81))
+        for name in THRUST_COLUMNS:
+            m = float(np.max(np.abs(cols[name])))
+            if m > 20 * mg:
+                raise RispError(
+                    f"{path}: column {name} reaches {m:g} N, more than 20× the weight ({mg:.3g} N); thrusts must be in newtons"
+                )
+
+
+def generic_columns(env: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """(state columns, action columns) of an environment without a rigid-body pose (hand, rod):
+    the simulator's state names and ``u0 … u{A-1}``."""
+    import importlib
+
+    spec = importlib.import_module(f"risp_tasks.sims.{env}").SPEC
+    return tuple(spec.state_names), tuple(f"u{i}" for i in range(spec.action_dim))
+
+
+def _read_generic(path: Path, env: str, sidecar: Sidecar, cols: dict) -> Trajectory:
+    states, actions = generic_columns(env)
+    _require(cols, ("t",) + states + actions, path)
+    _check_finite(cols, path)
+    t = cols["t"]
+    _check_time(t, path)
+    return Trajectory(name=path.stem, path=str(path), t=t - t[0], pos=None, quat=None, vel=None, omega=None,
+                      thrust=None, sidecar=sidecar, extra={k: v for k, v in cols.items() if k != "t"})
+
+
+def read_trajectory(path: Path, env: str, overrides: dict | None = None) -> Trajectory:
+    """Read and validate one CSV (+ sidecar) for environment ``env``."""
+    sidecar = find_sidecar(path, env, overrides)
+    cols = read_csv_columns(path)
+    if env in ("hand", "rod"):
+        return _read_generic(path, env, sidecar, cols)
+    required = POSE_COLUMNS + (THRUST_COLUMNS if env == "quadrotor" else ())
+    _require(cols, required, path)
+    for group in (VEL_COLUMNS, OMEGA_COLUMNS):
+        present = [c for c in group if c in cols]
+        if present and len(present) != 3:
+            raise RispError(f"{path}: column(s) {', '.join(c for c in group if c not in cols)} missing (give all of {','.join(group)} or none)")
+    _check_finite(cols, path)
+    t = cols["t"]
+    _check_time(t, path)
+    _check_range(cols, ("x", "y", "z"), MAX_ABS_POSITION, "metres", path)
+    _check_range(cols, VEL_COLUMNS, MAX_SPEED, "m/s", path)
+    _check_range(cols, OMEGA_COLUMNS, MAX_ANGULAR_SPEED, "rad/s", path)
+    _check_consistency(env, cols, sidecar, path)
+    pos = np.stack([cols[c] for c in ("x", "y", "z")], 1)
+    quat = _check_quat(np.stack([cols[c] for c in ("qw", "qx", "qy", "qz")], 1), path)
+    vel_est = "vx" not in cols
+    vel = np.gradient(pos, t, axis=0) if vel_est else np.stack([cols[c] for c in VEL_COLUMNS], 1)
+    om_est = "wx" not in cols
+    omega = body_rates_from_quat(t, quat) if om_est else np.stack([cols[c] for c in OMEGA_COLUMNS], 1)
+    thrust = np.stack([cols[c] for c in THRUST_COLUMNS], 1) if env == "quadrotor" else None
+    known = set(POSE_COLUMNS + VEL_COLUMNS + OMEGA_COLUMNS + THRUST_COLUMNS)
+    extra = {k: v for k, v in cols.items() if k not in known}
+    return Trajectory(
+        name=path.stem,
+        path=str(path),
+        t=t - t[0],
+        pos=pos,
+        quat=quat,
+        vel=vel,
+        omega=omega,
+        thrust=thrust,
+        sidecar=sidecar,
+        vel_estimated=vel_est,
+        omega_estimated=om_est,
+        extra=extra,
+    )
+
+
+def load_measured(paths, env: str, overrides: dict | None = None, limit: int | None = None) -> list[Trajectory]:
+    """Read every CSV in ``paths`` (files or folders), validated; ``limit`` keeps the first N files."""
+    if env not in SIDECAR_RANGES:
+        raise RispError(f"unknown environment {env!r}; choose one of: {', '.join(SIDECAR_RANGES)}")
+    files = expand_paths(list(paths))
+    if limit is not None:
+        if limit < 1:
+            raise RispError(f"--limit must be at least 1, got {limit}")
+        files = files[:limit]
+    trajs = [read_trajectory(f, env, overrides) for f in files]
+    dts = np.array([tr.dt for tr in trajs])
+    if dts.max() > 1.05 * dts.min():
+        i, j = int(np.argmin(dts)), int(np.argmax(dts))
+        raise RispError(
+            f"sampling intervals differ between {trajs[i].path} ({dts[i]:g} s) and {trajs[j].path} ({dts[j]:g} s); "
+            f"diagnose one sampling rate at a time"
+        )
+    return trajs
+
+
+def write_trajectory_csv(path: str | os.PathLike, traj_cols: dict[str, np.ndarray], sidecar: dict | None = None) -> None:
+    """Write columns (and optionally ``<stem>.json``) atomically: temp name, then os.replace."""
+    path = Path(path)
+    names = list(traj_cols)
+    data = np.stack([np.asarray(traj_cols[k], dtype=np.float64) for k in names], 1)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(names)
+        for row in data:
+            w.writerow([repr(float(v)) for v in row])
+    os.replace(tmp, path)
+    if sidecar is not None:
+        jp = path.with_suffix(".json")
+        tmpj = jp.with_name(jp.name + ".tmp")
+        tmpj.write_text(json.dumps(sidecar, indent=2))
+        os.replace(tmpj, jp)

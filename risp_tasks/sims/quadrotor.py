@@ -1,0 +1,271 @@
+"""Quadrotor: a rigid body in free flight driven by four propellers (docs/models.md §2).
+
+Full state (13, + 4 with ``motor_lag``), SI units:
+
+    x y z        position of the centre of mass, world frame [m]
+    qw qx qy qz  orientation, unit quaternion, body to world (renormalized every step)
+    vx vy vz     linear velocity, world frame [m/s]
+    wx wy wz     angular velocity, body frame [rad/s]
+    f0 f1 f2 f3  (motor_lag only) thrust of each rotor [N]
+
+Action (4): propeller commands u_i, smoothly clamped to [−500, 500]; rotor thrust f_i = k_f·u_i.
+Rotor i sits at ARM_LENGTH·(cos iπ/2, sin iπ/2, 0) ("+" layout, see risp_data.envs.quadrotor) and spins
+with sign s_i = (+1, −1, +1, −1); its drag produces the yaw torque s_i·k_m·f_i.  Integrator:
+semi-implicit (symplectic) Euler with dt = 0.01 s.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import torch
+
+from risp_data.envs.quadrotor import ARM_LENGTH, BODY_HALF_EXTENTS, ROTOR_HEIGHT, ROTOR_RADIUS
+from risp_data.errors import RispError
+
+from ._rigid import (
+    GRAVITY,
+    const,
+    normalize_quat,
+    quat_mul_pure_right,
+    quat_outer,
+    rigid_to_env_state,
+    soft_clamp,
+)
+from .base import Effect, Simulator, SimulatorSpec
+
+DT = 0.01  # s
+MASS = 3.0  # kg (system identification samples it in [2.8, 3.2))
+K_F = 0.05  # N per command unit: f_i = k_f·u_i
+K_M = 0.02  # m: yaw torque per newton of thrust
+SPIN = (1.0, -1.0, 1.0, -1.0)  # s_i: rotors 0, 2 (±x) and 1, 3 (±y) spin in opposite senses
+COMMAND_LIMIT = 500.0  # |u_i| ≤ 500 (smooth clamp)
+CLAMP_WIDTH = 5.0  # command units: rounding width of the smooth clamp
+BODY_MASS_FRACTION = 0.6  # the central box; each of the four motors carries 0.1 of the mass
+AIR_DRAG_EPS = 1e-3  # m/s: |v| ≈ sqrt(|v|² + ε²) keeps the quadratic drag differentiable at rest
+GROUND_Z_MIN = ROTOR_RADIUS / 4  # m: rotor height below which the ground-effect factor saturates
+GROUND_Z_WIDTH = 0.01  # m: rounding width of that saturation
+
+
+def default_inertia(mass: float = MASS) -> tuple[float, float, float]:
+    """Principal inertia (Ixx, Iyy, Izz) [kg m²]: a solid box of 0.6·m (half extents BODY_HALF_EXTENTS)
+    plus four point motors of 0.1·m at the rotor hubs (ARM_LENGTH from the centre, in the body plane)."""
+    a, b, c = BODY_HALF_EXTENTS
+    mb, mm = BODY_MASS_FRACTION * mass, (1 - BODY_MASS_FRACTION) / 4 * mass
+    arm = 2 * mm * ARM_LENGTH**2  # two motors on the axis perpendicular to the rotation axis
+    return (mb / 3 * (b * b + c * c) + arm, mb / 3 * (a * a + c * c) + arm, mb / 3 * (a * a + b * b) + 2 * arm)
+
+
+def hover_command(mass, k_f=K_F):
+    """u_h = m·g / (4·k_f): the command that holds the quadrotor still out of ground effect (docs §2.2)."""
+    return mass * GRAVITY / (4 * k_f)
+
+
+STATE_NAMES = ("x", "y", "z", "qw", "qx", "qy", "qz", "vx", "vy", "vz", "wx", "wy", "wz")
+_INF = float("inf")
+_POS = (1e-9, _INF)
+
+EFFECTS = {
+    "rotor_drag": Effect(
+        "rotor_drag", ("dx", "dy", "dz"), (0.9, 0.9, 0.3), ((0.0, 3.0),) * 3,
+        "linear rotor drag F = −R·diag(dx, dy, dz)·Rᵀ·v (body-frame coefficients, N·s/m)",
+        bounds=((0.0, _INF),) * 3, units=("N s/m",) * 3),
+    "air_drag": Effect(
+        "air_drag", ("c",), (0.05,), ((0.0, 0.5),),
+        "quadratic air drag F = −c·|v|·v (N·s²/m²)", bounds=((0.0, _INF),), units=("N s^2/m^2",)),
+    "wind": Effect(
+        "wind", ("fx", "fy", "fz"), (1.0, 0.0, 0.0), ((-5.0, 5.0),) * 3,
+        "constant world-frame force (N)", units=("N",) * 3),
+    "motor_lag": Effect(
+        "motor_lag", ("tau",), (0.05,), ((0.01, 0.2),),
+        "first-order motor lag: rotor thrust f follows k_f·u with time constant tau (s); adds 4 thrust states",
+        bounds=((1e-4, _INF),), units=("s",), state_names=("f0", "f1", "f2", "f3")),
+    "ground_effect": Effect(
+        "ground_effect", ("k",), (1.0,), ((0.0, 2.0),),
+        "thrust scaled by 1 + k·(R_rotor / (4·ẑ_i))² near the floor z = 0 (ẑ_i: smoothly floored rotor height)",
+        bounds=((0.0, _INF),), units=("1",)),
+}
+
+SPEC = SimulatorSpec(
+    env="quadrotor",
+    dt=DT,
+    state_names=STATE_NAMES,
+    base_param_names=("mass", "Ixx", "Iyy", "Izz", "k_f", "k_m"),
+    base_param_defaults=(MASS, *default_inertia(MASS), K_F, K_M),
+    action_dim=4,
+    available_effects=EFFECTS,
+    base_param_bounds=(_POS, _POS, _POS, _POS, _POS, (0.0, _INF)),
+    base_param_ranges=((2.8, 3.2), (0.04, 0.08), (0.04, 0.08), (0.08, 0.15), (0.04, 0.06), (0.01, 0.03)),
+    base_param_units=("kg", "kg m^2", "kg m^2", "kg m^2", "N", "m"),
+)
+
+
+@dataclass(frozen=True)
+class _Consts:
+    """Per-rollout tensors derived from params (computed once, reused every step)."""
+
+    h: float
+    inv_m: torch.Tensor  # (B, 1)
+    inertia: torch.Tensor  # (B, 3)
+    inv_inertia: torch.Tensor  # (B, 3)
+    tau_scale: torch.Tensor  # (B, 3) = (L, L, k_m)
+    mix: torch.Tensor  # (4, 3): τ = (f @ mix) ⊙ tau_scale
+    gravity: torch.Tensor  # (3,)
+    rotor_drag: torch.Tensor | None  # (B, 3)
+    air_drag: torch.Tensor | None  # (B, 1)
+    wind: torch.Tensor | None  # (B, 3)
+    lag_alpha: torch.Tensor | None  # (B, 1) = 1 − exp(−h/τ)
+    ground_k: torch.Tensor | None  # (B, 1)
+    rotor_pos: torch.Tensor  # (3, 4) rotor hubs in the body frame (ground-effect heights)
+
+
+class QuadrotorSimulator(Simulator):
+    """Differentiable quadrotor (docs/models.md §2). ``dt`` may be overridden (default 0.01 s)."""
+
+    def __init__(self, effects: tuple[str, ...] | list[str] = (), dt: float = DT):
+        if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
+            raise RispError(f"dt must be a positive number of seconds, got {dt!r}")
+        self.spec = dataclasses.replace(SPEC, dt=float(dt))
+        super().__init__(effects)
+
+    # -- layout ---------------------------------------------------------------------------------
+    def default_state(self, batch: int = 1, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+        """At rest 1 m above the floor, level; thrust states (motor_lag) at the default hover thrust."""
+        s = [0.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0] + [0.0] * 6
+        if "motor_lag" in self.effects:
+            s += [MASS * GRAVITY / 4] * 4
+        return torch.tensor(s, dtype=dtype).expand(batch, -1).clone()
+
+    def hover_actions(self, params: torch.Tensor, steps: int) -> torch.Tensor:
+        """(B, steps, 4) hover commands u_h = m g / (4 k_f) for each batch row of ``params``."""
+        u = hover_command(params[:, 0], params[:, self.param_index("k_f")])
+        return u[:, None, None].expand(-1, steps, 4).clone()
+
+    def check_state(self, s0: torch.Tensor) -> None:
+        norm = torch.linalg.vector_norm(s0[:, 3:7], dim=-1)
+        if bool(((norm - 1).abs() > 1e-2).any()):
+            raise RispError(f"s0[:, 3:7] (qw, qx, qy, qz) must be unit quaternions, got norm {norm.min().item():.4g}")
+
+    def to_env_state(self, states: torch.Tensor) -> torch.Tensor:
+        """(..., X) -> (..., 6) = (x, y, z, yaw, pitch, roll) of risp_data's quadrotor environment."""
+        return rigid_to_env_state(states)
+
+    # -- dynamics -------------------------------------------------------------------------------
+    def _consts(self, params: torch.Tensor) -> _Consts:
+        B, like = params.shape[0], params
+        mass = params[:, 0:1]
+        inertia = params[:, 1:4]
+        k_m = params[:, 5:6]
+        L = torch.full((B, 2), ARM_LENGTH, dtype=params.dtype, device=params.device)
+        s = SPIN
+        mix = torch.tensor([[0.0, -1.0, s[0]], [1.0, 0.0, s[1]], [0.0, 1.0, s[2]], [-1.0, 0.0, s[3]]],
+                           dtype=like.dtype, device=like.device)
+        angles = [i * math.pi / 2 for i in range(4)]
+        rotor_pos = torch.tensor([[ARM_LENGTH * math.cos(a) for a in angles],
+                                  [ARM_LENGTH * math.sin(a) for a in angles],
+                                  [ROTOR_HEIGHT] * 4], dtype=like.dtype, device=like.device)
+
+        def eff(name):
+            if name not in self.effects:
+                return None
+            i = self.param_index(f"{name}.{EFFECTS[name].param_names[0]}")
+            return params[:, i:i + len(EFFECTS[name].param_names)]
+
+        tau = eff("motor_lag")
+        return _Consts(
+            h=self.dt,
+            inv_m=1.0 / mass,
+            inertia=inertia,
+            inv_inertia=1.0 / inertia,
+            tau_scale=torch.cat([L, k_m], 1),
+            mix=mix,
+            gravity=torch.tensor([0.0, 0.0, -GRAVITY], dtype=like.dtype, device=like.device),
+            rotor_drag=eff("rotor_drag"),
+            air_drag=eff("air_drag"),
+            wind=eff("wind"),
+            lag_alpha=None if tau is None else -torch.expm1(-self.dt / tau),
+            ground_k=eff("ground_effect"),
+            rotor_pos=rotor_pos,
+        )
+
+    @staticmethod
+    def _commanded_thrust(params: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """k_f · clamp_s(u) (docs §2.2), for any leading shape of ``actions`` (B, ..., 4)."""
+        u = soft_clamp(actions, -COMMAND_LIMIT, COMMAND_LIMIT, CLAMP_WIDTH)
+        k_f = params[:, 4].reshape((-1,) + (1,) * (actions.ndim - 1))
+        return k_f * u
+
+    @staticmethod
+    def _advance(c: _Consts, p, q, v, w, f_state, f_cmd):
+        """One semi-implicit Euler step (docs §2.4): forces at (q, v, ω), then v, ω, then p, q."""
+        h = c.h
+        qq = quat_outer(q)  # (B, 16)
+
+        # Rotor thrusts: motor lag (exact first-order response over the step), then ground effect.
+        if c.lag_alpha is not None:
+            f_state = f_state + c.lag_alpha * (f_cmd - f_state)
+            f = f_state
+        else:
+            f = f_cmd
+        if c.ground_k is not None:
+            z_rotor = p[:, 2:3] + (qq @ const("R_row2", q)) @ c.rotor_pos  # (B, 4) world heights of the hubs
+            z_hat = GROUND_Z_MIN + torch.nn.functional.softplus(
+                z_rotor - GROUND_Z_MIN, beta=1.0 / GROUND_Z_WIDTH, threshold=40.0)
+            f = f * (1.0 + c.ground_k * (ROTOR_RADIUS / (4.0 * z_hat)) ** 2)
+
+        # Linear acceleration: thrust along the body z axis, gravity and the enabled external forces.
+        z_body = qq @ const("R_col2", q)  # (B, 3)
+        force = f.sum(1, keepdim=True) * z_body
+        if c.rotor_drag is not None:
+            R = (qq @ const("R", q)).unflatten(-1, (3, 3))
+            v_body = (v.unsqueeze(1) @ R).squeeze(1)  # Rᵀ v
+            force = force - (R @ (c.rotor_drag * v_body).unsqueeze(-1)).squeeze(-1)
+        if c.air_drag is not None:
+            speed = torch.sqrt((v * v).sum(1, keepdim=True) + AIR_DRAG_EPS**2)
+            force = force - c.air_drag * speed * v
+        if c.wind is not None:
+            force = force + c.wind
+        v_new = v + h * (force * c.inv_m + c.gravity)
+
+        # Euler's equations in the body frame: I ω̇ = τ − ω × I ω.
+        torque = (f @ c.mix) * c.tau_scale
+        w_dot = (torque - torch.linalg.cross(w, c.inertia * w)) * c.inv_inertia
+        w_new = w + h * w_dot
+
+        p_new = p + h * v_new
+        q_new = normalize_quat(q + (0.5 * h) * quat_mul_pure_right(q, w_new))
+        return p_new, q_new, v_new, w_new, f_state
+
+    def _split(self, state: torch.Tensor):
+        p, q, v, w = state[:, 0:3], state[:, 3:7], state[:, 7:10], state[:, 10:13]
+        f_state = state[:, 13:17] if "motor_lag" in self.effects else None
+        return p, normalize_quat(q), v, w, f_state
+
+    def step(self, params: torch.Tensor, state: torch.Tensor, action: torch.Tensor | None, t: int) -> torch.Tensor:
+        """One step of dt (docs §2.4); ``action`` (B, 4) are the raw propeller commands."""
+        c = self._consts(params)
+        p, q, v, w, fs = self._split(state)
+        out = self._advance(c, p, q, v, w, fs, self._commanded_thrust(params, action))
+        return torch.cat([x for x in out if x is not None], 1)
+
+    def rollout(self, params: torch.Tensor, s0: torch.Tensor, actions: torch.Tensor | None, steps: int) -> torch.Tensor:
+        """Same result as repeated :meth:`step`, with the per-rollout work hoisted out of the loop."""
+        self.check_inputs(params, s0, actions, steps)
+        c = self._consts(params)
+        f_cmd = self._commanded_thrust(params, actions[:, :steps])  # (B, T, 4)
+        cur = self._split(s0)
+        traj = []
+        for t in range(steps):
+            cur = self._advance(c, *cur, f_cmd[:, t])
+            traj.append([x for x in cur if x is not None])
+        if not traj:
+            return s0.unsqueeze(1)
+        later = torch.cat([torch.stack(parts, 1) for parts in zip(*traj)], -1)  # (B, steps, X)
+        return torch.cat([s0.unsqueeze(1), later], 1)
+
+
+def make_simulator(effects: tuple[str, ...] = (), **options) -> QuadrotorSimulator:
+    """The quadrotor simulator with the named effects; ``options``: dt (s)."""
+    return QuadrotorSimulator(effects, **options)

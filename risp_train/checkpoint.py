@@ -1,0 +1,79 @@
+"""Checkpoints: one ``torch.save`` file of plain tensors, lists, dicts, strings and numbers.
+
+Loaded with ``torch.load(path, weights_only=True)`` — no pickled objects.  Written atomically (temporary
+file in the same folder, fsync, ``os.replace``), so a kill never leaves a half-written checkpoint.
+
+Keys (docs/training.md §Checkpoints):
+
+    format, format_version       "risp-train-checkpoint", 1
+    env, state_names, target_names, psi_names, resolution
+    manifest_hash, shards        the training shards (sha256 of their identity and file hashes; folder)
+    seed, config, model_config   the run's TrainConfig and ModelConfig as dicts
+    normalization                Normalization.to_dict()
+    model                        the network's state_dict
+    optimizer, scheduler         their state_dicts (training checkpoints only)
+    progress                     epoch, batch (next batch within the epoch), global_step, total_steps, complete
+    history                      per-epoch summaries (list of dicts)
+    world_size, workers          data split of the run (a resumed run must use the same to replay the order)
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from typing import Any
+
+import torch
+
+from risp_data.errors import RispError
+
+FORMAT = "risp-train-checkpoint"
+FORMAT_VERSION = 1
+REQUIRED = ("env", "state_names", "target_names", "normalization", "model", "model_config", "resolution")
+
+
+def save_checkpoint(path: str, payload: dict[str, Any]) -> None:
+    """Atomically write ``payload`` (plus the format tags) to ``path``."""
+    payload = {"format": FORMAT, "format_version": FORMAT_VERSION, **payload}
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".pt", dir=folder)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(payload, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def load_checkpoint(path: str) -> dict[str, Any]:
+    """Read a checkpoint with ``weights_only=True``; RispError when missing, corrupt or not ours."""
+    if not os.path.isfile(path):
+        raise RispError(f"checkpoint not found: {path}")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # zipfile, unpickler and EOF errors on damaged files
+        raise RispError(f"corrupt or unreadable checkpoint {path}: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}") from None
+    if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
+        raise RispError(f"{path} is not a risp-train checkpoint")
+    if int(ckpt.get("format_version", 0)) > FORMAT_VERSION:
+        raise RispError(f"checkpoint {path} has format_version {ckpt['format_version']}; this risp reads <= {FORMAT_VERSION}")
+    missing = [k for k in REQUIRED if k not in ckpt]
+    if missing:
+        raise RispError(f"corrupt checkpoint {path}: missing {', '.join(missing)}")
+    return ckpt
+
+
+def check_compatible(ckpt: dict[str, Any], path: str, *, env: str, state_names, resolution: int | None = None) -> None:
+    """A checkpoint used with shards must be of the same environment, state vector and resolution."""
+    if ckpt["env"] != env:
+        raise RispError(f"checkpoint {path} was trained on environment {ckpt['env']!r}, not {env!r}")
+    if list(ckpt["state_names"]) != list(state_names):
+        raise RispError(f"checkpoint {path}: state names {list(ckpt['state_names'])} differ from {list(state_names)}")
+    if resolution is not None and int(ckpt["resolution"]) != int(resolution):
+        raise RispError(f"checkpoint {path} expects {ckpt['resolution']}×{ckpt['resolution']} images, "
+                        f"the shards are {resolution}×{resolution}")

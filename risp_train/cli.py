@@ -1,0 +1,83 @@
+"""``risp-train``: fit, eval and ablation (thin: click options → frozen config → a function).
+
+    risp-train fit SHARDS --out runs/NAME [--reg none|surrogate|exact|stochastic] [--preset paper|cpu] ...
+    risp-train eval MODEL SHARDS [--metric l1|l2]
+    risp-train ablation --env cube --out runs/ablation ...
+    torchrun --nproc-per-node 2 -m risp_train fit SHARDS --out runs/NAME ...
+
+docs/cli-train.md lists every option.
+"""
+
+from __future__ import annotations
+
+import click
+
+from risp_data.cli_util import RispGroup, run_cli
+
+
+@click.group(cls=RispGroup)
+def cli():
+    """Train and evaluate the RISP state predictor on rendered shards."""
+
+
+@cli.command()
+@click.argument("shards", type=click.Path())
+@click.option("--out", required=True, type=click.Path(file_okay=False), help="Run folder (checkpoints, logs, plots).")
+@click.option("--reg", default="none", show_default=True, help="Regularizer: none, surrogate, exact or stochastic.")
+@click.option("--gamma", type=float, default=None, help="Final regularizer weight γ [default: paper's per env: quadrotor 1, cube 20, hand 100, rod 30].")
+@click.option("--gamma-ramp", type=float, default=0.5, show_default=True, help="γ ramps linearly from 0 over this fraction of all steps.")
+@click.option("--preset", default="paper", show_default=True, help="paper (ResNet-18 w64, 100 epochs, lr 1e-2) or cpu (w16, 20 epochs, lr 3e-3).")
+@click.option("--epochs", type=int, default=None, help="Epochs [preset].")
+@click.option("--batch-size", type=int, default=None, help="Images per step and process [preset: 16].")
+@click.option("--lr", type=float, default=None, help="Adam learning rate, cosine-decayed to 0 [preset].")
+@click.option("--weight-decay", type=float, default=None, help="Adam weight decay [preset: 1e-6].")
+@click.option("--width", type=int, default=None, help="ResNet-18 first-stage channels [preset].")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of weights, data order and the stochastic regularizer.")
+@click.option("--workers", type=int, default=2, show_default=True, help="DataLoader worker processes per rank.")
+@click.option("--format", "fmt", default="auto", show_default=True, help="Read wds or zarr shards (auto: wds if present).")
+@click.option("--checkpoint-every", type=int, default=0, show_default=True, help="Also checkpoint every N steps (0: epoch ends only).")
+@click.option("--val", type=click.Path(), default=None, help="Held-out shard folder evaluated at each epoch end.")
+@click.option("--resume", is_flag=True, help="Continue the run in --out from its last checkpoint.")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def fit(shards, out, reg, gamma, gamma_ramp, preset, epochs, batch_size, lr, weight_decay, width, seed, workers, fmt,
+        checkpoint_every, val, resume, quiet):
+    """Train on the shard folder SHARDS (streamed; resolution from its manifest)."""
+    from .config import make_config
+    from .train import fit as run_fit
+
+    cfg = make_config(shards, out, preset=preset, reg=reg, gamma=gamma, gamma_ramp=gamma_ramp, epochs=epochs,
+                      batch_size=batch_size, lr=lr, weight_decay=weight_decay, width=width, seed=seed,
+                      workers=workers, format=fmt, checkpoint_every=checkpoint_every, val=val)
+    path = run_fit(cfg, resume=resume, progress=not quiet)
+    import os
+
+    if int(os.environ.get("RANK", "0")) == 0:
+        click.echo(f"model: {path}")
+
+
+@cli.command("eval")
+@click.argument("model", type=click.Path())
+@click.argument("shards", type=click.Path())
+@click.option("--metric", default="l1", show_default=True, help="Per-image state error: l1 (mean |Δs|) or l2 (‖Δs‖).")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the random baseline.")
+@click.option("--batch-size", type=int, default=32, show_default=True)
+@click.option("--limit", type=int, default=None, help="Evaluate at most this many images.")
+@click.option("--format", "fmt", default="auto", show_default=True, help="wds or zarr (auto: wds if present).")
+@click.option("--out", default=None, help="Path prefix of the .json and .md results [MODEL_DIR/eval-SHARDS_NAME].")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def eval_cmd(model, shards, metric, seed, batch_size, limit, fmt, out, quiet):
+    """State-estimation error of MODEL on SHARDS, with the average and random baselines."""
+    from .evaluate import EvalConfig, evaluate, markdown_table
+
+    res = evaluate(EvalConfig(model=model, shards=shards, metric=metric, seed=seed, batch_size=batch_size,
+                              limit=limit, format=fmt, out=out), progress=not quiet)
+    click.echo(markdown_table(res))
+    click.echo(f"written: {', '.join(res['files'])}")
+
+
+def main() -> None:
+    run_cli(cli)
+
+
+if __name__ == "__main__":
+    main()

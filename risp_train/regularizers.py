@@ -1,0 +1,137 @@
+"""The state loss and the three rendering-gradient regularizers (paper Eq. 10 and Eq. 12).
+
+Notation (docs/training.md §Losses).  For one image b: x_b is the normalized network input, the K stored
+derivative images carried through the input normalization are the tangents X_bj = ∂x_b/∂ψ_j
+(:meth:`risp_train.normalization.Normalization.tangents`), N is the network, ŷ_b = N(x_b) its normalized
+prediction and y_b the normalized target (T values).  The rendering-gradient matrix of image b is
+
+    M_b = ∂N(x_b)/∂ψ = (∂N/∂x)(x_b) · [X_b1 … X_bK]                      (T × K)
+
+* state error        ℓ_b = (1/T) Σ_t |ŷ_bt − y_bt|                               (L1)
+* ``exact``          r_b = ‖M_b‖_F                                            (paper Eq. 10)
+  K forward-mode products (∂N/∂x)·X_bj, one per ψ_j, batched with ``torch.func.vmap`` over
+  ``torch.func.jvp``: O(K·|θ|) instead of the paper's O(T·|θ|) rows of ∂N/∂x.
+* ``stochastic``     r_b = ‖M_b v_b‖₂²,  v_b ~ N(0, I_K)                          (one JVP along X_b v_b)
+  Unbiased for the *squared* Frobenius norm, E r_b = ‖M_b‖_F², with variance
+  Var r_b = 2‖M_bᵀM_b‖_F² = 2 Σ_i σ_i⁴ ≤ 2‖M_b‖_F⁴ (σ_i the singular values of M_b), i.e. a relative
+  standard deviation between √(2/K) (all σ_i equal) and √2 (rank one) per image, reduced by √B over
+  the batch.  Its gradient is unbiased for ∇‖M_b‖_F².  Because ∇‖M‖_F² = 2‖M‖_F ∇‖M‖_F, a weight γ_s
+  on the squared form matches γ on the exact (non-squared) form where ‖M_b‖_F ≈ γ/(2γ_s); we use the
+  same γ for both (the squared form penalises large derivatives more and small ones less).
+* ``surrogate``      r_b = ‖∂ℓ_b/∂ψ‖₂ = ‖Σ_pixels (∂ℓ_b/∂x_b) ⊙ X_bj‖₂ over j      (paper Eq. 12)
+  One double backward: the gradient of the state error w.r.t. the image, built with
+  ``create_graph=True``, contracted with the stored tangents.
+
+The loss is L = (1/B) Σ_b ℓ_b + γ (1/B) Σ_b r_b (γ = 0 for ``none``).  Images are independent under
+instance normalization, so ∂(Σ_b ℓ_b)/∂x_b = ∂ℓ_b/∂x_b and the per-image quantities are exact.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+from torch.func import jvp, vmap
+
+REGULARIZERS = ("none", "surrogate", "exact", "stochastic")
+
+
+def state_error(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """ℓ_b = mean_t |ŷ_bt − y_bt| for pred, target (B, T) → (B,)."""
+    return (pred - target).abs().mean(dim=-1)
+
+
+def rendering_gradients(net: nn.Module, x: torch.Tensor, tangents: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(ŷ, M): ŷ = N(x) (B, T) and M_b = (∂N/∂x)(x_b)·X_b stacked as (B, K, T).
+
+    x (B, C, H, W), tangents X (B, K, C, H, W).  One batched forward-mode pass per ψ_j, vmapped over K;
+    both outputs stay on the autograd tape so the loss can be backpropagated to the parameters.
+    """
+
+    def one_direction(t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return jvp(net, (x,), (t,))
+
+    # the primal does not depend on the tangent: vmap returns it expanded along K (a view, no copy)
+    primal, tangent_out = vmap(one_direction, in_dims=1, out_dims=(0, 1))(tangents)  # (K, B, T), (B, K, T)
+    return primal[0], tangent_out
+
+
+def exact_regularizer(net: nn.Module, x: torch.Tensor, tangents: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(ŷ, r) with r_b = ‖M_b‖_F (paper Eq. 10), r (B,)."""
+    pred, m = rendering_gradients(net, x, tangents)
+    return pred, torch.linalg.vector_norm(m.flatten(1), dim=1)
+
+
+def stochastic_regularizer(
+    net: nn.Module, x: torch.Tensor, tangents: torch.Tensor, v: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(ŷ, r) with r_b = ‖(∂N/∂x)(x_b)·(X_b v_b)‖² for v (B, K) ~ N(0, I_K): E r_b = ‖M_b‖_F²."""
+    direction = torch.einsum("bk,bkchw->bchw", v.to(tangents.dtype), tangents)  # X_b v_b, (B, C, H, W)
+    pred, t = jvp(net, (x,), (direction,))  # (B, T) each
+    return pred, (t * t).sum(dim=1)
+
+
+def surrogate_regularizer(
+    net: nn.Module, x: torch.Tensor, tangents: torch.Tensor, target: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(ŷ, ℓ, r) with r_b = ‖∂ℓ_b/∂ψ‖₂ (paper Eq. 12), by double backward through ∂ℓ/∂x."""
+    with torch.enable_grad():  # the inner gradient is needed even when the caller evaluates under no_grad
+        if not x.requires_grad:
+            x = x.detach().requires_grad_(True)
+        pred = net(x)
+        err = state_error(pred, target)  # (B,)
+        (g,) = torch.autograd.grad(err.sum(), x, create_graph=True)  # ∂ℓ_b/∂x_b, (B, C, H, W)
+    dl_dpsi = torch.einsum("bchw,bkchw->bk", g, tangents)  # (B, K)
+    return pred, err, torch.linalg.vector_norm(dl_dpsi, dim=1)
+
+
+@dataclass(frozen=True)
+class LossTerms:
+    total: torch.Tensor  # scalar, differentiable
+    error: torch.Tensor  # scalar, mean_b ℓ_b (detached)
+    reg: torch.Tensor  # scalar, mean_b r_b (detached; 0 for "none")
+
+
+def risp_loss(
+    net: nn.Module,
+    x: torch.Tensor,
+    target: torch.Tensor,
+    reg: str,
+    gamma: float,
+    tangents: torch.Tensor | None = None,
+    generator: torch.Generator | None = None,
+) -> LossTerms:
+    """L = mean_b ℓ_b + γ mean_b r_b for regularizer ``reg`` (one of :data:`REGULARIZERS`).
+
+    ``tangents`` (B, K, C, H, W) is required unless reg is ``none``; ``generator`` draws v for
+    ``stochastic`` (explicit, so that a resumed run draws the same v).
+    """
+    if reg not in REGULARIZERS:
+        raise ValueError(f"unknown regularizer {reg!r}; choose one of {REGULARIZERS}")
+    if reg == "none":
+        err = state_error(net(x), target)
+        return LossTerms(err.mean(), err.mean().detach(), torch.zeros((), dtype=err.dtype))
+    if tangents is None:
+        raise ValueError(f"regularizer {reg!r} needs the rendering Jacobians")
+    if reg == "exact":
+        pred, r = exact_regularizer(net, x, tangents)
+        err = state_error(pred, target)
+    elif reg == "stochastic":
+        if generator is None:
+            raise ValueError("the stochastic regularizer needs an explicit torch.Generator")
+        v = torch.randn(x.shape[0], tangents.shape[1], generator=generator, dtype=x.dtype, device="cpu").to(x.device)
+        pred, r = stochastic_regularizer(net, x, tangents, v)
+        err = state_error(pred, target)
+    else:  # surrogate
+        _, err, r = surrogate_regularizer(net, x, tangents, target)
+    total = err.mean() + gamma * r.mean()
+    return LossTerms(total, err.mean().detach(), r.mean().detach())
+
+
+def gamma_at(step: int, total_steps: int, gamma: float, ramp_fraction: float) -> float:
+    """γ(step): linear ramp from 0 at step 0 to γ at ramp_fraction · total_steps, constant afterwards."""
+    ramp = ramp_fraction * total_steps
+    if ramp <= 0:
+        return gamma
+    return gamma * min(1.0, step / ramp)

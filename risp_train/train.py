@@ -1,0 +1,304 @@
+"""One readable training loop (``risp-train fit``).
+
+    cfg = make_config("shards/cube", "runs/cube", preset="cpu", reg="stochastic")
+    fit(cfg)                      # → runs/cube/model.pt, last.pt, losses.csv, losses.png, config.json
+
+Per step (docs/training.md): raw images I (B,H,W,3) and stored J (B,K,H,W,3) → normalized input x and
+tangents ∂x/∂ψ (chain rule of the input normalization) → L = mean ℓ + γ(t) mean r (regularizers.py) →
+backward → gradients averaged over ranks → Adam step → cosine learning-rate step.
+
+Randomness is explicit: the initial weights come from ``seed``; the data order of epoch e from
+(seed, e) (data.py); the stochastic regularizer's v at global step t on rank r from a torch.Generator
+seeded with SeedSequence(seed, r, t).  The run's position is therefore (epoch, batch, global step), and
+a resumed run (``--resume``) replays exactly the same computation.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from risp_data.errors import RispError
+
+from . import checkpoint as ckpt_io
+from .config import RESUME_FIELDS, TrainConfig, resolved_gamma
+from .data import ShardSet, check_environment, iter_batches, make_loader, manifest_hash, open_shards, steps_per_epoch
+from .model import ModelConfig, ResNet18, build_model, stem_for_resolution
+from .normalization import Normalization, StatsAccumulator
+from .regularizers import gamma_at, risp_loss
+
+LAST = "last.pt"  # the resumable checkpoint, rewritten at each epoch end (and every N steps)
+MODEL = "model.pt"  # the final checkpoint (same format), written when training completes
+CSV_FIELDS = ("step", "epoch", "batch", "lr", "gamma", "loss", "error", "reg", "seconds")
+
+
+class TrainingStopped(Exception):
+    """Raised by ``fit(stop_after_step=...)``: a stand-in for a kill, used by the resume tests."""
+
+
+@dataclass(frozen=True)
+class Dist:
+    rank: int = 0
+    world_size: int = 1
+
+
+def init_distributed() -> Dist:
+    """Join the torchrun process group (gloo, CPU) when WORLD_SIZE > 1; otherwise a single process."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return Dist()
+    import torch.distributed as dist
+
+    if not dist.is_initialized():
+        dist.init_process_group("gloo")
+    return Dist(dist.get_rank(), dist.get_world_size())
+
+
+def allreduce_gradients(params: list[torch.nn.Parameter], world_size: int) -> None:
+    """Average gradients over ranks (one flat all-reduce; parameters without a gradient count as 0)."""
+    import torch.distributed as dist
+
+    grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in params]
+    flat = torch.cat([g.reshape(-1) for g in grads])
+    dist.all_reduce(flat)
+    flat /= world_size
+    offset = 0
+    for p in params:
+        n = p.numel()
+        p.grad = flat[offset:offset + n].view_as(p).clone()
+        offset += n
+
+
+def step_generator(seed: int, rank: int, step: int) -> torch.Generator:
+    """The generator of the stochastic regularizer's v at (rank, global step): no hidden RNG state."""
+    word = int(np.random.SeedSequence([seed, rank, step, 0xC0FFEE]).generate_state(1, dtype=np.uint64)[0])
+    return torch.Generator().manual_seed(word & ((1 << 63) - 1))
+
+
+def compute_normalization(shards: ShardSet, env, n: int) -> Normalization:
+    """Streamed statistics over the first ``n`` samples in shard order (identical on every rank)."""
+    acc = StatsAccumulator(env.target_dim)
+    for batch in iter_batches(shards, 32, need_jacobian=False, state_dim=env.state_dim, limit=n):
+        acc.add(batch["image"], env.state_to_target(batch["state"]))
+    return acc.result()
+
+
+def batch_tensors(batch: dict, norm: Normalization, env, need_tangents: bool):
+    """x (B,3,H,W), normalized targets (B,T) and tangents ∂x/∂ψ (B,K,3,H,W) or None, float32."""
+    images = batch["image"]
+    x = norm.images(images)
+    y = norm.targets(env.state_to_target(batch["state"]).to(torch.float32))
+    tangents = norm.tangents(images, batch["jacobian"]) if need_tangents else None
+    return x, y, tangents
+
+
+@torch.no_grad()
+def held_out_error(net: ResNet18, shards: ShardSet, norm: Normalization, env, limit: int) -> float:
+    """Mean normalized-target L1 error ℓ over the first ``limit`` samples of ``shards``."""
+    net.eval()
+    total, n = 0.0, 0
+    for batch in iter_batches(shards, 32, state_dim=env.state_dim, limit=limit):
+        x, y, _ = batch_tensors(batch, norm, env, False)
+        total += float((net(x) - y).abs().mean(dim=1).sum())
+        n += y.shape[0]
+    net.train()
+    return total / max(n, 1)
+
+
+def _csv_keep_until(path: str, step: int) -> None:
+    """Drop log rows written after the checkpoint we resume from (a killed run may have logged more)."""
+    if not os.path.exists(path):
+        return
+    with open(path, newline="") as f:
+        rows = [r for r in csv.DictReader(f) if int(r["step"]) <= step]
+    tmp = path + ".tmp"
+    with open(tmp, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=CSV_FIELDS)
+        w.writeheader()
+        w.writerows(rows)
+    os.replace(tmp, path)
+
+
+def _write_json(path: str, obj) -> None:
+    tmp = path + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump(obj, f, indent=1, sort_keys=True)
+        f.write("\n")
+    os.replace(tmp, path)
+
+
+def fit(cfg: TrainConfig, *, resume: bool = False, progress: bool = True,
+        stop_after_step: int | None = None) -> str:
+    """Train according to ``cfg``; returns the path of the final checkpoint (``cfg.out/model.pt``)."""
+    from risp_data.envs import get_environment
+
+    dist_info = init_distributed()
+    rank, world = dist_info.rank, dist_info.world_size
+    shards = open_shards(cfg.shards, cfg.format)
+    env = get_environment(shards.env)
+    check_environment(shards, env)
+    need_j = cfg.reg != "none"
+    if need_j and not shards.has_jacobian:
+        raise RispError(f"shard folder {cfg.shards} was rendered without Jacobians; --reg {cfg.reg} needs them")
+    val = open_shards(cfg.val) if cfg.val else None
+    if val is not None:
+        if val.env != shards.env:
+            raise RispError(f"--val shards {cfg.val} are of environment {val.env!r}, training shards of {shards.env!r}")
+        check_environment(val, env)
+    gamma = resolved_gamma(cfg, shards.env)
+    mhash = manifest_hash(shards.manifest)
+
+    plan = [steps_per_epoch(shards, cfg.seed, e, cfg.batch_size, world, cfg.workers) for e in range(cfg.epochs)]
+    total_steps = sum(plan)
+    if total_steps == 0:
+        raise RispError(f"--batch-size {cfg.batch_size} is larger than the samples each of the {world} process(es) "
+                        f"and {cfg.workers} worker(s) read from {len(shards.counts)} shard(s) of {shards.folder}; "
+                        "lower --batch-size or --workers, or render more samples")
+
+    os.makedirs(cfg.out, exist_ok=True)
+    last_path = os.path.join(cfg.out, LAST)
+    csv_path = os.path.join(cfg.out, "losses.csv")
+    state = None
+    if os.path.exists(last_path):
+        if not resume:
+            raise RispError(f"{cfg.out} already holds a run ({LAST}); pass --resume to continue it or choose another --out")
+        state = ckpt_io.load_checkpoint(last_path)
+        ckpt_io.check_compatible(state, last_path, env=shards.env, state_names=env.state_names,
+                                 resolution=shards.resolution)
+        if state.get("manifest_hash") != mhash:
+            raise RispError(f"cannot resume {last_path}: it was trained on other shards than {cfg.shards} "
+                            "(manifest hash differs)")
+        stored = state["config"]
+        diffs = [f"{k}={stored.get(k)!r}→{cfg.to_dict()[k]!r}" for k in RESUME_FIELDS if stored.get(k) != cfg.to_dict()[k]]
+        if diffs:
+            raise RispError(f"cannot resume {last_path} with different options: {', '.join(diffs)}")
+
+    model_cfg = ModelConfig(out_dim=env.target_dim, width=cfg.width, blocks=cfg.blocks,
+                            stem=stem_for_resolution(shards.resolution) if cfg.stem == "auto" else cfg.stem)
+    net = build_model(model_cfg, cfg.seed)
+    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=total_steps)
+    if state is not None:
+        net.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        sched.load_state_dict(state["scheduler"])
+        norm = Normalization.from_dict(state["normalization"])
+        epoch0, batch0, step = (int(state["progress"][k]) for k in ("epoch", "batch", "global_step"))
+        history = list(state.get("history", []))
+        if rank == 0:
+            _csv_keep_until(csv_path, step)
+    else:
+        norm = compute_normalization(shards, env, cfg.stats_samples)
+        epoch0, batch0, step, history = 0, 0, 0, []
+        if val is not None:  # the untrained network's held-out error, the baseline of the curve
+            history.append({"epoch": -1, "step": 0, "val_error": held_out_error(net, val, norm, env, cfg.val_samples)})
+    net.train()
+    params = list(net.parameters())
+
+    def payload(epoch: int, batch: int, complete: bool) -> dict:
+        return {
+            "env": shards.env, "state_names": list(env.state_names), "target_names": list(env.target_names),
+            "psi_names": list(shards.psi_names), "resolution": shards.resolution, "manifest_hash": mhash,
+            "shards": os.path.abspath(cfg.shards), "seed": cfg.seed, "config": cfg.to_dict(),
+            "model_config": model_cfg.to_dict(), "normalization": norm.to_dict(), "gamma": gamma,
+            "model": net.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
+            "progress": {"epoch": epoch, "batch": batch, "global_step": step, "total_steps": total_steps,
+                         "complete": complete},
+            "history": history, "world_size": world, "workers": cfg.workers, "torch_version": torch.__version__,
+        }
+
+    if rank == 0:
+        _write_json(os.path.join(cfg.out, "config.json"),
+                    {"config": cfg.to_dict(), "model_config": model_cfg.to_dict(), "gamma": gamma, "env": shards.env,
+                     "manifest_hash": mhash, "normalization": norm.to_dict(), "world_size": world,
+                     "steps_per_epoch": plan})
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=total_steps, initial=step, disable=(not progress) or rank != 0, unit="step",
+               desc=f"fit {shards.env} reg={cfg.reg}")
+    log = None
+    if rank == 0:
+        new = not os.path.exists(csv_path)
+        log = open(csv_path, "a", newline="")
+        writer = csv.DictWriter(log, fieldnames=CSV_FIELDS)
+        if new:
+            writer.writeheader()
+    t_start = time.perf_counter()
+    try:
+        for epoch in range(epoch0, cfg.epochs):
+            skip = batch0 if epoch == epoch0 else 0
+            if skip >= plan[epoch]:
+                continue
+            loader = make_loader(shards, seed=cfg.seed, epoch=epoch, batch_size=cfg.batch_size, workers=cfg.workers,
+                                 need_jacobian=need_j, rank=rank, world_size=world,
+                                 shuffle_buffer=cfg.shuffle_buffer, state_dim=env.state_dim)
+            sums = np.zeros(3)
+            for b, batch in enumerate(loader):
+                if b >= plan[epoch]:
+                    break  # every rank takes exactly plan[epoch] steps
+                if b < skip:
+                    continue  # already trained on before the resume
+                # ---- one optimizer step ------------------------------------------------------------
+                g_t = gamma_at(step, total_steps, gamma, cfg.gamma_ramp)
+                x, y, tangents = batch_tensors(batch, norm, env, need_j)
+                terms = risp_loss(net, x, y, cfg.reg, g_t, tangents, step_generator(cfg.seed, rank, step))
+                if not torch.isfinite(terms.total):
+                    raise RispError(f"loss is not finite at step {step} (epoch {epoch}); lower --lr or --gamma")
+                opt.zero_grad(set_to_none=True)
+                terms.total.backward()
+                if world > 1:
+                    allreduce_gradients(params, world)
+                lr = sched.get_last_lr()[0]
+                opt.step()
+                sched.step()
+                step += 1
+                # ---- bookkeeping ---------------------------------------------------------------------
+                row = {"step": step, "epoch": epoch, "batch": b, "lr": lr, "gamma": g_t,
+                       "loss": float(terms.total.detach()), "error": float(terms.error), "reg": float(terms.reg),
+                       "seconds": round(time.perf_counter() - t_start, 4)}
+                sums += (row["loss"], row["error"], row["reg"])
+                if log is not None:
+                    writer.writerow(row)
+                    log.flush()
+                bar.update(1)
+                bar.set_postfix(err=f"{row['error']:.3f}", reg=f"{row['reg']:.3g}")
+                if cfg.checkpoint_every and step % cfg.checkpoint_every == 0 and b + 1 < plan[epoch] and rank == 0:
+                    ckpt_io.save_checkpoint(last_path, payload(epoch, b + 1, False))
+                if stop_after_step is not None and step >= stop_after_step:
+                    raise TrainingStopped(f"stopped after step {step}")
+            n_done = plan[epoch] - skip
+            summary = {"epoch": epoch, "step": step, "train_loss": float(sums[0] / n_done),
+                       "train_error": float(sums[1] / n_done), "train_reg": float(sums[2] / n_done), "seconds": round(time.perf_counter() - t_start, 3)}
+            if val is not None:
+                summary["val_error"] = held_out_error(net, val, norm, env, cfg.val_samples)
+            history.append(summary)
+            if rank == 0:
+                ckpt_io.save_checkpoint(last_path, payload(epoch + 1, 0, epoch + 1 == cfg.epochs))
+                from .plots import plot_losses
+
+                plot_losses(csv_path, os.path.join(cfg.out, "losses.png"), history)
+            if world > 1:
+                import torch.distributed as dist
+
+                dist.barrier()
+    finally:
+        bar.close()
+        if log is not None:
+            log.close()
+    final = os.path.join(cfg.out, MODEL)
+    if rank == 0:
+        p = payload(cfg.epochs, 0, True)
+        for k in ("optimizer", "scheduler"):
+            p.pop(k)
+        ckpt_io.save_checkpoint(final, p)
+        _write_json(os.path.join(cfg.out, "history.json"), history)
+    return final
+
+

@@ -1,0 +1,146 @@
+"""Measured-data reading and validation (risp_tasks.measured): formats, sidecars and clear errors."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from risp_data.errors import RispError
+from risp_tasks.measured import body_rates_from_quat, load_measured, write_trajectory_csv
+
+CUBE_TOSSES = Path(__file__).resolve().parents[2] / "shared" / "data" / "cube-tosses"
+if not CUBE_TOSSES.is_dir():
+    CUBE_TOSSES = Path("/work/shared/data/cube-tosses")
+
+
+def _rotation_trajectory(n=40, dt=0.01, with_vel=True):
+    """A cube spinning about a tilted axis while flying a parabola: known velocities."""
+    t = np.arange(n) * dt
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    rate = 2.0  # rad/s about a fixed axis: body rates = world rates = rate·axis
+    ang = rate * t
+    q = np.concatenate([np.cos(ang / 2)[:, None], np.sin(ang / 2)[:, None] * axis], 1)
+    pos = np.stack([0.5 * t, -0.2 * t, 0.5 + 1.0 * t - 4.905 * t**2], 1)
+    cols = {"t": t, "x": pos[:, 0], "y": pos[:, 1], "z": pos[:, 2],
+            "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3]}
+    if with_vel:
+        cols.update(vx=np.full(n, 0.5), vy=np.full(n, -0.2), vz=1.0 - 9.81 * t,
+                    wx=np.full(n, rate * axis[0]), wy=np.full(n, rate * axis[1]), wz=np.full(n, rate * axis[2]))
+    return cols, rate * axis
+
+
+CUBE_SIDECAR = {"env": "cube", "side": 0.1048, "mass": 0.37}
+
+
+def _write(tmp_path, cols, sidecar=CUBE_SIDECAR, name="traj.csv"):
+    p = tmp_path / name
+    write_trajectory_csv(p, cols, sidecar)
+    return p
+
+
+def test_real_cube_tosses_load_with_default_sidecar():
+    trajs = load_measured([str(CUBE_TOSSES)], "cube", limit=3)
+    assert len(trajs) == 3
+    tr = trajs[0]
+    assert tr.sidecar.values["side"] == pytest.approx(0.1048)
+    assert "ContactNets" in tr.sidecar.source
+    assert tr.dt == pytest.approx(1 / 148, rel=1e-3)
+    assert np.allclose(np.linalg.norm(tr.quat, axis=1), 1.0)
+    assert not tr.vel_estimated
+
+
+def test_side_override_and_unit_mistake():
+    trajs = load_measured([str(CUBE_TOSSES / "toss_000.csv")], "cube", overrides={"side": 0.105, "mass": 0.4})
+    assert trajs[0].sidecar.values["side"] == 0.105
+    with pytest.raises(RispError, match=r"'side' = 104.8 .*unit"):
+        load_measured([str(CUBE_TOSSES / "toss_000.csv")], "cube", overrides={"side": 104.8})
+
+
+def test_velocities_estimated_when_absent(tmp_path):
+    cols, omega = _rotation_trajectory(with_vel=False)
+    tr = load_measured([str(_write(tmp_path, cols))], "cube")[0]
+    assert tr.vel_estimated and tr.omega_estimated
+    # central differences are exact for the parabola inside; the body rate of a constant rotation is constant
+    assert np.allclose(tr.vel[1:-1, 2], 1.0 - 9.81 * tr.t[1:-1], atol=1e-9)
+    assert np.allclose(tr.omega[2:-2], omega, atol=2e-3)
+    assert np.allclose(body_rates_from_quat(tr.t, tr.quat)[5], omega, atol=2e-3)
+
+
+@pytest.mark.parametrize(
+    "mutate, pattern",
+    [
+        (lambda c: c.pop("qz"), r"traj\.csv: missing column\(s\) qz"),
+        (lambda c: c["t"].__setitem__(5, c["t"][4]), r"traj\.csv: column t is not strictly increasing"),
+        (lambda c: c["vx"].__setitem__(7, np.nan), r"traj\.csv: column vx has NaN"),
+        (lambda c: c["qw"].__imul__(1.3), r"traj\.csv: columns qw,qx,qy,qz are not a unit quaternion"),
+        (lambda c: c["z"].__imul__(1e4), r"traj\.csv: column z reaches .* check the unit"),
+        (lambda c: c.pop("wy"), r"traj\.csv: column\(s\) wy missing"),
+        (lambda c: c["t"].__imul__(1000.0), r"traj\.csv: column t has a median step of 10 s"),
+    ],
+)
+def test_bad_input_names_file_and_column(tmp_path, mutate, pattern):
+    cols, _ = _rotation_trajectory()
+    cols = {k: np.array(v, dtype=float) for k, v in cols.items()}
+    mutate(cols)
+    p = _write(tmp_path, cols)
+    with pytest.raises(RispError, match=pattern):
+        load_measured([str(p)], "cube")
+
+
+def test_sidecar_problems(tmp_path):
+    cols, _ = _rotation_trajectory()
+    p = _write(tmp_path, cols, sidecar=None)
+    with pytest.raises(RispError, match=r"no sidecar .*--side and --mass"):
+        load_measured([str(p)], "cube")
+    (tmp_path / "traj.json").write_text("{not json")
+    with pytest.raises(RispError, match=r"traj\.json: sidecar is not valid JSON"):
+        load_measured([str(p)], "cube")
+    (tmp_path / "traj.json").write_text(json.dumps({"env": "quadrotor", "mass": 1.0}))
+    with pytest.raises(RispError, match=r"sidecar says env 'quadrotor' but --env is 'cube'"):
+        load_measured([str(p)], "cube")
+    (tmp_path / "traj.json").write_text(json.dumps({"env": "cube", "side": 0.1}))
+    with pytest.raises(RispError, match=r"lacks 'mass'"):
+        load_measured([str(p)], "cube")
+
+
+def test_truncated_file(tmp_path):
+    src = CUBE_TOSSES / "toss_001.csv"
+    text = src.read_text()
+    p = tmp_path / "toss_001.csv"
+    p.write_text(text[: len(text) // 2].rsplit(",", 3)[0])  # cut in the middle of a row
+    with pytest.raises(RispError, match=r"toss_001\.csv: line \d+ has \d+ fields"):
+        load_measured([str(p)], "cube", overrides={"side": 0.1048, "mass": 0.37})
+
+
+def test_quadrotor_thrust_units(tmp_path):
+    cols, _ = _rotation_trajectory()
+    n = len(cols["t"])
+    for i in range(4):
+        cols[f"f{i}"] = np.full(n, 7357.5)  # grams-force mistaken for newtons
+    sidecar = {"env": "quadrotor", "mass": 3.0, "arm_length": 0.3, "rotor_layout": "+", "gravity": 9.81}
+    p = _write(tmp_path, cols, sidecar=sidecar)
+    with pytest.raises(RispError, match=r"column f0 reaches 7357.5 N.*newtons"):
+        load_measured([str(p)], "quadrotor")
+    cols.pop("f3")
+    p = _write(tmp_path, cols, sidecar=sidecar)
+    with pytest.raises(RispError, match=r"missing column\(s\) f3"):
+        load_measured([str(p)], "quadrotor")
+
+
+def test_cli_reports_one_line_error(tmp_path):
+    from risp_tasks.cli import cli
+
+    folder = tmp_path / "tosses"
+    folder.mkdir()
+    shutil.copy(CUBE_TOSSES / "toss_000.csv", folder / "toss_000.csv")
+    (folder / "sidecar.json").write_text(json.dumps({"env": "cube", "side": 104.8, "mass": 0.37}))
+    res = CliRunner().invoke(cli, ["diagnose", str(folder), "--env", "cube", "--out", str(tmp_path / "out"), "--quiet"])
+    assert res.exit_code != 0
+    lines = [ln for ln in res.output.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("Error: ") and "'side' = 104.8" in lines[0]
+    assert not (tmp_path / "out").exists()

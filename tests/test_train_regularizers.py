@@ -1,0 +1,194 @@
+"""The RISP regularizers in float64 on a tiny network: values and parameter gradients vs finite differences.
+
+No shards needed: the math is checked on random inputs and tangents (the tangents play the role of the
+stored ∂x/∂ψ_j).  Gradients are compared with central differences along random directions in parameter
+space (covers every parameter at once) and at single coordinates of every parameter tensor.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from risp_train.model import ModelConfig, ResNet18, build_model
+from risp_train.norms import InstanceNorm, instance_norm
+from risp_train.normalization import Normalization, StatsAccumulator
+from risp_train.regularizers import (
+    exact_regularizer,
+    gamma_at,
+    rendering_gradients,
+    risp_loss,
+    state_error,
+    stochastic_regularizer,
+    surrogate_regularizer,
+)
+
+B, K, T, H = 2, 3, 3, 16
+
+
+@pytest.fixture(scope="module")
+def setup():
+    net = build_model(ModelConfig(out_dim=T, width=2, blocks=(1, 1, 1, 1), stem="small"), seed=0).double()
+    g = torch.Generator().manual_seed(1)
+    x = torch.randn(B, 3, H, H, generator=g, dtype=torch.float64)
+    tangents = torch.randn(B, K, 3, H, H, generator=g, dtype=torch.float64)
+    y = torch.randn(B, T, generator=g, dtype=torch.float64)
+    v = torch.randn(B, K, generator=g, dtype=torch.float64)
+    return net, x, tangents, y, v
+
+
+def _objective(kind, net, x, tangents, y, v):
+    if kind == "exact":
+        return exact_regularizer(net, x, tangents)[1].sum()
+    if kind == "surrogate":
+        return surrogate_regularizer(net, x, tangents, y)[2].sum()
+    if kind == "stochastic":
+        return stochastic_regularizer(net, x, tangents, v)[1].sum()
+    raise AssertionError(kind)
+
+
+def _grads(f, params):
+    gs = torch.autograd.grad(f(), params, allow_unused=True)
+    return [torch.zeros_like(p) if g is None else g for g, p in zip(gs, params)]
+
+
+@pytest.mark.parametrize("kind", ["exact", "surrogate", "stochastic"])
+def test_parameter_gradient_matches_central_differences(setup, kind):
+    net, x, tangents, y, v = setup
+    params = list(net.parameters())
+    f = lambda: _objective(kind, net, x, tangents, y, v)  # noqa: E731
+    grads = _grads(f, params)
+    assert any(g.abs().sum() > 0 for g in grads)
+    g = torch.Generator().manual_seed(7)
+    eps = 1e-6
+    with torch.no_grad():
+        # (1) two random directions through all parameters at once
+        for _ in range(2):
+            d = [torch.randn(p.shape, generator=g, dtype=p.dtype) for p in params]
+            for p, di in zip(params, d):
+                p.add_(eps * di)
+            fp = float(f())
+            for p, di in zip(params, d):
+                p.sub_(2 * eps * di)
+            fm = float(f())
+            for p, di in zip(params, d):
+                p.add_(eps * di)
+            fd = (fp - fm) / (2 * eps)
+            an = float(sum((gi * di).sum() for gi, di in zip(grads, d)))
+            assert an == pytest.approx(fd, rel=1e-5, abs=1e-8)
+        # (2) one coordinate in each of a few parameter tensors (stem, a block, a shortcut, the head)
+        named = dict(net.named_parameters())
+        picks = ["stem.0.weight", "stages.1.0.conv2.weight", "stages.2.0.shortcut.0.weight", "head.weight"]
+        for name in picks:
+            p = named[name]
+            gp = grads[[id(q) for q in params].index(id(p))]
+            flat = p.view(-1)
+            i = int(torch.randint(flat.numel(), (1,), generator=g))
+            old = float(flat[i])
+            flat[i] = old + eps
+            fp = float(f())
+            flat[i] = old - eps
+            fm = float(f())
+            flat[i] = old
+            assert float(gp.reshape(-1)[i]) == pytest.approx((fp - fm) / (2 * eps), rel=1e-4, abs=1e-7)
+
+
+def test_exact_equals_explicit_loop_over_psi(setup):
+    """‖M_b‖_F from the vmapped JVPs equals an explicit loop: full reverse-mode Jacobian ∂N/∂x times X_bj."""
+    net, x, tangents, _, _ = setup
+    pred, m = rendering_gradients(net, x, tangents)
+    _, r = exact_regularizer(net, x, tangents)
+    for b in range(B):
+        jac = torch.autograd.functional.jacobian(lambda xb: net(xb[None])[0], x[b])  # (T, 3, H, W)
+        rows = []
+        for j in range(K):
+            col = (jac * tangents[b, j]).sum(dim=(1, 2, 3))  # (T,) = (∂N/∂x)·X_bj
+            torch.testing.assert_close(m[b, j], col, rtol=1e-10, atol=1e-12)
+            rows.append(col)
+        frob = torch.sqrt(sum((c * c).sum() for c in rows))
+        assert float(r[b].detach()) == pytest.approx(float(frob), rel=1e-10)
+    torch.testing.assert_close(pred, net(x))
+
+
+def test_stochastic_mean_matches_exact_squared_norm(setup):
+    """E_v ‖M v‖² = ‖M‖_F² within the estimate's standard error (v ~ N(0, I_K), 2000 draws)."""
+    net, x, tangents, _, _ = setup
+    n = 2000
+    _, r_exact = exact_regularizer(net, x[:1], tangents[:1])
+    g = torch.Generator().manual_seed(3)
+    v = torch.randn(n, K, generator=g, dtype=torch.float64)
+    with torch.no_grad():
+        _, r = stochastic_regularizer(net, x[:1].repeat(n, 1, 1, 1), tangents[:1].repeat(n, 1, 1, 1, 1), v)
+    mean, se = float(r.mean()), float(r.std() / math.sqrt(n))
+    target = float(r_exact[0].detach()) ** 2
+    assert abs(mean - target) < 4 * se, (mean, target, se)
+    # documented variance: Var = 2‖MᵀM‖_F²
+    _, m = rendering_gradients(net, x[:1], tangents[:1])
+    mm = m[0] @ m[0].T  # (K, K) = MᵀM in our (K, T) layout
+    assert float(r.var()) == pytest.approx(2 * float((mm * mm).sum()), rel=0.25)
+
+
+def test_surrogate_is_norm_of_loss_gradient_wrt_psi(setup):
+    """r_b = ‖∂ℓ_b/∂ψ‖ with ∂ℓ_b/∂ψ_j = sign(ŷ_b − y_b)ᵀ M_b[:, j] / T (chain rule through N)."""
+    net, x, tangents, y, _ = setup
+    pred, err, r = surrogate_regularizer(net, x, tangents, y)
+    _, m = rendering_gradients(net, x, tangents)  # (B, K, T)
+    s = torch.sign(pred - y) / T  # ∂ℓ/∂ŷ
+    expected = torch.linalg.vector_norm(torch.einsum("bkt,bt->bk", m, s), dim=1)
+    torch.testing.assert_close(r, expected, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(err, state_error(pred, y))
+
+
+def test_risp_loss_combines_terms(setup):
+    net, x, tangents, y, _ = setup
+    for reg in ("none", "surrogate", "exact", "stochastic"):
+        terms = risp_loss(net, x, y, reg, 2.0, tangents, torch.Generator().manual_seed(0))
+        assert float(terms.total) == pytest.approx(float(terms.error + 2.0 * terms.reg), rel=1e-12)
+        assert (float(terms.reg) > 0) == (reg != "none")
+    with pytest.raises(ValueError):
+        risp_loss(net, x, y, "bogus", 1.0, tangents)
+
+
+def test_instance_norm_values_and_no_torch_norm_modules():
+    x = torch.randn(2, 4, 5, 6, dtype=torch.float64)
+    torch.testing.assert_close(instance_norm(x), torch.nn.functional.instance_norm(x, eps=1e-5))
+    net = ResNet18(ModelConfig(out_dim=9, width=8))
+    kinds = {type(m) for m in net.modules()}
+    assert InstanceNorm in kinds and torch.nn.SiLU in kinds
+    assert not kinds & {torch.nn.InstanceNorm2d, torch.nn.BatchNorm2d, torch.nn.GroupNorm, torch.nn.ReLU}
+    convs = [m for m in net.modules() if isinstance(m, torch.nn.Conv2d)]
+    assert len(convs) == 1 + 16 + 3  # stem + 8 basic blocks × 2 + 3 projection shortcuts (ResNet-18)
+    assert net(torch.randn(2, 3, 64, 64)).shape == (2, 9)
+    with pytest.raises(ValueError, match="too small"):
+        ResNet18(ModelConfig(out_dim=9, width=4, stem="imagenet"))(torch.randn(1, 3, 16, 16))
+
+
+def test_input_normalization_chain_rule_matches_finite_differences():
+    g = torch.Generator().manual_seed(5)
+    image = torch.rand(2, 6, 6, 3, generator=g, dtype=torch.float64) * 3 + 0.01
+    jac = torch.randn(2, 4, 6, 6, 3, generator=g, dtype=torch.float64)
+    acc = StatsAccumulator(target_dim=2)
+    acc.add(image, torch.randn(2, 2, generator=g))
+    norm = acc.result()
+    tang = norm.tangents(image, jac)  # (B, K, 3, H, W)
+    eps = 1e-6
+    for j in range(4):
+        fd = (norm.images(image + eps * jac[:, j]) - norm.images(image - eps * jac[:, j])) / (2 * eps)
+        torch.testing.assert_close(tang[:, j], fd, rtol=1e-6, atol=1e-8)
+    # statistics: normalized images have zero mean, unit std per channel
+    xn = norm.images(image)
+    torch.testing.assert_close(xn.mean(dim=(0, 2, 3)), torch.zeros(3, dtype=torch.float64), atol=1e-9, rtol=0)
+    torch.testing.assert_close(xn.std(dim=(0, 2, 3), unbiased=False), torch.ones(3, dtype=torch.float64))
+    back = Normalization.from_dict(norm.to_dict())
+    t = torch.randn(3, 2, dtype=torch.float64)
+    torch.testing.assert_close(back.untargets(back.targets(t)), t)
+
+
+def test_gamma_ramp():
+    assert gamma_at(0, 100, 20.0, 0.5) == 0.0
+    assert gamma_at(25, 100, 20.0, 0.5) == pytest.approx(10.0)
+    assert gamma_at(50, 100, 20.0, 0.5) == 20.0
+    assert gamma_at(99, 100, 20.0, 0.5) == 20.0
+    assert gamma_at(0, 100, 20.0, 0.0) == 20.0
