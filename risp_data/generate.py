@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import inspect
 import os
 import queue as _queue
 import tempfile
@@ -41,12 +40,6 @@ from .shards.writer import FORMATS, write_shard
 from .shards.zarr_store import ZARR_DIR, array_shapes, create_store
 
 EXECUTORS = ("local", "ray")
-# Renderer(freeze=True) (dr.freeze around primal + K tangents) was measured to give history-dependent
-# images: a sample rendered after other samples differed from the same sample rendered first (geometry
-# and aux updates not seen by the replayed kernels).  Shards must not depend on rendering order
-# (tests/test_data_cli.py::test_determinism_across_shard_size_and_workers), so the job renders unfrozen
-# until that is fixed; flip this once the Renderer's order-independence test passes with freeze on.
-FREEZE = False
 LOCK_FILE = ".lock"
 SEED_SCHEME = "sample i: np.random.SeedSequence(seed, spawn_key=(i,)); rng = default_rng(it) draws state, then psi/aux; render_seed = its generate_state(1, uint32)[0]"
 
@@ -140,6 +133,12 @@ def render_sample(renderer, env, job: RenderJob, index: int) -> Sample:
     """Render sample ``index``: image and (unless ``job.jacobian`` is off) its forward-mode Jacobian stack."""
     inp = sample_inputs(env, job.domain, job.seed, index)
     image, jac = renderer.render(inp.state, inp.config, inp.render_seed, jacobian=job.jacobian)
+    # a NaN in one training sample poisons every step that sees it: refuse to store it
+    if not np.isfinite(image).all():
+        raise RispError(f"sample {index} of {job.env}/{job.domain}: the renderer returned a non-finite image")
+    if jac is not None and not np.isfinite(jac).all():
+        bad = [n for n, j in zip(renderer.psi_names, jac) if not np.isfinite(j).all()]
+        raise RispError(f"sample {index} of {job.env}/{job.domain}: non-finite Jacobian for {', '.join(bad)}")
     meta = {
         "env": job.env,
         "domain": job.domain,
@@ -151,6 +150,7 @@ def render_sample(renderer, env, job: RenderJob, index: int) -> Sample:
         "aux": _jsonable(inp.config.aux),
         "resolution": job.resolution,
         "spp": job.spp,
+        "variant": getattr(renderer, "variant", job.variant),
         "jacobian": job.jacobian,
     }
     return Sample(
@@ -175,10 +175,7 @@ def make_renderer(job: RenderJob, threads: int | None = None):
 
         dr.set_thread_count(threads)
     get_environment(job.env)
-    kwargs = {}
-    if "freeze" in inspect.signature(Renderer).parameters:
-        kwargs["freeze"] = FREEZE
-    return Renderer(job.env, domain=job.domain, resolution=job.resolution, spp=job.spp, variant=job.variant, **kwargs)
+    return Renderer(job.env, domain=job.domain, resolution=job.resolution, spp=job.spp, variant=job.variant)
 
 
 def render_shard(job: RenderJob, shard_index: int, renderer, on_sample: Callable[[], None] | None = None) -> dict:
@@ -391,11 +388,17 @@ def _run_pool(job, todo, on_record, bar):
         t.join()
 
 
-def _run_ray(job, todo, on_record, bar):
+def _require_ray():
     try:
         import ray
     except ImportError:
         raise RispError("--executor ray needs the optional ray extra: pip install 'risp[ray]'") from None
+    return ray
+
+
+def _run_ray(job, todo, on_record, bar):
+    """The same shard tasks on Ray actors (a running cluster when RAY_ADDRESS is set, else a local one)."""
+    ray = _require_ray()
     from ray.util import ActorPool
 
     if not ray.is_initialized():
@@ -423,16 +426,11 @@ def _run_ray(job, todo, on_record, bar):
 
 def run_job(job: RenderJob, progress: bool = True, log: Callable[[str], None] = print) -> dict[str, Any]:
     """Render every missing shard of ``job`` into ``job.out`` and return the final manifest."""
-    from tqdm import tqdm
-
     from .mitsuba_setup import init_mitsuba
 
     validate_job(job)
     if job.executor == "ray":
-        try:
-            import ray  # noqa: F401
-        except ImportError:
-            raise RispError("--executor ray needs the optional ray extra: pip install 'risp[ray]'") from None
+        _require_ray()  # fail before anything is written
     variant = init_mitsuba(job.variant)  # fails with one line when no usable libLLVM exists
     check_folder(job, variant)  # refuse another job's folder before creating or locking anything
     _check_writable(job.out)

@@ -112,7 +112,8 @@ def nominal_rendering(env: str, domain: str = "train") -> RenderConfig:
     else:
         aux = {"light_direction": _direction(-2.0, math.radians(55)), "light_distance": 4.0, "light_size": 1.0,
                "light_color": [1.0, 0.92, 0.8], "floor_texture": "tiles", "texture_seed": 0,
-               "object_roughness": 0.15, "object_gloss": 0.25, "sky_zenith": [0.35, 0.5, 0.9], "sky_horizon": [0.9, 0.85, 0.75]}
+               "object_roughness": 0.15, "object_gloss": 0.25,
+               "sky_zenith": [0.35, 0.5, 0.9], "sky_horizon": [0.9, 0.85, 0.75]}
     return RenderConfig(psi=psi, aux=aux)
 
 

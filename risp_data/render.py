@@ -24,7 +24,6 @@ from typing import Callable
 import numpy as np
 
 from .envs import get_environment
-from .envs.meshes import camera_basis
 from .errors import RispError
 from .mitsuba_setup import init_mitsuba
 from .psi import DOMAINS, RenderConfig, psi_specs
@@ -186,7 +185,8 @@ class Renderer:
             },
         }
         if target:
-            scene["light"] = {"type": "rectangle", "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 1.0}}}
+            scene["light"] = {"type": "rectangle",
+                              "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 1.0}}}
             scene["ambient"] = {"type": "envmap", "bitmap": mi.Bitmap(sky_map([0.3, 0.5, 0.9], [0.9, 0.85, 0.75])),
                                 "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], 90)}
         else:
@@ -384,13 +384,12 @@ class Renderer:
         ``leaves``: the gradient-enabled ψ-dependent scene parameters (already in ``scene``);
         ``tangents[j][k]``: the tangent of leaves[k] along ψ_j.  Returns (image, [J_1 … J_K]) tensors.
         Pure in its inputs (no params.update() in here).  Not wrapped in ``dr.freeze``: with Mitsuba 3.9.1 /
-        Dr.Jit 1.5 its replays re-recorded on every new ψ and, worse, some replays returned images for stale
-        values of parameters nested in ``blendbsdf`` (docs/rendering.md).
+        Dr.Jit 1.5 its replays re-recorded on every new ψ and, worse, some replays returned images computed
+        with stale scene values (docs/rendering.md).
         """
         mi, dr = self._mi, self._dr
         integ = self.integrator
         sensor = scene.sensors()[0]
-        film = sensor.film()
         spp = self.spp * self.settings.spp_factor
         grads = []
         with dr.suspend_grad():
@@ -401,7 +400,7 @@ class Renderer:
             L, valid, aovs, state_out = integ.sample(
                 mode=dr.ADMode.Primal, scene=scene, sampler=sampler.clone(), ray=ray, depth=mi.UInt32(0),
                 δL=None, state_in=None, active=mi.Bool(True))
-            image = self._develop(film, pos, L * weight, ray, spp)
+            image = self._splat(pos, L * weight, spp)
             # (3) one tangent pass per ψ_j: same sampler state → same paths as the primal
             for tangent in tangents:
                 with dr.resume_grad():
@@ -410,23 +409,25 @@ class Renderer:
                 δL, _, _, _ = integ.sample(
                     mode=dr.ADMode.Forward, scene=scene, sampler=sampler.clone(), ray=ray,
                     depth=mi.UInt32(0), δL=None, δaovs=None, state_in=state_out, active=mi.Bool(True))
-                grads.append(self._develop(film, pos, δL * weight, ray, spp))
+                grads.append(self._splat(pos, δL * weight, spp))
+            dr.eval(image, grads)  # one launch for the primal and all tangent passes
         return image, grads
 
-    def _develop(self, film, pos, value, ray, spp):
-        """Splat per-sample values into the (cleared) film and return the developed (H, W, 3) tensor."""
-        mi, dr = self._mi, self._dr
-        from mitsuba.python.ad.integrators.common import ADIntegrator
+    def _splat(self, pos, value, spp: int):
+        """Per-pixel mean of the samples' values: (H, W, 3) tensor.
 
-        film.clear()
-        block = film.create_block()
-        block.set_coalesce(block.coalesce() and spp >= 4)
-        ADIntegrator._splat_to_block(block, film, pos, value=value, weight=1.0,
-                                     alpha=mi.Float(1.0), aovs=[], wavelengths=ray.wavelengths)
-        film.put_block(block)
-        out = film.develop()
-        dr.eval(out)  # the film's storage is reused by the next pass
-        return out
+        With the box reconstruction filter every sample lands in exactly the pixel containing its film
+        position, so developing the film reduces to a scatter-add and a division by spp; unlike the
+        film, separate buffers let all passes be evaluated together.
+        """
+        mi, dr = self._mi, self._dr
+        H = W = self.resolution
+        px = mi.Point2u(dr.clip(mi.Point2i(dr.floor(pos)), 0, W - 1))
+        index = px.y * W + px.x
+        out = dr.zeros(mi.Float, H * W * 3)
+        for c in range(3):
+            dr.scatter_reduce(dr.ReduceOp.Add, out, value[c] / spp, index * 3 + c)
+        return mi.TensorXf(out, shape=(H, W, 3))
 
 
 def _look_at(origin: np.ndarray, target: np.ndarray, up) -> np.ndarray:

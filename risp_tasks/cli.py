@@ -33,21 +33,30 @@ def cli():
 @click.option("--pairs-top", type=int, default=3, show_default=True, help="pairs are formed among this many best single effects")
 @click.option("--effects", default=None, help="comma-separated subset of the effect library to try (default: all)")
 @click.option("--limit", type=int, default=None, help="use only the first N files (sorted by name)")
+@click.option("--floor-offset", default="auto", show_default=True,
+              help="cube: floor height in the data's frame [m], or 'auto' (median lowest corner of resting frames)")
 @click.option("--side", type=float, default=None, help="cube side [m] (overrides the sidecar)")
 @click.option("--mass", type=float, default=None, help="cube mass [kg] (overrides the sidecar)")
 @click.option("--no-plots", is_flag=True, help="skip the PNG plots")
 @click.option("--quiet", is_flag=True, help="no progress bar")
 def diagnose(data, env, out, seed, held_out, horizon, rollout_horizon, max_segments, max_iters, pairs_top, effects,
-             limit, side, mass, no_plots, quiet):
+             limit, floor_offset, side, mass, no_plots, quiet):
     """Show what the simulator gets wrong in measured DATA (CSV files or folders), name the cause, measure the gain."""
     from risp_tasks.diagnose.run import DiagnoseConfig
     from risp_tasks.diagnose.run import diagnose as run_diagnose
 
+    from risp_data.errors import RispError
+
+    if floor_offset != "auto":
+        try:
+            floor_offset = float(floor_offset)
+        except ValueError:
+            raise RispError(f"--floor-offset must be 'auto' or a number of metres, got {floor_offset!r}") from None
     cfg = DiagnoseConfig(
         data=tuple(data), env=env, out=out, seed=seed, held_out=held_out, horizon=horizon,
         rollout_horizon=rollout_horizon, max_segments=max_segments, max_iters=max_iters, pairs_top=pairs_top,
         effects=None if effects is None else tuple(e.strip() for e in effects.split(",") if e.strip()),
-        limit=limit, side=side, mass=mass, plots=not no_plots, progress=not quiet,
+        limit=limit, floor_offset=floor_offset, side=side, mass=mass, plots=not no_plots, progress=not quiet,
     )
     report = run_diagnose(cfg)
     click.echo(f"cause: {report['cause']} — {report['reason']}")

@@ -2,7 +2,7 @@
 
 One job, one seed, one self-describing output folder (``demo/`` by default):
 
-    shards/<env>-<domain>/   a few samples of every environment in both domains, with contact sheets
+    preview/<env>-<domain>/  a few samples of every environment in both domains, with contact sheets
     shards/cube-train/       a small cube training set with Jacobian stacks
     shards/cube-heldout/     held-out training-domain shards (unseen ψ) for evaluation
     shards/cube-target/      target-domain shards (another look: lights, materials, floor, integrator)
@@ -74,7 +74,7 @@ def run_demo(cfg: DemoConfig) -> Path:
     # 1. Render: every environment in both domains, and its contact sheet.
     for env in ENV_NAMES:
         for domain in ("train", "target"):
-            folder = out / "shards" / f"{env}-{domain}"
+            folder = out / "preview" / f"{env}-{domain}"
             _run(data_cli, ["render", "--env", env, "--domain", domain, "--n", str(cfg.preview_n),
                             "--res", str(cfg.preview_res), "--spp", str(cfg.spp), "--seed", seed,
                             "--format", "wds", "--shard-size", str(cfg.preview_n), "--out", str(folder)], log)
@@ -95,9 +95,9 @@ def run_demo(cfg: DemoConfig) -> Path:
     run = out / "runs" / "cube"
     _run(train_cli, ["fit", str(shards / "cube-train"), "--out", str(run), "--reg", cfg.reg, "--preset", "cpu",
                      "--epochs", str(cfg.epochs), "--seed", seed, "--workers", "1",
-                     "--val", str(shards / "cube-heldout")], log)
+                     "--val", str(shards / "cube-heldout"), *(["--resume"] if (run / "last.pt").exists() else [])], log)
     for name in ("cube-heldout", "cube-target"):
-        _run(train_cli, ["eval", str(run), str(shards / name), "--seed", seed,
+        _run(train_cli, ["eval", str(run / "model.pt"), str(shards / name), "--seed", seed,
                          "--out", str(run / f"eval-{name}")], log)
 
     # 4. A task: diagnose what the base cube model misses in real, motion-captured tosses.
@@ -126,7 +126,7 @@ def _write_summary(out: Path, cfg: DemoConfig, log: list[dict]) -> None:
         f"Seed {cfg.seed}. Every command that was run, with its wall time, is in `demo.json`.",
         "",
         "## What is where",
-        "- `shards/<env>-<domain>/contact_sheet.png`: rendered images and their Jacobian images ∂I/∂ψ_j",
+        "- `preview/<env>-<domain>/contact_sheet.png`: rendered images and their Jacobian images ∂I/∂ψ_j",
         "- `shards/cube-train/`: the training shards (webdataset tar + manifest.json)",
         "- `runs/cube/`: checkpoint, `loss.csv`, loss-curve PNG, evaluations (`eval-*.md`)",
         "- `diagnose/`: `report.md`, `report.json` and plots of the real cube-toss diagnosis",

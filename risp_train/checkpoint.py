@@ -32,9 +32,30 @@ FORMAT_VERSION = 1
 REQUIRED = ("env", "state_names", "target_names", "normalization", "model", "model_config", "resolution")
 
 
+def plain(obj: Any) -> Any:
+    """A copy of ``obj`` that ``torch.load(weights_only=True)`` accepts: tensors, dicts, lists, str, numbers."""
+    if isinstance(obj, torch.Tensor):
+        return obj
+    if isinstance(obj, dict):
+        return {plain(k): plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [plain(v) for v in obj]
+    if isinstance(obj, bool) or obj is None:
+        return obj
+    if isinstance(obj, str):
+        return str(obj)  # also str subclasses such as torch.__version__
+    if isinstance(obj, int):
+        return int(obj)
+    if isinstance(obj, float):
+        return float(obj)
+    if hasattr(obj, "item"):  # numpy scalars
+        return obj.item()
+    raise TypeError(f"cannot store {type(obj).__name__} in a weights-only checkpoint")
+
+
 def save_checkpoint(path: str, payload: dict[str, Any]) -> None:
     """Atomically write ``payload`` (plus the format tags) to ``path``."""
-    payload = {"format": FORMAT, "format_version": FORMAT_VERSION, **payload}
+    payload = plain({"format": FORMAT, "format_version": FORMAT_VERSION, **payload})
     folder = os.path.dirname(os.path.abspath(path))
     os.makedirs(folder, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".pt", dir=folder)

@@ -75,6 +75,41 @@ def eval_cmd(model, shards, metric, seed, batch_size, limit, fmt, out, quiet):
     click.echo(f"written: {', '.join(res['files'])}")
 
 
+@cli.command()
+@click.option("--env", required=True, help="Environment: quadrotor, cube, hand or rod.")
+@click.option("--out", required=True, type=click.Path(file_okay=False), help="Ablation folder (shards, runs, results).")
+@click.option("--pools", default="1,10,per-sample", show_default=True, help="Rendering-configuration pool sizes (comma-separated; per-sample = a new one per sample).")
+@click.option("--regs", default="none,surrogate,exact,stochastic", show_default=True, help="Regularizers to compare (comma-separated).")
+@click.option("--n-train", type=int, default=512, show_default=True, help="Training samples per pool.")
+@click.option("--n-eval", type=int, default=128, show_default=True, help="Samples per evaluation set.")
+@click.option("--res", "resolution", type=int, default=64, show_default=True, help="Image resolution.")
+@click.option("--spp", type=int, default=8, show_default=True, help="Samples per pixel.")
+@click.option("--shard-size", type=int, default=64, show_default=True)
+@click.option("--preset", default="cpu", show_default=True, help="Training preset (paper or cpu).")
+@click.option("--epochs", type=int, default=None, help="Epochs [preset].")
+@click.option("--batch-size", type=int, default=None, help="Batch size [preset].")
+@click.option("--width", type=int, default=None, help="ResNet-18 width [preset].")
+@click.option("--lr", type=float, default=None, help="Learning rate [preset].")
+@click.option("--gamma", type=float, default=None, help="Final γ [paper's per-environment value].")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--workers", type=int, default=2, show_default=True, help="DataLoader workers per training.")
+@click.option("--no-target", is_flag=True, help="Skip the target-domain evaluation set.")
+@click.option("--quiet", is_flag=True, help="No progress bars.")
+def ablation(env, out, pools, regs, n_train, n_eval, resolution, spp, shard_size, preset, epochs, batch_size, width,
+             lr, gamma, seed, workers, no_target, quiet):
+    """Data-efficiency ablation (1 / 10 / per-sample rendering configurations × regularizers)."""
+    from .ablation import AblationConfig, ablation_markdown, run_ablation
+
+    cfg = AblationConfig(env=env, out=out, pools=tuple(p.strip() for p in pools.split(",") if p.strip()),
+                         regs=tuple(r.strip() for r in regs.split(",") if r.strip()), n_train=n_train,
+                         n_eval=n_eval, resolution=resolution, spp=spp, shard_size=shard_size, seed=seed,
+                         preset=preset, epochs=epochs, batch_size=batch_size, width=width, lr=lr, gamma=gamma,
+                         workers=workers, target=not no_target)
+    summary = run_ablation(cfg, progress=not quiet)
+    click.echo(ablation_markdown(summary))
+    click.echo(f"written: {out}/ablation.json, ablation.md, ablation.png")
+
+
 def main() -> None:
     run_cli(cli)
 

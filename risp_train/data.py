@@ -265,8 +265,9 @@ def collate(samples: list[dict], state_dim: int | None = None) -> dict:
         if s["image"].shape != first["image"].shape:
             raise RispError(f"sample {s['key']} in {s.get('url', '?')}: image shape {s['image'].shape} differs "
                             f"from {first['image'].shape}")
-        if not np.isfinite(s["image"]).all():
-            raise RispError(f"sample {s['key']} in {s.get('url', '?')}: image contains NaN or inf")
+        for field in ("image", "state", "jacobian"):
+            if s[field] is not None and not np.isfinite(s[field]).all():
+                raise RispError(f"sample {s['key']} in {s.get('url', '?')}: {field} contains NaN or inf")
     out = {
         "key": [s["key"] for s in samples],
         "image": torch.from_numpy(np.stack([s["image"] for s in samples]).astype(np.float32)),

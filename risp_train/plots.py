@@ -40,27 +40,34 @@ def plot_losses(csv_path: str, png_path: str, history: list[dict] | None = None)
     ax[0].set_xlabel("step")
     ax[0].set_yscale("log")
     ax[0].legend(fontsize=8)
-    ax[1].plot(steps, [max(r, 1e-12) for r in reg], lw=0.8, color="C2")
+    if any(r > 0 for r in reg):
+        ax[1].plot(steps, [max(r, 1e-12) for r in reg], lw=0.8, color="C2")
+        ax[1].set_yscale("log")
+    else:
+        ax[1].text(0.5, 0.5, "no regularizer (--reg none)", ha="center", va="center", transform=ax[1].transAxes)
     ax[1].set_xlabel("step")
     ax[1].set_ylabel("regularizer r (batch mean)")
-    ax[1].set_yscale("log")
     _save(fig, png_path)
     plt.close(fig)
 
 
-def plot_ablation(results: list[dict], png_path: str, metric: str) -> None:
-    """Held-out state error vs number of rendering configurations, one line per regularizer."""
+def plot_ablation(results: list[dict], png_path: str, metric: str, sets: list[str]) -> None:
+    """Held-out state error vs number of rendering configurations, one line per regularizer, one panel per set."""
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(5.5, 3.8))
-    regs = sorted({r["reg"] for r in results}, key=["none", "surrogate", "exact", "stochastic"].index)
+    order = ["none", "surrogate", "exact", "stochastic"]
+    regs = sorted({r["reg"] for r in results}, key=order.index)
     pools = sorted({r["pool"] for r in results}, key=lambda p: (p == "per-sample", int(p) if p.isdigit() else 0))
-    for reg in regs:
-        ys = [next((r["mean"] for r in results if r["reg"] == reg and r["pool"] == p), float("nan")) for p in pools]
-        es = [next((r["std"] for r in results if r["reg"] == reg and r["pool"] == p), float("nan")) for p in pools]
-        ax.errorbar(range(len(pools)), ys, yerr=es, marker="o", capsize=3, label=reg)
-    ax.set_xticks(range(len(pools)), [f"{p} config" + ("s" if p != "1" else "") if p != "per-sample"
-                                      else "new per sample" for p in pools])
-    ax.set_ylabel(f"state error on unseen ψ ({metric})")
-    ax.legend(fontsize=8)
+    labels = [("new per sample" if p == "per-sample" else f"{p} config" + ("" if p == "1" else "s")) for p in pools]
+    fig, axes = plt.subplots(1, len(sets), figsize=(5.2 * len(sets), 3.8), squeeze=False)
+    for ax, s in zip(axes[0], sets):
+        for k, reg in enumerate(regs):
+            pts = [next((r[s] for r in results if r["reg"] == reg and r["pool"] == p), None) for p in pools]
+            xs = [i + 0.06 * (k - len(regs) / 2) for i in range(len(pools))]
+            ax.errorbar(xs, [p["mean"] if p else float("nan") for p in pts],
+                        yerr=[p["std"] if p else float("nan") for p in pts], marker="o", capsize=3, label=reg)
+        ax.set_xticks(range(len(pools)), labels)
+        ax.set_title(f"evaluated on {s} shards")
+        ax.set_ylabel(f"per-image state error ({metric})")
+        ax.legend(fontsize=8)
     _save(fig, png_path)
     plt.close(fig)

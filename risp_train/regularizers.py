@@ -9,8 +9,9 @@ prediction and y_b the normalized target (T values).  The rendering-gradient mat
 
 * state error        ℓ_b = (1/T) Σ_t |ŷ_bt − y_bt|                               (L1)
 * ``exact``          r_b = ‖M_b‖_F                                            (paper Eq. 10)
-  K forward-mode products (∂N/∂x)·X_bj, one per ψ_j, batched with ``torch.func.vmap`` over
-  ``torch.func.jvp``: O(K·|θ|) instead of the paper's O(T·|θ|) rows of ∂N/∂x.
+  K forward-mode products (∂N/∂x)·X_bj, one per ψ_j, batched over the K tangents (``torch.func.vmap``
+  over ``torch.func.jvp``, or the equivalent explicit tangent rules of forward_tangents.py):
+  O(K·|θ|) instead of the paper's O(T·|θ|) rows of ∂N/∂x.
 * ``stochastic``     r_b = ‖M_b v_b‖₂²,  v_b ~ N(0, I_K)                          (one JVP along X_b v_b)
   Unbiased for the *squared* Frobenius norm, E r_b = ‖M_b‖_F², with variance
   Var r_b = 2‖M_bᵀM_b‖_F² = 2 Σ_i σ_i⁴ ≤ 2‖M_b‖_F⁴ (σ_i the singular values of M_b), i.e. a relative
@@ -42,12 +43,12 @@ def state_error(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return (pred - target).abs().mean(dim=-1)
 
 
-def rendering_gradients(net: nn.Module, x: torch.Tensor, tangents: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(ŷ, M): ŷ = N(x) (B, T) and M_b = (∂N/∂x)(x_b)·X_b stacked as (B, K, T).
+ENGINES = ("auto", "explicit", "functorch")
 
-    x (B, C, H, W), tangents X (B, K, C, H, W).  One batched forward-mode pass per ψ_j, vmapped over K;
-    both outputs stay on the autograd tape so the loss can be backpropagated to the parameters.
-    """
+
+def rendering_gradients_functorch(net: nn.Module, x: torch.Tensor,
+                                  tangents: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(ŷ, M) by ``torch.func.jvp`` vmapped over the K tangents (any network; the reference engine)."""
 
     def one_direction(t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return jvp(net, (x,), (t,))
@@ -57,19 +58,39 @@ def rendering_gradients(net: nn.Module, x: torch.Tensor, tangents: torch.Tensor)
     return primal[0], tangent_out
 
 
-def exact_regularizer(net: nn.Module, x: torch.Tensor, tangents: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def rendering_gradients(net: nn.Module, x: torch.Tensor, tangents: torch.Tensor,
+                        engine: str = "auto") -> tuple[torch.Tensor, torch.Tensor]:
+    """(ŷ, M): ŷ = N(x) (B, T) and M_b = (∂N/∂x)(x_b)·X_b stacked as (B, K, T).
+
+    x (B, C, H, W), tangents X (B, K, C, H, W).  Forward-mode products, both outputs on the autograd tape
+    so the loss can be backpropagated to the parameters.  Engines (identical values, tested):
+    ``explicit`` propagates the K tangents as one batch through hand-written tangent rules of the
+    ResNet's layers (:mod:`risp_train.forward_tangents`, faster); ``functorch`` vmaps ``torch.func.jvp``
+    over the K tangents and works for any network; ``auto`` picks ``explicit`` for :class:`ResNet18`.
+    """
+    from .forward_tangents import forward_with_tangents
+    from .model import ResNet18
+
+    if engine not in ENGINES:
+        raise ValueError(f"unknown engine {engine!r}; choose one of {ENGINES}")
+    if engine == "explicit" or (engine == "auto" and isinstance(net, ResNet18)):
+        return forward_with_tangents(net, x, tangents)
+    return rendering_gradients_functorch(net, x, tangents)
+
+
+def exact_regularizer(net: nn.Module, x: torch.Tensor, tangents: torch.Tensor,
+                      engine: str = "auto") -> tuple[torch.Tensor, torch.Tensor]:
     """(ŷ, r) with r_b = ‖M_b‖_F (paper Eq. 10), r (B,)."""
-    pred, m = rendering_gradients(net, x, tangents)
+    pred, m = rendering_gradients(net, x, tangents, engine)
     return pred, torch.linalg.vector_norm(m.flatten(1), dim=1)
 
 
-def stochastic_regularizer(
-    net: nn.Module, x: torch.Tensor, tangents: torch.Tensor, v: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
+def stochastic_regularizer(net: nn.Module, x: torch.Tensor, tangents: torch.Tensor, v: torch.Tensor,
+                           engine: str = "auto") -> tuple[torch.Tensor, torch.Tensor]:
     """(ŷ, r) with r_b = ‖(∂N/∂x)(x_b)·(X_b v_b)‖² for v (B, K) ~ N(0, I_K): E r_b = ‖M_b‖_F²."""
     direction = torch.einsum("bk,bkchw->bchw", v.to(tangents.dtype), tangents)  # X_b v_b, (B, C, H, W)
-    pred, t = jvp(net, (x,), (direction,))  # (B, T) each
-    return pred, (t * t).sum(dim=1)
+    pred, m = rendering_gradients(net, x, direction.unsqueeze(1), engine)  # one JVP; m (B, 1, T)
+    return pred, (m[:, 0] * m[:, 0]).sum(dim=1)
 
 
 def surrogate_regularizer(

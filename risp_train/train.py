@@ -197,6 +197,8 @@ def fit(cfg: TrainConfig, *, resume: bool = False, progress: bool = True,
     else:
         norm = compute_normalization(shards, env, cfg.stats_samples)
         epoch0, batch0, step, history = 0, 0, 0, []
+        if rank == 0 and os.path.exists(csv_path):  # rows of a run killed before its first checkpoint
+            os.unlink(csv_path)
         if val is not None:  # the untrained network's held-out error, the baseline of the curve
             history.append({"epoch": -1, "step": 0, "val_error": held_out_error(net, val, norm, env, cfg.val_samples)})
     net.train()

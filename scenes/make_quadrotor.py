@@ -76,9 +76,9 @@ def write_ply(mesh: trimesh.Trimesh, path: str) -> None:
     os.replace(tmp, path)
 
 
-def main() -> None:
-    write_ply(frame_mesh(), os.path.join(HERE, "quadrotor_frame.ply"))
-    write_ply(rotor_mesh(), os.path.join(HERE, "quadrotor_rotors.ply"))
+def main(out_dir: str = HERE) -> None:
+    write_ply(frame_mesh(), os.path.join(out_dir, "quadrotor_frame.ply"))
+    write_ply(rotor_mesh(), os.path.join(out_dir, "quadrotor_rotors.ply"))
 
 
 if __name__ == "__main__":

@@ -51,3 +51,22 @@ def test_null_case_is_none(tmp_path):
 def test_unlisted_effect_is_unexplained(tmp_path):
     truth, report = run_case(tmp_path, "quadrotor", "periodic_force", seed=41, out=False)
     assert report["cause"] == "unexplained", report["reason"]
+
+
+def test_cli_end_to_end(tmp_path):
+    from click.testing import CliRunner
+
+    from risp_tasks.cli import cli
+    from risp_tasks.diagnose.synth import SynthConfig, make_synthetic
+
+    make_synthetic(SynthConfig(env="quadrotor", seed=71, n_traj=3, samples=150, effect="wind"), tmp_path / "d")
+    out = tmp_path / "rep"
+    res = CliRunner().invoke(cli, ["diagnose", str(tmp_path / "d"), "--env", "quadrotor", "--out", str(out),
+                                   "--seed", "4", "--effects", "wind,air_drag", "--quiet", "--no-plots"])
+    assert res.exit_code == 0, res.output
+    assert res.output.startswith("cause: wind")
+    saved = json.loads((out / "report.json").read_text())
+    assert saved["config"]["effects"] == ["wind", "air_drag"] and saved["seed"] == 4
+    bad = CliRunner().invoke(cli, ["diagnose", str(tmp_path / "d"), "--env", "quadrotor", "--out", str(out),
+                                   "--effects", "wind,tornado", "--quiet"])
+    assert bad.exit_code != 0 and "unknown effect(s) tornado" in bad.output

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 import pytest
@@ -59,7 +60,8 @@ def test_rigid_target_layout():
     env = get_environment("quadrotor")
     s = torch.tensor([[0.1, -0.2, 1.3, 0.4, -0.3, 0.2]], dtype=torch.float64)
     t = env.state_to_target(s)[0]
-    expected = [0.1, -0.2, 1.3, math.sin(0.4), math.sin(-0.3), math.sin(0.2), math.cos(0.4), math.cos(-0.3), math.cos(0.2)]
+    angles = (0.4, -0.3, 0.2)
+    expected = [0.1, -0.2, 1.3, *map(math.sin, angles), *map(math.cos, angles)]
     np.testing.assert_allclose(t.numpy(), expected, atol=1e-15)
 
 
@@ -148,6 +150,20 @@ def test_quadrotor_mesh_layout():
     assert extent == pytest.approx(quadrotor.ARM_LENGTH + quadrotor.ROTOR_RADIUS, abs=1e-3)
 
 
+def test_quadrotor_meshes_are_reproducible(tmp_path):
+    """scenes/make_quadrotor.py regenerates the committed PLY files byte for byte."""
+    import importlib.util
+
+    script = os.path.join(quadrotor.SCENES_DIR, "make_quadrotor.py")
+    spec = importlib.util.spec_from_file_location("make_quadrotor", script)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    module.main(str(tmp_path))
+    for name in quadrotor.MESH_FILES.values():
+        with open(tmp_path / name, "rb") as new, open(os.path.join(quadrotor.SCENES_DIR, name), "rb") as old:
+            assert new.read() == old.read(), name
+
+
 def test_quadrotor_pose_convention():
     """Yaw π/2 turns body +x (rotor 0) to world +y: R = Rz(yaw) Ry(pitch) Rx(roll)."""
     s = torch.tensor([0.0, 0.0, 1.0, math.pi / 2, 0.0, 0.0], dtype=torch.float64)
@@ -162,7 +178,8 @@ def test_hand_kinematics():
     links = hand.link_frames(zero)
     # index finger (links 2..4) points straight up from its base at zero angles
     tip = links[4][0] + hand.LINK_LENGTHS[1][2] * links[4][1][:, 2]
-    np.testing.assert_allclose(tip.numpy(), np.array(hand.FINGER_BASES[1]) + [0, 0, sum(hand.LINK_LENGTHS[1])], atol=1e-12)
+    straight = np.array(hand.FINGER_BASES[1]) + [0, 0, sum(hand.LINK_LENGTHS[1])]
+    np.testing.assert_allclose(tip.numpy(), straight, atol=1e-12)
     for _, frame, _ in links:  # right-handed orthonormal frames
         np.testing.assert_allclose((frame.T @ frame).numpy(), np.eye(3), atol=1e-12)
         assert float(torch.det(frame)) == pytest.approx(1.0)

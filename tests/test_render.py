@@ -205,7 +205,8 @@ def test_renderer_bad_input():
     with pytest.raises(RispError, match="seed"):
         r.render(state, config, seed=-1)
     with pytest.raises(RispError, match="light_distance"):
-        r.render(state, RenderConfig(config.psi, {k: v for k, v in config.aux.items() if k != "light_distance"}), seed=0)
+        aux = {k: v for k, v in config.aux.items() if k != "light_distance"}
+        r.render(state, RenderConfig(config.psi, aux), seed=0)
     with pytest.raises(RispError, match="floor texture"):
         r.render(state, RenderConfig(config.psi, dict(config.aux, floor_texture="lava")), seed=0)
     image, _ = r.render(state, config, seed=0, jacobian=False)  # still usable afterwards

@@ -174,6 +174,13 @@ def test_directional_derivative_of_a_longer_rollout_matches_central_differences(
             assert float(abs(fd - analytic)) <= 1e-5 * float(abs(analytic)) + 1e-9, (k, float(fd), float(analytic))
 
 
+def test_empty_batch_and_zero_steps():
+    sim = get_simulator("rod")
+    assert sim.rollout(sim.default_params(0), sim.rest_state(0), torch.zeros(0, 2, 1, dtype=torch.float64), 2).shape == (0, 3, 360)
+    s0 = sim.rest_state(2)
+    assert torch.equal(sim.rollout(sim.default_params(2), s0, torch.zeros(2, 0, 1, dtype=torch.float64), 0)[:, 0], s0)
+
+
 def test_float32_and_batch_agree_with_float64():
     sim = get_simulator("rod")
     gen = torch.Generator().manual_seed(5)
@@ -191,7 +198,7 @@ def test_float32_and_batch_agree_with_float64():
 # -- bad input -------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("case, fragment", [
     ("E_range", "log10_E"), ("nan", "log10_E"), ("negative", "rayleigh_damping.beta"),
-    ("s0_shape", "s0"), ("no_actions", "actions"), ("dtype", "dtype"),
+    ("s0_shape", "s0"), ("no_actions", "actions"), ("dtype", "dtype"), ("half", "float32 or float64"),
 ])
 def test_bad_input_names_the_argument(case, fragment):
     sim = get_simulator("rod", ("rayleigh_damping",))
@@ -208,6 +215,8 @@ def test_bad_input_names_the_argument(case, fragment):
         a = None
     elif case == "dtype":
         a = a.float()
+    elif case == "half":
+        p, s0, a = p.half(), s0.half(), a.half()
     with pytest.raises(RispError, match=fragment):
         sim.rollout(p, s0, a, 2)
     with pytest.raises(RispError, match="states"):

@@ -91,13 +91,14 @@ def test_fit_lowers_held_out_error_and_writes_outputs(shards, tmp_path):
 @pytest.mark.parametrize("fmt", ["wds", "zarr"])
 def test_resume_after_kill_gives_identical_weights(shards, tmp_path, fmt):
     """Uninterrupted run vs. a run killed mid-epoch (after a step-checkpoint) and resumed: same weights."""
-    kw = dict(reg="stochastic", gamma=0.5, epochs=2, checkpoint_every=3, format=fmt, workers=2 if fmt == "wds" else 0)
+    kw = dict(reg="stochastic", gamma=0.5, epochs=2, batch_size=8, checkpoint_every=3, format=fmt,
+              workers=2 if fmt == "wds" else 0)
     a = fit(_cfg(shards, tmp_path / "a", **kw), progress=False)
     cfg_b = _cfg(shards, tmp_path / "b", **kw)
     with pytest.raises(TrainingStopped):
-        fit(cfg_b, progress=False, stop_after_step=11)  # epoch 0 has 16 steps: last checkpoint at step 9
+        fit(cfg_b, progress=False, stop_after_step=13)  # epochs of 8 steps: last checkpoint at step 12
     ck = torch.load(tmp_path / "b" / "last.pt", weights_only=True)
-    assert ck["progress"]["global_step"] == 9 and ck["progress"]["batch"] == 9
+    assert ck["progress"]["global_step"] == 12 and ck["progress"]["epoch"] == 1 and ck["progress"]["batch"] == 4
     with pytest.raises(RispError, match="--resume"):
         fit(cfg_b, progress=False)
     b = fit(cfg_b, resume=True, progress=False)
@@ -112,7 +113,7 @@ def test_resume_after_kill_gives_identical_weights(shards, tmp_path, fmt):
 
 def test_exact_and_surrogate_train_one_epoch(shards, tmp_path):
     for reg in ("exact", "surrogate"):
-        path = fit(_cfg(shards, tmp_path / reg, reg=reg, epochs=1, batch_size=8), progress=False)
+        path = fit(_cfg(shards, tmp_path / reg, reg=reg, epochs=1, batch_size=16), progress=False)
         ck = torch.load(path, weights_only=True)
         assert ck["config"]["reg"] == reg and ck["gamma"] == 20.0  # the paper's cube γ
         assert ck["history"][-1]["train_reg"] >= 0
@@ -172,7 +173,8 @@ def test_cli_error_is_one_line_with_nonzero_exit(tmp_path):
     r = subprocess.run([sys.executable, "-m", "risp_train", "eval", str(tmp_path / "missing.pt"), str(tmp_path)],
                        capture_output=True, text=True)
     assert r.returncode == 1
-    assert r.stderr.strip().count("\n") == 0 and r.stderr.startswith("error: ")
+    assert r.stderr.strip().count("\n") == 0 and r.stderr.lower().startswith("error: "), r.stderr
+    assert "checkpoint not found" in r.stderr
 
 
 @pytest.mark.slow
@@ -188,3 +190,38 @@ def test_torchrun_two_processes(shards, tmp_path):
     assert ck["world_size"] == 2
     # 4 shards of 16 → 2 per rank, 1 worker: 32 samples / 4 = 8 steps per epoch on each rank
     assert ck["progress"]["global_step"] == 8
+
+
+@pytest.mark.slow
+def test_resume_after_sigkill(shards, tmp_path):
+    """A real kill (SIGKILL of the training process) after a step checkpoint; --resume finishes the run."""
+    import signal
+    import time
+
+    args = ["fit", shards["train"], "--preset", "cpu", "--epochs", "2", "--batch-size", "4", "--width", "4",
+            "--workers", "1", "--reg", "stochastic", "--gamma", "0.5", "--checkpoint-every", "2", "--quiet"]
+    ref = CliRunner().invoke(cli, args + ["--out", str(tmp_path / "ref")])
+    assert ref.exit_code == 0, ref.output
+    out = tmp_path / "killed"
+    proc = subprocess.Popen([sys.executable, "-m", "risp_train", *args, "--out", str(out)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        deadline = time.time() + 240
+        while time.time() < deadline and proc.poll() is None:
+            if (out / "last.pt").exists():
+                ck = torch.load(out / "last.pt", weights_only=True)
+                if ck["progress"]["global_step"] >= 2:
+                    break
+            time.sleep(0.2)
+        assert proc.poll() is None, "the run finished before it could be killed"
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    r = CliRunner().invoke(cli, args + ["--out", str(out), "--resume"])
+    assert r.exit_code == 0, r.output
+    wa = torch.load(tmp_path / "ref" / "model.pt", weights_only=True)["model"]
+    wb = torch.load(out / "model.pt", weights_only=True)["model"]
+    for k in wa:
+        torch.testing.assert_close(wa[k], wb[k], rtol=0, atol=0, msg=k)

@@ -42,6 +42,10 @@ def setup():
 def _objective(kind, net, x, tangents, y, v):
     if kind == "exact":
         return exact_regularizer(net, x, tangents)[1].sum()
+    if kind == "exact-functorch":
+        return exact_regularizer(net, x, tangents, engine="functorch")[1].sum()
+    if kind == "stochastic-functorch":
+        return stochastic_regularizer(net, x, tangents, v, engine="functorch")[1].sum()
     if kind == "surrogate":
         return surrogate_regularizer(net, x, tangents, y)[2].sum()
     if kind == "stochastic":
@@ -54,7 +58,7 @@ def _grads(f, params):
     return [torch.zeros_like(p) if g is None else g for g, p in zip(gs, params)]
 
 
-@pytest.mark.parametrize("kind", ["exact", "surrogate", "stochastic"])
+@pytest.mark.parametrize("kind", ["exact", "surrogate", "stochastic", "exact-functorch", "stochastic-functorch"])
 def test_parameter_gradient_matches_central_differences(setup, kind):
     net, x, tangents, y, v = setup
     params = list(net.parameters())
@@ -110,6 +114,19 @@ def test_exact_equals_explicit_loop_over_psi(setup):
         frob = torch.sqrt(sum((c * c).sum() for c in rows))
         assert float(r[b].detach()) == pytest.approx(float(frob), rel=1e-10)
     torch.testing.assert_close(pred, net(x))
+
+
+def test_explicit_tangent_rules_match_functorch_jvp():
+    """forward_tangents (explicit rules, both stems, max-pool and shortcuts) = vmap(jvp) to rounding."""
+    for stem, h in (("small", 16), ("imagenet", 64)):
+        net = build_model(ModelConfig(out_dim=5, width=4, stem=stem), seed=2).double()
+        g = torch.Generator().manual_seed(4)
+        x = torch.randn(2, 3, h, h, generator=g, dtype=torch.float64)
+        tangents = torch.randn(2, 3, 3, h, h, generator=g, dtype=torch.float64)
+        p1, m1 = rendering_gradients(net, x, tangents, engine="functorch")
+        p2, m2 = rendering_gradients(net, x, tangents, engine="explicit")
+        torch.testing.assert_close(p2, p1, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(m2, m1, rtol=1e-10, atol=1e-12)
 
 
 def test_stochastic_mean_matches_exact_squared_norm(setup):

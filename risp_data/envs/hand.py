@@ -39,7 +39,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from .base import Camera, Environment, Mesh  # noqa: E402
-from .meshes import box, transform  # noqa: E402
+from .meshes import box, mat3_mul, transform  # noqa: E402
 
 STATE_LOW = (-JOINT_LIMIT,) * len(JOINT_NAMES)
 STATE_HIGH = (JOINT_LIMIT,) * len(JOINT_NAMES)
@@ -64,7 +64,7 @@ def _axis_rotation(axis, angle: torch.Tensor) -> torch.Tensor:
     K = torch.zeros(3, 3, dtype=angle.dtype)
     K[0, 1], K[0, 2], K[1, 0], K[1, 2], K[2, 0], K[2, 1] = -k[2], k[1], k[2], -k[0], -k[1], k[0]
     s, c = torch.sin(angle)[..., None, None], torch.cos(angle)[..., None, None]
-    return torch.eye(3, dtype=angle.dtype) + s * K + (1 - c) * (K @ K)
+    return torch.eye(3, dtype=angle.dtype) + s * K + (1 - c) * mat3_mul(K, K)
 
 
 def link_frames(states: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor, float]]:
@@ -78,7 +78,7 @@ def link_frames(states: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor, 
         angle = torch.zeros_like(states[..., 0])
         for k in range(n):
             angle = angle + states[..., j]
-            frame = _axis_rotation(FINGER_AXES[f], angle) @ rest
+            frame = mat3_mul(_axis_rotation(FINGER_AXES[f], angle), rest)
             out.append((p, frame, LINK_LENGTHS[f][k]))
             p = p + LINK_LENGTHS[f][k] * frame[..., :, 2]
             j += 1

@@ -38,10 +38,12 @@ SCENES_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.pat
 MESH_FILES = {"frame": "quadrotor_frame.ply", "rotors": "quadrotor_rotors.ply"}  # made by scenes/make_quadrotor.py
 MESH_MATERIALS = {"frame": "object", "rotors": "rotor"}
 
-# Sampler ranges (x, y, z [m], yaw, pitch, roll [rad]); the floor is at z = 0.
-STATE_LOW = (-1.0, -1.0, 0.5, -math.pi, -math.pi / 6, -math.pi / 6)
-STATE_HIGH = (1.0, 1.0, 2.5, math.pi, math.pi / 6, math.pi / 6)
-CAMERA = Camera(origin=(0.0, -4.6, 3.4), target=(0.0, 0.0, 1.3), up=(0.0, 0.0, 1.0), fov=42.0)
+# Sampler ranges (x, y, z [m], yaw, pitch, roll [rad]); the floor is at z = 0.  The flight volume is kept
+# small enough (0.8 m cube) that the 0.84 m-wide quadrotor spans ~15-25 pixels of a 64x64 image: with a
+# 2 m-wide volume it covered ~5 pixels and the network had little to see.
+STATE_LOW = (-0.4, -0.4, 0.8, -math.pi, -math.pi / 6, -math.pi / 6)
+STATE_HIGH = (0.4, 0.4, 1.6, math.pi, math.pi / 6, math.pi / 6)
+CAMERA = Camera(origin=(0.0, -1.7, 2.9), target=(0.0, 0.0, 1.15), up=(0.0, 0.0, 1.0), fov=50.0)
 
 
 @lru_cache(maxsize=None)

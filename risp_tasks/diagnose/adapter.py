@@ -111,6 +111,12 @@ def sim_states(sim, traj: Trajectory, actions: np.ndarray | None = None) -> np.n
     return out
 
 
+def _is_rate(name: str) -> bool:
+    """Velocity-like state names: ``thumb_0_vel`` (hand), ``n1_0_0.vx`` (rod), ``v…``/``…_dot``."""
+    leaf = name.rsplit(".", 1)[-1]
+    return name.endswith(("_vel", "_dot", "_rate")) or leaf.startswith("v")
+
+
 def _rotor_index(name: str) -> int | None:
     for prefix in ("thrust", "motor", "rotor", "f", "u"):
         if name.startswith(prefix):
@@ -174,6 +180,50 @@ def consistent_start(sim, s0: torch.Tensor) -> torch.Tensor:
     return out
 
 
+def lowest_corner_height(traj: Trajectory) -> np.ndarray:
+    """(N,) height of the cube's lowest corner: z − (side/2)·Σ_j |R_zj| (R_zj: world z of body axis j)."""
+    half = 0.5 * float(traj.sidecar.get("side"))
+    w, x, y, z = traj.quat.T
+    row2 = np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], 1)
+    return traj.pos[:, 2] - half * np.abs(row2).sum(1)
+
+
+#: Resting frames for the floor calibration: speed and angular speed below these.
+REST_SPEED = 0.05  # m/s
+REST_ANGULAR_SPEED = 0.5  # rad/s
+MIN_REST_FRAMES = 20
+
+
+def calibrate_floor(trajs: list[Trajectory], offset: float | str = "auto") -> tuple[list[Trajectory], dict]:
+    """Cube only: shift measured heights so the floor is at z = 0 (docs/measured-data.md §Floor).
+
+    ``auto``: the median lowest-corner height over resting frames (speed < 5 cm/s, |ω| < 0.5 rad/s) is
+    the floor's height in the motion-capture frame (the real tosses rest ≈ 0.9 mm low); needs at least
+    20 resting frames, else no shift.  A number: that offset [m].  The shift is reported.
+    """
+    if trajs[0].sidecar.env != "cube":
+        return trajs, {"applied": False}
+    if offset == "auto":
+        low = []
+        for tr in trajs:
+            rest = (np.linalg.norm(tr.vel, axis=1) < REST_SPEED) & (np.linalg.norm(tr.omega, axis=1) < REST_ANGULAR_SPEED)
+            low.append(lowest_corner_height(tr)[rest])
+        low = np.concatenate(low) if low else np.zeros(0)
+        if low.size < MIN_REST_FRAMES:
+            return trajs, {"applied": False, "mode": "auto", "rest_frames": int(low.size)}
+        value = float(np.median(low))
+        info = {"applied": True, "mode": "auto", "rest_frames": int(low.size), "floor_offset_m": value}
+    else:
+        value = float(offset)
+        info = {"applied": True, "mode": "given", "floor_offset_m": value}
+    out = []
+    for tr in trajs:
+        pos = tr.pos.copy()
+        pos[:, 2] -= value
+        out.append(dataclasses.replace(tr, pos=pos))
+    return out, info
+
+
 # ------------------------------------------------------------------------------------------------
 # observation channels (torch, differentiable)
 # ------------------------------------------------------------------------------------------------
@@ -197,7 +247,7 @@ class Observer:
         else:
             # generalised coordinates and their rates: one noise level per kind
             self.channels = tuple(names)
-            rate = [i for i, n in enumerate(names) if n.endswith(("_vel", "_dot", "_rate")) or n.startswith(("v", "d"))]
+            rate = [i for i, n in enumerate(names) if _is_rate(n)]
             coord = [i for i in range(len(names)) if i not in rate]
             self.groups = {g: tuple(idx) for g, idx in (("coordinate", coord), ("rate", rate)) if idx}
 

@@ -55,17 +55,29 @@ def _clean(o):
 # ------------------------------------------------------------------------------------------------
 # plots
 # ------------------------------------------------------------------------------------------------
+MAX_PLOTTED_CHANNELS = 6
+
+
+def _top_channels(accel: np.ndarray) -> list[int]:
+    """All channels of a rigid body (6); for many-channel states the 6 with the largest residual RMS."""
+    if accel.shape[1] <= MAX_PLOTTED_CHANNELS:
+        return list(range(accel.shape[1]))
+    rms = np.sqrt(np.mean(accel**2, axis=0))
+    return sorted(np.argsort(rms)[::-1][:MAX_PLOTTED_CHANNELS].tolist())
+
+
 def plot_residuals_time(path: Path, os_base, os_ext, names: tuple[str, str]) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    A = os_base.accel.shape[1]
+    chans = _top_channels(os_base.accel)
+    A = len(chans)
     fig, axes = plt.subplots(A, 1, figsize=(9, 1.6 * A + 0.6), sharex=True, squeeze=False)
     trajs = np.unique(os_base.traj)[:3]
-    for c in range(A):
-        ax = axes[c, 0]
+    for row, c in enumerate(chans):
+        ax = axes[row, 0]
         for j in trajs:
             m = os_base.traj == j
             ax.plot(os_base.t[m], os_base.accel[m, c], lw=0.8, color="C3", alpha=0.8, label=names[0] if j == trajs[0] else None)
@@ -87,13 +99,14 @@ def plot_residuals_regressors(path: Path, os_base) -> None:
     import matplotlib.pyplot as plt
 
     regs = [k for k in os_base.regressors if np.ptp(os_base.regressors[k]) > 0]
-    A = os_base.accel.shape[1]
+    chans = _top_channels(os_base.accel)
+    A = len(chans)
     if not regs:
         regs = ["time [s]"]
     fig, axes = plt.subplots(A, len(regs), figsize=(2.4 * len(regs) + 0.5, 1.6 * A + 0.6), squeeze=False)
-    for c in range(A):
+    for row, c in enumerate(chans):
         for r, name in enumerate(regs):
-            ax = axes[c, r]
+            ax = axes[row, r]
             x = os_base.regressors.get(name, os_base.t)
             y = os_base.accel[:, c]
             ax.plot(x, y, ".", ms=1.5, alpha=0.35, color="C3")
@@ -106,7 +119,7 @@ def plot_residuals_regressors(path: Path, os_base) -> None:
                 ax.plot(mids, means, "-o", ms=2.5, color="k", lw=1)
             ax.axhline(0, color="k", lw=0.4)
             ax.tick_params(labelsize=6)
-            if c == A - 1:
+            if row == A - 1:
                 ax.set_xlabel(name, fontsize=7)
             if r == 0:
                 ax.set_ylabel(os_base.accel_names[c], fontsize=7)
@@ -133,7 +146,11 @@ def plot_gain(path: Path, base_ev, ext_ev, held_trajs, horizon: int) -> None:
         series[label] = (seg, pred, list(sim.state_names))
     seg, _, names = series["base"]
     meas_names = names
-    chans = [n for n in ("x", "y", "z", "vx", "vy", "vz") if n in meas_names] or meas_names[:4]
+    chans = [n for n in ("x", "y", "z", "vx", "vy", "vz") if n in meas_names]
+    if not chans:  # generalised coordinates: the ones that move most in this trajectory
+        x = seg.meas.numpy()
+        spread = x.reshape(-1, x.shape[-1]).std(0)
+        chans = [meas_names[i] for i in sorted(np.argsort(spread)[::-1][:4].tolist())]
     fig, axes = plt.subplots(len(chans), 1, figsize=(9, 1.5 * len(chans) + 0.6), sharex=True, squeeze=False)
     for c, name in enumerate(chans):
         ax = axes[c, 0]

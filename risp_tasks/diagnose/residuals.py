@@ -42,6 +42,10 @@ def _rate_channels(obs: Observer) -> list[int]:
 def regressors(sim, trajs: list[Trajectory], seg: Segments) -> dict[str, np.ndarray]:
     """Candidate regressors at each segment start."""
     out: dict[str, list[float]] = {}
+    cache: dict[int, tuple] = {}
+    obs = Observer(sim)
+    rate = _rate_channels(obs)
+    coord = [c for c in range(len(obs.channels)) if c not in rate]
     for j, i in zip(seg.traj_index, seg.start):
         tr = trajs[j]
         r: dict[str, float] = {"time [s]": float(tr.t[i])}
@@ -66,13 +70,12 @@ def regressors(sim, trajs: list[Trajectory], seg: Segments) -> dict[str, np.ndar
             prev = tr.thrust[max(i - 1, 0)].sum()
             r["thrust rate [N/s]"] = float((tr.thrust[i].sum() - prev) / tr.dt)
         if tr.pos is None:
-            x = sim_states(sim, tr, sim_actions(sim, tr))
-            obs = Observer(sim)
-            rate = _rate_channels(obs)
-            coord = [c for c in range(len(obs.channels)) if c not in rate]
+            if j not in cache:
+                a = sim_actions(sim, tr)
+                cache[j] = (sim_states(sim, tr, a), a)
+            x, a = cache[j]
             r["|rate|"] = float(np.linalg.norm(x[i, rate])) if rate else 0.0
             r["|coordinate|"] = float(np.linalg.norm(x[i, coord])) if coord else 0.0
-            a = sim_actions(sim, tr)
             if a is not None:
                 r["|command|"] = float(np.linalg.norm(a[i]))
         for k, v in r.items():

@@ -17,7 +17,7 @@ from risp_data.errors import RispError
 
 from ..measured import Trajectory, load_measured
 from . import candidates as cands
-from .adapter import Observer
+from .adapter import Observer, calibrate_floor
 from .fit import FitConfig, FitResult, channel_sigma, estimate_noise, fit_model, make_segments
 from .residuals import accel_rms, group_rms, one_step, rollout_error
 from .select import RHO_MAX, Score, decide, held_out_score, noise_floor
@@ -37,6 +37,7 @@ class DiagnoseConfig:
     pairs_top: int = 3  # pairs are formed among this many best single effects
     effects: tuple[str, ...] | None = None  # restrict the candidate library (None: all of the simulator's)
     limit: int | None = None  # use only the first N files
+    floor_offset: float | str = "auto"  # cube: floor height in the data's frame [m], or "auto" (resting frames)
     side: float | None = None  # cube sidecar overrides [m]
     mass: float | None = None  # [kg]
     plots: bool = True
@@ -160,6 +161,7 @@ def _diagnose(cfg: DiagnoseConfig) -> dict:
     if cfg.horizon < 1:
         raise RispError(f"--horizon must be at least 1, got {cfg.horizon}")
     cands.check_supported(cfg.env, trajs[0].sidecar)
+    trajs, floor = calibrate_floor(trajs, cfg.floor_offset)
     fit_trajs, held_trajs, split = split_trajectories(trajs, cfg.held_out, cfg.seed)
 
     library = cands.effect_names(cfg.env)
@@ -226,7 +228,8 @@ def _diagnose(cfg: DiagnoseConfig) -> dict:
         "seed": int(cfg.seed),
         "data": {"files": [tr.path for tr in trajs], "samples": int(sum(tr.n for tr in trajs)),
                  "sample_interval_s": float(trajs[0].dt), "sidecar": trajs[0].sidecar.source,
-                 "velocities_estimated": bool(any(tr.vel_estimated for tr in trajs if tr.vel is not None))},
+                 "velocities_estimated": bool(any(tr.vel_estimated for tr in trajs if tr.vel is not None)),
+                 "floor_calibration": floor},
         "fit": {"horizon_samples": cfg.horizon, "substeps_per_sample": base.k, "sim_dt_s": base.fit.model.sim.dt,
                 "fit_segments": None, "iterations": {n: ev.fit.iterations for n, ev in evaluated.items()}},
         "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg).items()},

@@ -1,7 +1,7 @@
 """Scoring candidate models on held-out data and naming the cause (docs/diagnose.md §Selection).
 
-Score (held-out BIC).  With e the normalised held-out multiple-shooting residuals of a fitted model,
-RSS = Σe², n = S·H·C residuals, n_eff = S·C (segments × channels: errors along one segment's horizon are
+Score (held-out BIC).  With e the robust normalised held-out multiple-shooting residuals of a fitted
+model (:func:`fit.robust`), RSS = Σe², n = S·H·C residuals, n_eff = S·C (segments × channels: errors along one segment's horizon are
 strongly correlated, segments are not overlapping and nearly independent) and k free parameters:
 
     BIC = n_eff · ln(RSS / n) + k · ln(n_eff)
@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from .adapter import Observer, consistent_start
-from .fit import DTYPE, FitResult, Segments, predict
+from .fit import DTYPE, FitResult, Segments, predict, robust
 
 DELTA_BIC_MIN = 10.0
 MIN_RSS_REDUCTION = 0.05
@@ -60,7 +60,7 @@ class Score:
 def held_out_score(fit: FitResult, obs: Observer, seg: Segments, sigma: torch.Tensor) -> Score:
     with torch.no_grad():
         pred = predict(fit.model.sim, fit.params, seg)
-        e = obs.error(pred[:, 1:], seg.meas[:, 1:]) / sigma
+        e = robust(obs.error(pred[:, 1:], seg.meas[:, 1:]) / sigma)
     rss = float((e**2).sum())
     n = e.numel()
     n_eff = seg.count * e.shape[-1]
@@ -104,7 +104,7 @@ def noise_floor(fit: FitResult, obs: Observer, seg: Segments, sigma: torch.Tenso
             noisy = _perturb(obs, clean, noise, gen)
             fake = seg.with_states(consistent_start(sim, noisy[:, 0]), noisy)
             pred = predict(sim, fit.params, fake)
-            e = obs.error(pred[:, 1:], noisy[:, 1:]) / sigma
+            e = robust(obs.error(pred[:, 1:], noisy[:, 1:]) / sigma)
             vals.append(float((e**2).sum()))
     return float(np.mean(vals))
 

@@ -6,7 +6,9 @@ as measured CSVs + sidecars exactly like real data, with white measurement noise
 * effect magnitude: every parameter of the hidden effect = its library default × f, one factor
   f ~ U(0.5, 1.5) per trajectory set (drawn from the seed), clipped to the effect's plausible range;
 * "unlisted" effects that are NOT in any simulator's library (so diagnose must answer ``unexplained``):
-  ``periodic_force`` — a world-frame force A·sin(2π t / T) along x and y (quadrotor, cube);
+  ``periodic_force`` — a world-frame force A·m·g·sin(2π t / T) along x and y (quadrotor, cube);
+  ``stiffness_error`` — the hand's joint stiffness 1.6× the simulator's fixed value (a wrong base
+  parameter that diagnose does not fit);
 * quadrotor: a geometric position/attitude controller tracks a random smooth reference (heights down to
   0.1 m so ground effect shows, speeds of 1–2 m/s so drag shows, a varying command so motor lag shows);
   the controller's rotor thrusts [N] are the measured commands f0…f3;
@@ -38,9 +40,12 @@ DEFAULT_NOISE = {
     "rod": {"coordinate": 1e-4, "rate": 1e-3},
 }
 MAGNITUDE_FACTOR = (0.5, 1.5)
-UNLISTED = ("periodic_force",)
+UNLISTED = ("periodic_force", "stiffness_error")
+STIFFNESS_ERROR = 1.6  # hand: true joint stiffness = 1.6 × the simulator's (fixed) default
 PERIODIC_AMPLITUDE = 0.3  # × m·g
 PERIODIC_PERIOD = 0.8  # s
+
+GENERIC_ACTION_AMPLITUDE = {"hand": (0.1, 0.4), "rod": (20.0, 60.0)}  # N·m per finger; N on the rod's centre
 
 QUAD_SIDECAR = {"env": "quadrotor", "mass": 3.0, "arm_length": 0.3, "rotor_layout": "+", "gravity": 9.81,
                 "yaw_torque_coefficient": 0.02}
@@ -84,6 +89,12 @@ def _sim_and_params(env: str, effect: str | None, values: dict, sidecar: dict, d
     p = model.base.clone()
     for n, v in values.items():
         p[model.sim.param_index(n)] = v
+    if effect == "stiffness_error":
+        if env != "hand":
+            raise RispError(f"stiffness_error is defined for the hand only, not {env}")
+        for i, n in enumerate(model.sim.param_names):
+            if n.startswith("stiffness_"):
+                p[i] *= STIFFNESS_ERROR
     return model.sim, p, k
 
 
@@ -125,8 +136,8 @@ def _simulate_quadrotor(sim, params, k, n_traj, samples, dt, rng, periodic: bool
     from risp_data.envs.quadrotor import ARM_LENGTH
 
     t = np.arange(samples) * dt
-    amp = rng.uniform([0.4, 0.4, 0.25], [1.0, 1.0, 0.45], size=(B, 3))
-    freq = rng.uniform(0.25, 0.6, size=(B, 3))
+    amp = rng.uniform([0.8, 0.8, 0.25], [1.6, 1.6, 0.45], size=(B, 3))  # m: speeds of 2–5 m/s
+    freq = rng.uniform(0.3, 0.6, size=(B, 3))
     phase = rng.uniform(0, 2 * math.pi, size=(B, 3))
     centre = np.concatenate([rng.uniform(-0.5, 0.5, size=(B, 2)), rng.uniform(0.35, 0.55, size=(B, 1))], 1)
     ref_p = centre[:, None] + amp[:, None] * np.sin(2 * math.pi * freq[:, None] * t[None, :, None] + phase[:, None])
@@ -196,11 +207,12 @@ def _simulate_cube(sim, params, k, n_traj, samples, dt, rng, periodic: bool):
 
 def _simulate_generic(sim, params, k, n_traj, samples, dt, rng):
     B, A = n_traj, sim.action_dim
-    s = torch.zeros(B, len(sim.state_names), dtype=torch.float64)
+    rest = getattr(sim, "rest_state", None)
+    s = rest(B) if rest is not None else torch.zeros(B, len(sim.state_names), dtype=torch.float64)
     t = np.arange(samples) * dt
     freq = rng.uniform(0.3, 1.2, size=(B, 1, A))
     phase = rng.uniform(0, 2 * math.pi, size=(B, 1, A))
-    amp = rng.uniform(0.1, 0.4, size=(B, 1, A))
+    amp = rng.uniform(*GENERIC_ACTION_AMPLITUDE.get(sim.env, (0.1, 0.4)), size=(B, 1, A))
     u = torch.tensor(amp * np.sin(2 * math.pi * freq * t[None, :, None] + phase))
     P = params.unsqueeze(0).expand(B, -1)
     states = [s]
@@ -232,7 +244,7 @@ def _make_synthetic(cfg: SynthConfig, out_dir: str | os.PathLike) -> dict:
     if cfg.env == "quadrotor":
         dt, sidecar = 0.01, dict(QUAD_SIDECAR)
     elif cfg.env == "cube":
-        dt, sidecar = 0.01, dict(CUBE_SIDECAR)
+        dt, sidecar = 1.0 / 148.0, dict(CUBE_SIDECAR)  # the real tosses' rate
     else:
         dt, sidecar = 0.01, {"env": cfg.env}
     sim, params, k = _sim_and_params(cfg.env, effect, values, sidecar, dt)
@@ -248,7 +260,7 @@ def _make_synthetic(cfg: SynthConfig, out_dir: str | os.PathLike) -> dict:
     names = list(sim.state_names)
     for b in range(cfg.n_traj):
         x = states[b]
-        cols = {"t": np.arange(cfg.samples) * dt}
+        cols = {"t": np.arange(cfg.samples) * dt}  # noqa: B023
         if cfg.env in ("quadrotor", "cube"):
             n = lambda shape, g: noise[g] * rng.standard_normal(shape)  # noqa: E731
             pos = x[:, 0:3] + n((cfg.samples, 3), "position")

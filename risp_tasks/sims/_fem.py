@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 
@@ -107,11 +108,27 @@ def energy(grid: HexGrid, x: torch.Tensor, nu: float) -> torch.Tensor:
     return psi.sum((-1, -2)) * grid.point_volume
 
 
-def energy_gradient(grid: HexGrid, x: torch.Tensor, nu: float, hessian: bool = False):
-    """∂Ψ̂/∂x (B, N, 3) and, when asked, the element Hessians ∂²Ψ̂/∂x_e² (B, E, 24, 24).
+class ElementHessians(NamedTuple):
+    """The three terms of the element Hessians ∂²Ψ̂/∂x_e² (see :func:`_element_hessians`).
 
-    Element dof order: (local node a, component i) -> 3a + i.  ``assemble_dense`` sums them up.
+    ``rank_one`` (B, E, 24, 24) is indexed [(a, i), (b, k)] (element dof 3a + i); ``cofactor``
+    (B, E, 8, 8, 3, 3) is indexed [a, b, i, k] (kept in the order it is computed in, so that assembly
+    gathers from it without a transposed copy); ``mu`` multiplies the constant ``grid_laplacian``.
     """
+
+    rank_one: torch.Tensor
+    cofactor: torch.Tensor
+    mu: float
+
+    def full(self, grid: "HexGrid") -> torch.Tensor:
+        """(B, E, 24, 24) = all three terms in [(a, i), (b, k)] order."""
+        B, E = self.rank_one.shape[:2]
+        j = self.cofactor.permute(0, 1, 2, 4, 3, 5).reshape(B, E, 24, 24)
+        return self.rank_one + j + self.mu * grid_laplacian(grid, self.rank_one.dtype)
+
+
+def energy_gradient(grid: HexGrid, x: torch.Tensor, nu: float, hessian: bool = False):
+    """∂Ψ̂/∂x (B, N, 3) and, when asked, the element Hessians as :class:`ElementHessians`."""
     mu, lam, alpha = lame_unit(nu)
     B = x.shape[0]
     F = deformation_gradients(grid, x)
@@ -126,7 +143,7 @@ def energy_gradient(grid: HexGrid, x: torch.Tensor, nu: float, hessian: bool = F
     return grad, _element_hessians(grid, F, C, s, mu, lam)
 
 
-def _element_hessians(grid: HexGrid, F, C, s, mu: float, lam: float) -> torch.Tensor:
+def _element_hessians(grid: HexGrid, F, C, s, mu: float, lam: float) -> ElementHessians:
     """He = Σ_q v B_qᵀ 𝔸_q B_q for 𝔸 = μ I + λ vec(C) vec(C)ᵀ + λ(J − α) ∂²J/∂F², term by term:
 
     * μ term: μ δ_ik Σ_q v ∇N_a·∇N_b, a constant (the element Laplacian ⊗ I₃);
@@ -134,34 +151,44 @@ def _element_hessians(grid: HexGrid, F, C, s, mu: float, lam: float) -> torch.Te
     * J term: Σ_jl ε_jln ∂N_a/∂X_j ∂N_b/∂X_l = (∇N_a × ∇N_b)_n =: w_q[a, b, n], so
       He[a i, b k] = Σ_m ε_ikm R[m, a, b] with R[m, a, b] = Σ_q v s_q Σ_n F_mn w_q[a, b, n].
     """
-    lap, W, eps9 = _hessian_tables(grid, F.dtype)
+    W, eps9 = _hessian_tables(grid, F.dtype)
     B, E = F.shape[0], F.shape[1]
     v = grid.point_volume
-    u = (grid.G @ C.transpose(-1, -2)).reshape(B, E, 8, 24)  # (B, E, q, (a, i))
-    He = (lam * v) * (u.transpose(-1, -2) @ u)
+    u = torch.einsum("qaj,zeqij->zeqai", grid.G, C).reshape(B, E, 8, 24)  # (B, E, q, (a, i))
+    rank_one = (lam * v) * (u.transpose(-1, -2) @ u)
     SF = (v * s)[..., None, None] * F  # (B, E, q, m, n)
-    R = SF.permute(0, 1, 3, 2, 4).reshape(B, E, 3, 24) @ W  # (B, E, m, a·8 + b)
-    HJ = (eps9 @ R).view(B, E, 3, 3, 8, 8).permute(0, 1, 4, 2, 5, 3).reshape(B, E, 24, 24)
-    return He + HJ + mu * lap
+    R = SF.permute(0, 1, 3, 2, 4).reshape(B * E * 3, 24) @ W  # ((B, E, m), (a, b)): one GEMM
+    R = R.view(B, E, 3, 64).transpose(-1, -2).reshape(B * E * 64, 3)
+    cofactor = (R @ eps9.T).view(B, E, 8, 8, 3, 3)  # [a, b, i, k]
+    return ElementHessians(rank_one, cofactor, mu)
+
+
+def grid_laplacian(grid: HexGrid, dtype: torch.dtype) -> torch.Tensor:
+    """(24, 24): Σ_q v ∇N_a·∇N_b δ_ik, the μ term of every element Hessian."""
+    key = ("laplacian", id(grid), dtype)
+    if key not in _TABLE_CACHE:
+        G = grid.G.to(torch.float64)
+        lap = torch.einsum("qaj,qbj->ab", G, G) * grid.point_volume
+        _TABLE_CACHE[key] = torch.kron(lap, torch.eye(3, dtype=torch.float64)).to(dtype)
+    return _TABLE_CACHE[key]
 
 
 def _hessian_tables(grid: HexGrid, dtype: torch.dtype):
     key = ("hessian", id(grid), dtype)
     if key not in _TABLE_CACHE:
         G = grid.G.to(torch.float64)
-        v = grid.point_volume
-        lap = torch.kron(torch.einsum("qaj,qbj->ab", G, G) * v, torch.eye(3, dtype=torch.float64))
         w = torch.linalg.cross(G[:, :, None, :].expand(8, 8, 8, 3), G[:, None, :, :].expand(8, 8, 8, 3), dim=-1)
         W = w.permute(0, 3, 1, 2).reshape(24, 64)  # [(q, n), (a, b)]
         eps = torch.zeros(3, 3, 3, dtype=torch.float64)
         for (i, j, k), val in {(0, 1, 2): 1, (1, 2, 0): 1, (2, 0, 1): 1, (0, 2, 1): -1, (2, 1, 0): -1, (1, 0, 2): -1}.items():
             eps[i, j, k] = val
-        _TABLE_CACHE[key] = (lap.to(dtype), W.to(dtype), eps.reshape(9, 3).to(dtype))
+        _TABLE_CACHE[key] = (W.to(dtype), eps.reshape(9, 3).to(dtype))
     return _TABLE_CACHE[key]
 
 
-def assemble_dense(grid: HexGrid, He: torch.Tensor) -> torch.Tensor:
-    """Element Hessians (B, E, 24, 24) -> global (B, 3N, 3N)."""
-    B, n = He.shape[0], 3 * grid.rest.shape[0]
-    H = He.new_zeros(B, n * n).index_add_(1, grid.hessian_index, He.reshape(B, -1))
+def assemble_dense(grid: HexGrid, He: ElementHessians) -> torch.Tensor:
+    """Element Hessians -> global (B, 3N, 3N)."""
+    full = He.full(grid)
+    B, n = full.shape[0], 3 * grid.rest.shape[0]
+    H = full.new_zeros(B, n * n).index_add_(1, grid.hessian_index, full.reshape(B, -1))
     return H.view(B, n, n)

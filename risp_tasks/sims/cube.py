@@ -41,6 +41,8 @@ from .base import Effect, Simulator, SimulatorSpec
 DT = 0.01  # s, one step of the rollout
 SUBSTEPS = 2  # linearly implicit substeps per step (h = dt / substeps)
 CONTACT_WIDTH = 1e-6  # m: δ, the softplus rounding of the penetration
+COUPLE = 1.0
+FLOOR_WIDTH = 1e-2  # N: rounding width of the zero floor of the normal force
 FRICTION_EPS = 1e-2  # m/s: ε of the smoothed Coulomb law
 ROLLING_EPS = 0.1  # rad/s: ε_ω of the smoothed rolling-friction direction
 LOG10_KN = 6.0  # ground truth of the identification task, range [5.5, 6.5)
@@ -94,7 +96,6 @@ class _Consts:
     width: float
     mass: float
     k: torch.Tensor  # (B, 1) k_n = 10^λ
-    floor_width: torch.Tensor  # (B, 1) k_n·δ: rounding width of the zero floor of the normal force
     dn: torch.Tensor  # (B, 1)
     M: torch.Tensor  # (B, 6, 6) generalized mass diag(m, m, m, I, I, I)
     gravity: torch.Tensor  # (6,) generalized gravity force (0, 0, −m g, 0, 0, 0)
@@ -171,7 +172,6 @@ class CubeSimulator(Simulator):
             width=self.contact_width,
             mass=self.mass,
             k=k,
-            floor_width=k * self.contact_width,
             dn=params[:, 1:2],
             M=M,
             gravity=torch.tensor([0.0, 0.0, -self.mass * GRAVITY, 0.0, 0.0, 0.0], **like),
@@ -199,8 +199,8 @@ class CubeSimulator(Simulator):
         r = (quat_outer(q) @ c.corner_form).unflatten(-1, (8, 3))  # (B, 8, 3) corner offsets R b_c, world
         pen = -(p[:, 2:3] + r[..., 2])  # (B, 8) penetration depth d_c = −z_c
 
-        # Normal force (docs §3.2): f_n = sp_w(f_k + (d_n σ + α f_k)·ḋ), f_k = k δ sp(d/δ), σ = σ(d/δ):
-        # elastic + damping, smoothly floored at zero (contact pushes, never pulls) over w = k δ.
+        # Normal force (docs §3.2): f_n = φ_w(f_k + (d_n σ + α f_k)·ḋ), f_k = k δ sp(d/δ), σ = σ(d/δ):
+        # elastic + damping, smoothly floored at zero by φ_w(x) = x·σ(x/w), w = FLOOR_WIDTH (pushes, hardly pulls).
         sig = torch.sigmoid(pen / delta)
         f_k = c.k * F.softplus(pen, beta=1.0 / delta, threshold=40.0)
         damp = c.dn * sig
@@ -208,11 +208,14 @@ class CubeSimulator(Simulator):
             damp = damp + c.alpha * f_k
 
         def normal_force(pen_rate):
-            raw = (f_k + damp * pen_rate) / c.floor_width
-            gate = torch.sigmoid(raw)  # ∂f_n/∂raw
-            g_n = gate * (damp + h * c.k * sig)  # damping + h·stiffness: the implicit weight of the corner
-            f_n = c.floor_width * F.softplus(raw, threshold=40.0)
-            return f_n, g_n, f_n + g_n * pen_rate - gate * damp * pen_rate  # last: f_n + h·(stiffness)·ḋ
+            raw = f_k + damp * pen_rate
+            x = raw / FLOOR_WIDTH
+            sx = torch.sigmoid(x)
+            f_n = raw * sx  # smooth max(raw, 0) that is exactly 0 at raw = 0 (no force out of contact)
+            gate = sx * (1.0 + x * (1.0 - sx))  # ∂f_n/∂raw
+            stiff_rate = gate * (h * c.k * sig) * pen_rate
+            g_n = gate * damp + gate * (h * c.k * sig)  # damping + h·stiffness: the implicit weight of the corner
+            return f_n, g_n, f_n + stiff_rate  # last: f_n extrapolated by h·(stiffness)·ḋ
 
         if c.mu is None:
             Jz = r @ c.jac_z + c.jac_z_offset  # (B, 8, 6): rows j_z = (e_z, r × e_z)
@@ -228,13 +231,17 @@ class CubeSimulator(Simulator):
             vt = vc[..., :2]
             f_n, g_n, f_ext = normal_force(-vc[..., 2])
             s = torch.sqrt((vt * vt).sum(-1, keepdim=True) + FRICTION_EPS**2)  # (B, 8, 1)
-            coef = c.mu.unsqueeze(-1) * f_n.unsqueeze(-1) / s  # μ f_n / s
-            f = torch.cat([-coef * vt, f_ext.unsqueeze(-1)], -1)  # (B, 8, 3)
-            # −∂f_t/∂v_t = coef·(I − v̂ v̂ᵀ), v̂ = v_t / s: a diagonal part and a rank-one correction.
-            W = torch.cat([coef, coef, g_n.unsqueeze(-1)], -1).view(B, 24, 1)
-            a = ((vt / s).unsqueeze(-2) @ J.view(B, 8, 3, 6)[:, :, :2]).squeeze(-2)  # (B, 8, 6) = J_tᵀ v̂
+            vhat = vt / s
+            coef = c.mu.unsqueeze(-1) / s  # μ / s
+            f = torch.cat([-coef * f_ext.unsqueeze(-1) * vt, f_ext.unsqueeze(-1)], -1)  # (B, 8, 3)
+            # G_c = −∂f_c/∂v_c: [[μ f_n/s (I − v̂ v̂ᵀ), −μ v̂ g_n], [0, g_n]] (friction scales with f_n).
+            ct = coef * f_n.unsqueeze(-1)
+            W = torch.cat([ct, ct, g_n.unsqueeze(-1)], -1).view(B, 24, 1)
+            J4 = J.view(B, 8, 3, 6)
+            a = (vhat.unsqueeze(-2) @ J4[:, :, :2]).squeeze(-2)  # (B, 8, 6) = J_tᵀ v̂
             JT = J.transpose(1, 2)
-            A = c.M + h * (JT @ (W * J) - (coef * a).transpose(1, 2) @ a)
+            A = c.M + h * (JT @ (W * J) - (ct * a).transpose(1, 2) @ a
+                           - COUPLE * (c.mu * g_n).unsqueeze(-1).mul(a).transpose(1, 2) @ J4[:, :, 2])
             force = (JT @ f.view(B, 24, 1)).squeeze(-1)
         force = force + c.gravity
         if c.mu_r is not None:  # rolling friction torque (docs §3.3)

@@ -7,9 +7,10 @@ Equations, units and defaults: docs/models/hand.md.  Summary:
 * M(q) q̈ + h(q, q̇) = u − K q − b(q) − c q̇ − τ_fric(q̇) + τ_grav(q)      (Sec. "Equations of motion")
   with the mass matrix M and Coriolis/centrifugal term h of the chain, per-finger joint stiffness K,
   a smooth barrier b enforcing the joint limits ±π/4, viscous damping c and the optional effects;
-* linearly implicit Euler (Sec. "Integrator"): the stiff diagonal terms (spring, barrier, damping,
-  friction) are linearised at the start of the step, the chain's inertial coupling is exact, so the
-  barrier may be stiff at dt = 0.01 s;
+* linearly implicit Euler (Sec. "Integrator"): the stiff per-joint terms (spring, barrier, damping,
+  friction) are linearised about the predicted angles q + dt·q̇ and treated implicitly, the chain's
+  inertial coupling (M, h, gravity at the start of the step) explicitly, so the barrier may be stiff at
+  dt = 0.01 s;
 * actions: one torque per finger, applied to every joint of that finger; ``hand_torque_schedule``
   builds the paper's sine schedule from (m, δ) differentiably.
 
@@ -210,7 +211,7 @@ class HandSimulator(Simulator):
         # (M + dt·C + dt²·K) Δq̇ = dt · f(q̃, q̇)
         A = M + torch.diag_embed(DT * c_eff + DT * DT * k_eff)
         rhs = DT * force
-        dv = torch.linalg.solve(A, rhs.unsqueeze(-1)).squeeze(-1) * c["mask"]
+        dv = _solve_symmetric_3x3(A, rhs) * c["mask"]
         v_next = v + dv
         q_next = q + DT * v_next
         return q_next, v_next
@@ -243,8 +244,8 @@ class HandSimulator(Simulator):
             vs.append(v)
         B = s0.shape[0]
         keep = c["keep"]
-        q_all = torch.stack(qs, 1).reshape(B, steps + 1, -1)[:, :, keep]
-        v_all = torch.stack(vs, 1).reshape(B, steps + 1, -1)[:, :, keep]
+        q_all = torch.stack(qs, 1).reshape(B, steps + 1, N_FINGERS * MAX_LINKS)[:, :, keep]
+        v_all = torch.stack(vs, 1).reshape(B, steps + 1, N_FINGERS * MAX_LINKS)[:, :, keep]
         return torch.cat((q_all, v_all), -1)
 
     def to_env_state(self, states: torch.Tensor) -> torch.Tensor:
@@ -257,6 +258,18 @@ class HandSimulator(Simulator):
     def rest_state(self, batch: int = 1, dtype: torch.dtype = torch.float64) -> torch.Tensor:
         """All joints at the rest angle 0 with zero velocity: (batch, 26)."""
         return torch.zeros(batch, len(self.state_names), dtype=dtype)
+
+
+def _solve_symmetric_3x3(A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """A⁻¹ b for symmetric 3×3 A (…, 3, 3) by the adjugate: A⁻¹ = cof(A)ᵀ / det A.
+
+    Row i of cof(A) is r_{i+1} × r_{i+2} (r_i the rows of A).  A handful of elementwise kernels instead of
+    a batched LAPACK call: LAPACK's threading made ``torch.linalg.solve`` 10–25× slower on the shared
+    2-core machine, and A = M + dt·C + dt²·K is symmetric positive definite and well conditioned.
+    """
+    cof = torch.linalg.cross(A.roll(-1, dims=-2), A.roll(-2, dims=-2), dim=-1)
+    det = (A[..., 0, :] * cof[..., 0, :]).sum(-1, keepdim=True)
+    return (cof * b.unsqueeze(-2)).sum(-1) / det
 
 
 def hand_torque_schedule(

@@ -43,7 +43,8 @@ FORCE_WIDTH = 1.0  # N, corner width of the smooth clamp
 LOG10_E_RANGE = (3.0, 8.0)  # accepted log10 E (the identification range [4, 7) lies inside)
 NEWTON_MAX_ITERATIONS = 30
 LINE_SEARCH_ABOVE = 1e-3  # m: Newton updates larger than this are line-searched
-NEWTON_TOLERANCE = {torch.float64: 1e-6, torch.float32: 1e-4}  # m; quadratic convergence: error ≲ 1e-11 / 1e-7 m
+CHORD_BELOW = 1e-4  # m: after an update this small the next one reuses the factorisation
+NEWTON_TOLERANCE = {torch.float64: 1e-10, torch.float32: 2e-6}  # m, max |Newton update| at convergence
 
 NX, NY, NZ = NODES
 NODES_PER_SECTION = NY * NZ
@@ -112,23 +113,40 @@ class _Model:
     def full(self, x: torch.Tensor) -> torch.Tensor:
         """Free positions (B, 180) -> all nodes (B, 72, 3)."""
         B = x.shape[0]
-        return torch.cat((self.left.expand(B, -1, -1), x.view(B, -1, 3), self.right.expand(B, -1, -1)), 1)
+        return torch.cat((self.left.expand(B, -1, -1), x.view(B, N_FREE_NODES, 3), self.right.expand(B, -1, -1)), 1)
 
     def _build_band_tables(self):
+        """Index maps from the element Hessian terms into band storage of the free block."""
         first = 3 * NODES_PER_SECTION
         dofs = (self.grid.elements[:, :, None] * 3 + torch.arange(3)).reshape(-1, 24) - first  # free dof numbers
-        rows = dofs[:, :, None].expand(-1, 24, 24).reshape(-1)
-        cols = dofs[:, None, :].expand(-1, 24, 24).reshape(-1)
-        valid = (rows >= 0) & (rows < N_DOF) & (cols >= 0) & (cols < N_DOF) & (rows >= cols)
-        self.bandwidth = int((rows - cols)[valid].max())
-        self.band_source = torch.nonzero(valid).flatten()  # positions in the flattened element Hessians
-        self.band_target = ((rows - cols) * N_DOF + cols)[valid]
+        E = dofs.shape[0]
+        # rank-one term, order [e, (a, i), (b, k)]
+        rows1 = dofs[:, :, None].expand(E, 24, 24).reshape(-1)
+        cols1 = dofs[:, None, :].expand(E, 24, 24).reshape(-1)
+        # cofactor term, order [e, a, b, i, k]: row dof 3a + i, column dof 3b + k
+        d = dofs.view(E, 8, 3)
+        rows2 = d[:, :, None, :, None].expand(E, 8, 8, 3, 3).reshape(-1)
+        cols2 = d[:, None, :, None, :].expand(E, 8, 8, 3, 3).reshape(-1)
+        # μ term: the constant element Laplacian, summed once into a band
+        self.bandwidth = 0
+        maps = []
+        for rows, cols in ((rows1, cols1), (rows2, cols2)):
+            valid = (rows >= 0) & (rows < N_DOF) & (cols >= 0) & (cols < N_DOF) & (rows >= cols)
+            self.bandwidth = max(self.bandwidth, int((rows - cols)[valid].max()))
+            maps.append((rows, cols, valid))
+        self.band_maps = [
+            (torch.nonzero(valid).flatten(), ((rows - cols) * N_DOF + cols)[valid]) for rows, cols, valid in maps
+        ]
+        lap = _fem.grid_laplacian(self.grid, self.dtype).expand(E, 24, 24).reshape(1, -1)
+        src, dst = self.band_maps[0]
+        self.laplacian_band = lap.new_zeros(1, (self.bandwidth + 1) * N_DOF).index_add_(1, dst, lap[:, src])
 
-    def band(self, He: torch.Tensor) -> torch.Tensor:
-        """Element Hessians (B, E, 24, 24) -> the free block in banded storage (B, bandwidth + 1, 180)."""
-        B = He.shape[0]
-        band = He.new_zeros(B, (self.bandwidth + 1) * N_DOF)
-        band.index_add_(1, self.band_target, He.reshape(B, -1)[:, self.band_source])
+    def band(self, He: "_fem.ElementHessians") -> torch.Tensor:
+        """Element Hessians -> the free block in LAPACK lower band storage (B, bandwidth + 1, 180)."""
+        B = He.rank_one.shape[0]
+        band = He.mu * self.laplacian_band.expand(B, -1).clone()
+        for part, (src, dst) in zip((He.rank_one, He.cofactor), self.band_maps):
+            band.index_add_(1, dst, part.reshape(B, -1)[:, src])
         return band.view(B, self.bandwidth + 1, N_DOF)
 
     @staticmethod
@@ -193,21 +211,18 @@ class _StepProblem:
         return phi
 
 
-def _factor_solve(band: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
-    """H⁻¹ r for symmetric positive definite H given in LAPACK lower band storage (B, kd + 1, n).
-
-    Banded Cholesky (LAPACK ?pbtrf/?pbtrs through SciPy), one matrix at a time: O(n kd²) instead of the
+def _factor(band: torch.Tensor) -> list:
+    """Banded Cholesky factors of symmetric positive definite H, given in LAPACK lower band storage
+    (B, kd + 1, n): LAPACK ``?pbtrf`` through SciPy, one matrix per batch row, O(n kd²) instead of the
     dense O(n³).  Where H is not positive definite (strongly compressed elements of the stable
     Neo-Hookean material can make it so) a growing multiple of the mean diagonal is added.
     """
     from scipy.linalg import lapack
 
     bands = band.detach().cpu().numpy()
-    rhs = r.detach().cpu().numpy()
-    pbtrf, pbtrs = lapack.get_lapack_funcs(("pbtrf", "pbtrs"), (bands,))
-    out = np.empty_like(rhs)
-    for b in range(bands.shape[0]):
-        ab = bands[b]
+    (pbtrf,) = lapack.get_lapack_funcs(("pbtrf",), (bands,))
+    factors = []
+    for ab in bands:
         c, info = pbtrf(ab, lower=1)
         shift = 1e-8
         while info != 0 and shift < 1e3:
@@ -217,7 +232,21 @@ def _factor_solve(band: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
             shift *= 10.0
         if info != 0:
             raise RispError("rod: the implicit step's linear system is singular (non-physical parameters?)")
-        out[b], info = pbtrs(c, rhs[b], lower=1)
+        factors.append(c)
+    return factors
+
+
+def _solve(factors: list, r: torch.Tensor) -> torch.Tensor:
+    """H⁻¹ r (B, n) from the factors of :func:`_factor` (LAPACK ``?pbtrs``)."""
+    from scipy.linalg import lapack
+
+    if not factors:
+        return torch.zeros_like(r)
+    rhs = r.detach().cpu().numpy()
+    (pbtrs,) = lapack.get_lapack_funcs(("pbtrs",), (factors[0],))
+    out = np.empty_like(rhs)
+    for b, c in enumerate(factors):
+        out[b], _ = pbtrs(c, rhs[b], lower=1)
     return torch.from_numpy(out).to(r)
 
 
@@ -225,13 +254,16 @@ def _newton(problem: _StepProblem, x0: torch.Tensor, what: str) -> torch.Tensor:
     """Minimise the incremental potential Φ by Newton's method.
 
     Updates larger than LINE_SEARCH_ABOVE are checked by Armijo backtracking on Φ; smaller ones are in
-    Newton's quadratic region and taken whole (saves the energy evaluations in the common case).
+    Newton's quadratic region and taken whole.  After an update smaller than CHORD_BELOW the next
+    update reuses the last factorisation (a chord step: gradient only, no new Hessian), which converges
+    at once that close to the solution.
     """
     tol = NEWTON_TOLERANCE.get(x0.dtype, 1e-11)
     x = x0
+    g, H = problem.residual(x, hessian=True)
+    factors = _factor(H)
     for _ in range(NEWTON_MAX_ITERATIONS):
-        g, H = problem.residual(x, hessian=True)
-        dx = -_factor_solve(H, g)
+        dx = -_solve(factors, g)
         size = dx.abs().amax(-1)
         if bool((size <= tol).all()):
             return x + dx
@@ -249,6 +281,11 @@ def _newton(problem: _StepProblem, x0: torch.Tensor, what: str) -> torch.Tensor:
                 t = torch.where(bad, 0.5 * t, t)
             dx = t[:, None] * dx
         x = x + dx
+        if bool((size <= CHORD_BELOW).all()):
+            g, _ = problem.residual(x, hessian=False)
+        else:
+            g, H = problem.residual(x, hessian=True)
+            factors = _factor(H)
     raise RispError(f"rod: Newton's method did not converge {what} (non-physical parameters or force?)")
 
 
@@ -271,7 +308,7 @@ class _ImplicitEulerStep(torch.autograd.Function):
         with torch.no_grad():
             problem = _StepProblem(m, x_n, v_n, E, alpha, beta, force)
             _, H = problem.residual(x, hessian=True)
-            lam = _factor_solve(H, x_bar)  # H symmetric: Hᵀ λ = x̄
+            lam = _solve(_factor(H), x_bar)  # H symmetric: Hᵀ λ = x̄
             grad_unit, _ = m.elastic(x, hessian=False)
             dx = x - x_n
             m_lam = m.mass * lam
@@ -309,6 +346,8 @@ class RodSimulator(Simulator):
         super().check_inputs(params, s0, actions, steps)
         if params.dtype != s0.dtype or actions.dtype != s0.dtype:
             raise RispError(f"params, s0 and actions must share one dtype, got {params.dtype}, {s0.dtype}, {actions.dtype}")
+        if s0.dtype not in (torch.float32, torch.float64):
+            raise RispError(f"s0: the rod simulator runs in float32 or float64, got {s0.dtype}")
         lo, hi = LOG10_E_RANGE
         if bool(((params[:, 0] < lo) | (params[:, 0] > hi)).any()):
             raise RispError(f"params: log10_E must lie in [{lo}, {hi}], got {params[:, 0].tolist()}")
@@ -326,6 +365,8 @@ class RodSimulator(Simulator):
     def rollout(self, params, s0, actions, steps):
         """Integrate ``steps`` implicit Euler steps; returns (B, steps + 1, 360), row 0 = s0."""
         self.check_inputs(params, s0, actions, steps)
+        if s0.shape[0] == 0:  # empty batch: nothing to solve
+            return s0.new_zeros(0, steps + 1, s0.shape[1])
         model = _model(s0.dtype)
         E, alpha, beta = self._coefficients(params)
         force = self.centre_force(actions[:, :steps, 0])

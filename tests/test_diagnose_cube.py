@@ -1,0 +1,42 @@
+"""risp-task diagnose on synthetic cube tosses (148 Hz, the real cube's size and mass) and on real tosses."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from diagnose_helpers import assert_recovered, run_case
+from risp_tasks.diagnose.run import DiagnoseConfig, diagnose
+
+CUBE_TOSSES = Path("/work/shared/data/cube-tosses")
+if not CUBE_TOSSES.is_dir():
+    CUBE_TOSSES = Path(__file__).resolve().parents[2] / "shared" / "data" / "cube-tosses"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed, effect", [(81, "friction"), (82, "random")])
+def test_hidden_effect_is_named_and_recovered(tmp_path, seed, effect):
+    truth, report = run_case(tmp_path, "cube", effect, seed, samples=120, out=False)
+    assert_recovered("cube", truth, report)
+
+
+@pytest.mark.slow
+def test_unlisted_periodic_force_is_unexplained(tmp_path):
+    _, report = run_case(tmp_path, "cube", "periodic_force", seed=84, samples=120, out=False)
+    assert report["cause"] == "unexplained", report["reason"]
+
+
+@pytest.mark.skipif(not CUBE_TOSSES.is_dir(), reason="real cube tosses not available")
+def test_real_tosses_small_run(tmp_path):
+    """Four real tosses, one held out, friction only: a report with a floor calibration and a gain."""
+    report = diagnose(DiagnoseConfig(data=(str(CUBE_TOSSES),), env="cube", out=str(tmp_path / "r"), seed=0,
+                                     limit=4, held_out=0.25, effects=("friction",), pairs_top=0,
+                                     max_iters=6, progress=False, plots=True))
+    assert report["data"]["floor_calibration"]["applied"]
+    assert -0.005 < report["data"]["floor_calibration"]["floor_offset_m"] < 0.0
+    assert report["split"]["mode"] == "trajectories" and len(report["split"]["held_out"]) == 1
+    assert report["cause"] != "none"  # a frictionless cube cannot explain real tosses
+    friction = next(r for r in report["ranking"] if r["model"] == "friction")
+    assert friction["delta_bic"] > 10 and friction["rss_reduction"] > 0.05
+    assert (tmp_path / "r" / "gain_overlay.png").is_file()

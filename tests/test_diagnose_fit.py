@@ -1,0 +1,91 @@
+"""The diagnose machinery: exact Jacobians, noise estimation, split, decision rule."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from risp_tasks.diagnose import candidates as cands
+from risp_tasks.diagnose.adapter import Observer
+from risp_tasks.diagnose.fit import _jacobian, channel_sigma, estimate_noise, make_segments, residuals
+from risp_tasks.diagnose.run import split_trajectories
+from risp_tasks.diagnose.select import Score, decide
+from risp_tasks.diagnose.synth import SynthConfig, make_synthetic
+from risp_tasks.measured import load_measured
+
+
+@pytest.fixture(scope="module")
+def quad_data(tmp_path_factory):
+    d = tmp_path_factory.mktemp("quad")
+    truth = make_synthetic(SynthConfig(env="quadrotor", seed=5, n_traj=3, samples=120, effect="motor_lag"), d)
+    return d, truth
+
+
+def test_forward_mode_jacobian_matches_central_differences(quad_data):
+    """∂e/∂z of the multiple-shooting residuals (float64) vs central finite differences."""
+    d, _ = quad_data
+    trajs = load_measured([str(d)], "quadrotor")
+    model, k = cands.build_model("quadrotor", ("motor_lag", "air_drag"), trajs[0].sidecar, trajs[0].dt)
+    obs = Observer(model.sim)
+    noise = estimate_noise(model.sim, trajs)
+    seg = make_segments(model.sim, trajs, horizon=5, k=k, params=model.base)
+    sigma = channel_sigma(obs, noise)
+    fn = lambda z: residuals(model.sim, obs, model.params(z), seg, sigma).reshape(-1)  # noqa: E731
+    z = torch.tensor([0.3, -0.2], dtype=torch.float64)
+    J = _jacobian(fn, z)
+    eps = 1e-6
+    for j in range(2):
+        dz = torch.zeros(2, dtype=torch.float64)
+        dz[j] = eps
+        with torch.no_grad():
+            fd = (fn(z + dz) - fn(z - dz)) / (2 * eps)
+        assert torch.allclose(J[:, j], fd, rtol=1e-4, atol=1e-6 * fd.abs().max())
+
+
+def test_noise_estimate_recovers_the_synthetic_level(quad_data):
+    d, truth = quad_data
+    trajs = load_measured([str(d)], "quadrotor")
+    model, _ = cands.build_model("quadrotor", (), trajs[0].sidecar, trajs[0].dt)
+    est = estimate_noise(model.sim, trajs)
+    for g, true in truth["noise"].items():
+        assert est[g] == pytest.approx(true, rel=0.2), g
+
+
+def test_split_by_trajectories_is_seeded_and_by_time_for_one_file(quad_data):
+    d, _ = quad_data
+    trajs = load_measured([str(d)], "quadrotor")
+    a = split_trajectories(trajs, 0.3, seed=3)[2]
+    b = split_trajectories(trajs, 0.3, seed=3)[2]
+    assert a == b and a["mode"] == "trajectories" and len(a["held_out"]) == 1 and len(a["fit"]) == 2
+    fit, held, info = split_trajectories(trajs[:1], 0.25, seed=3)
+    assert info["mode"] == "time" and fit[0].n == 90 and held[0].n == 30
+    assert held[0].t[0] == pytest.approx(fit[0].t[-1] + 0.01)
+
+
+def _score(name, rss, k, rho, n_eff=1000):
+    s = Score(name, tuple(name.split("+")) if name != "base" else (), k, rss, 10 * n_eff, n_eff,
+              n_eff * np.log(rss / (10 * n_eff)) + k * np.log(n_eff))
+    s.rho = rho
+    return s
+
+
+def test_decision_rule():
+    base = _score("base", 20000.0, 0, 2.0)
+    good = _score("wind", 10000.0, 3, 1.0)
+    weak = _score("air_drag", 19900.0, 1, 1.99)
+    assert decide(base, [good, weak], []).cause == "wind"
+    # improvement but the residual stays far above the noise floor: never a confident name
+    partial = _score("wind", 15000.0, 3, 1.8)
+    d = decide(base, [partial, weak], [])
+    assert d.cause == "unexplained" and d.best_candidate.name == "wind"
+    # nothing helps and the base is at the noise floor
+    base_ok = _score("base", 10000.0, 0, 1.05)
+    assert decide(base_ok, [_score("wind", 9990.0, 3, 1.05)], []).cause == "none"
+    # nothing helps and the base is not at the noise floor
+    assert decide(base, [weak], []).cause == "unexplained"
+    # a pair replaces its single only when it beats it clearly
+    pair = _score("wind+air_drag", 6000.0, 4, 1.0)
+    assert decide(base, [good, weak], [pair]).cause == "wind+air_drag"
+    pair_marginal = _score("wind+air_drag", 9990.0, 4, 1.0)
+    assert decide(base, [good, weak], [pair_marginal]).cause == "wind"
