@@ -231,7 +231,7 @@ def _diagnose(cfg: DiagnoseConfig) -> dict:
                  "velocities_estimated": bool(any(tr.vel_estimated for tr in trajs if tr.vel is not None)),
                  "floor_calibration": floor},
         "fit": {"horizon_samples": cfg.horizon, "substeps_per_sample": base.k, "sim_dt_s": base.fit.model.sim.dt,
-                "fit_segments": None, "iterations": {n: ev.fit.iterations for n, ev in evaluated.items()}},
+                "iterations": {n: ev.fit.iterations for n, ev in evaluated.items()}},
         "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg).items()},
         "runtime_s": None,
     }

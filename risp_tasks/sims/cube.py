@@ -42,6 +42,7 @@ DT = 0.01  # s, one step of the rollout
 SUBSTEPS = 2  # linearly implicit substeps per step (h = dt / substeps)
 CONTACT_WIDTH = 1e-6  # m: δ, the softplus rounding of the penetration
 COUPLE = 1.0
+USE_EXT = True
 FLOOR_WIDTH = 1e-2  # N: rounding width of the zero floor of the normal force
 FRICTION_EPS = 1e-2  # m/s: ε of the smoothed Coulomb law
 ROLLING_EPS = 0.1  # rad/s: ε_ω of the smoothed rolling-friction direction
@@ -233,7 +234,8 @@ class CubeSimulator(Simulator):
             s = torch.sqrt((vt * vt).sum(-1, keepdim=True) + FRICTION_EPS**2)  # (B, 8, 1)
             vhat = vt / s
             coef = c.mu.unsqueeze(-1) / s  # μ / s
-            f = torch.cat([-coef * f_ext.unsqueeze(-1) * vt, f_ext.unsqueeze(-1)], -1)  # (B, 8, 3)
+            f_fr = f_ext if USE_EXT else f_n
+            f = torch.cat([-coef * f_fr.unsqueeze(-1) * vt, f_ext.unsqueeze(-1)], -1)  # (B, 8, 3)
             # G_c = −∂f_c/∂v_c: [[μ f_n/s (I − v̂ v̂ᵀ), −μ v̂ g_n], [0, g_n]] (friction scales with f_n).
             ct = coef * f_n.unsqueeze(-1)
             W = torch.cat([ct, ct, g_n.unsqueeze(-1)], -1).view(B, 24, 1)
