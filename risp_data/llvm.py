@@ -17,6 +17,7 @@ import subprocess
 from .errors import RispError
 
 MIN_MAJOR = 16  # 14 is refused, 15 aborts; 16+ are accepted by drjit 1.5 (19 measured here)
+MIN_PLAUSIBLE_MAJOR = 3  # a smaller number in a library name is a soname ABI version, not LLVM's major
 _SEARCH_DIRS = (
     "/usr/lib/x86_64-linux-gnu",
     "/lib/x86_64-linux-gnu",
@@ -31,12 +32,20 @@ INSTALL_HINT = "install one with `apt-get install libllvm19` (or run scripts/set
 
 
 def _major(path: str) -> int | None:
+    """LLVM major version from a library path (libLLVM.so.19.1, libLLVM-19.so, libLLVM.19.dylib,
+    /usr/lib/llvm-19/lib/libLLVM.so.1), or None when the path does not tell."""
     name = os.path.basename(path)
+    major = None
     m = re.search(r"libLLVM[-.]?(?:so\.)?(\d+)", name)
     if m:
-        return int(m.group(1))
-    m = re.search(r"libLLVM\.(\d+)", name)  # macOS: libLLVM.19.dylib
-    return int(m.group(1)) if m else None
+        major = int(m.group(1))
+    else:
+        m = re.search(r"libLLVM\.(\d+)", name)  # macOS: libLLVM.19.dylib
+        major = int(m.group(1)) if m else None
+    if major is None or major < MIN_PLAUSIBLE_MAJOR:  # e.g. libLLVM.so.1: an ABI number, not a version
+        m = re.search(r"llvm-(\d+)", path)  # Debian: /usr/lib/llvm-19/lib/libLLVM.so.1
+        major = int(m.group(1)) if m else None
+    return major
 
 
 def candidate_libraries() -> list[str]:
@@ -59,13 +68,20 @@ def candidate_libraries() -> list[str]:
 def ensure_llvm() -> str:
     """Set ``DRJIT_LIBLLVM_PATH`` to a usable libLLVM (major >= 16) and return its path.
 
-    Respects a ``DRJIT_LIBLLVM_PATH`` the user already set, as long as the file exists.
+    Respects a ``DRJIT_LIBLLVM_PATH`` the user already set, as long as the file exists and its name does
+    not give a major version below MIN_MAJOR (a name without a version is trusted).
     Raises :class:`RispError` with one line when no usable library is found.
     """
     preset = os.environ.get("DRJIT_LIBLLVM_PATH")
     if preset:
         if not os.path.exists(preset):
             raise RispError(f"DRJIT_LIBLLVM_PATH={preset} does not exist; unset it or {INSTALL_HINT}")
+        major = _major(preset)
+        if major is not None and major < MIN_MAJOR:
+            raise RispError(
+                f"DRJIT_LIBLLVM_PATH={preset} is LLVM {major}, but Dr.Jit needs LLVM >= {MIN_MAJOR}; "
+                f"unset it or {INSTALL_HINT}"
+            )
         return preset
     cands = candidate_libraries()
     good = [p for p in cands if _major(p) >= MIN_MAJOR]

@@ -27,10 +27,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .envs import get_environment
 from .errors import RispError
 
 DOMAINS: tuple[str, ...] = ("train", "target")
-ENVS: tuple[str, ...] = ("quadrotor", "cube", "hand", "rod")
 TRAIN_FLOOR_TEXTURES: tuple[str, ...] = ("plain", "checker", "noise")
 TARGET_FLOOR_TEXTURES: tuple[str, ...] = ("tiles", "wood")
 
@@ -68,8 +68,8 @@ AMBIENT_RANGE = (0.05, 0.5)
 
 
 def _check_env(env: str) -> None:
-    if env not in ENVS:
-        raise RispError(f"unknown environment {env!r}; choose one of: {', '.join(ENVS)}")
+    """Unknown names raise the registry's RispError (risp_data.envs.ENV_NAMES is the one list of names)."""
+    get_environment(env)
 
 
 def _check_domain(domain: str) -> None:

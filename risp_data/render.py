@@ -26,7 +26,7 @@ import numpy as np
 from .envs import get_environment
 from .errors import RispError
 from .mitsuba_setup import init_mitsuba
-from .psi import DOMAINS, RenderConfig, psi_specs
+from .psi import RenderConfig, _check_domain, psi_specs
 
 LIGHT_IRRADIANCE = 3.0  # W/m² at the camera target for light_intensity = 1 (facing the light)
 TARGET_SPP_FACTOR = 4  # the target domain renders with 4× the requested samples per pixel
@@ -129,8 +129,7 @@ class Renderer:
     def __init__(self, env: str, domain: str = "train", resolution: int = 64, spp: int = 16,
                  variant: str | None = None):
         self.env = get_environment(env)
-        if domain not in DOMAINS:
-            raise RispError(f"unknown domain {domain!r}; choose one of: {', '.join(DOMAINS)}")
+        _check_domain(domain)
         if not isinstance(resolution, (int, np.integer)) or resolution < 1:
             raise RispError(f"resolution must be a positive integer, got {resolution!r}")
         if not isinstance(spp, (int, np.integer)) or spp < 1:

@@ -1,4 +1,8 @@
-"""risp-task diagnose on synthetic cube tosses (148 Hz, the real cube's size and mass) and on real tosses."""
+"""risp-task diagnose on synthetic cube tosses (148 Hz, the real cube's size and mass) and on real tosses.
+
+Restitution is not among the hidden-effect cases: with 4 tosses × 120 samples its effect on the few impact
+segments is below the detection threshold (diagnose answers ``none``, not a wrong name; docs/diagnose.md).
+"""
 
 from __future__ import annotations
 
@@ -15,7 +19,7 @@ if not CUBE_TOSSES.is_dir():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed, effect", [(81, "friction"), (82, "random")])
+@pytest.mark.parametrize("seed, effect", [(81, "friction"), (82, "rolling_friction")])
 def test_hidden_effect_is_named_and_recovered(tmp_path, seed, effect):
     truth, report = run_case(tmp_path, "cube", effect, seed, samples=120, out=False)
     assert_recovered("cube", truth, report)

@@ -169,6 +169,49 @@ def test_render_is_deterministic():
     np.testing.assert_allclose(p_img, a_img, rtol=0, atol=DET_ATOL)
 
 
+def test_render_is_deterministic_across_renderer_instances():
+    """docs/rendering.md: the same (state, config, seed) gives the same image and J in a fresh Renderer."""
+    from risp_data.render import Renderer
+
+    env = get_environment("cube")
+    rng = np.random.default_rng(5)
+    state, config = env.sample_states(rng, 1)[0], sample_rendering("cube", "train", rng)
+    a_img, a_J = renderer("cube").render(state, config, seed=7)
+    b_img, b_J = Renderer("cube", "train", resolution=RES, spp=SPP).render(state, config, seed=7)
+    np.testing.assert_allclose(b_img, a_img, rtol=0, atol=DET_ATOL)
+    np.testing.assert_allclose(b_J, a_J, rtol=0, atol=DET_ATOL)
+
+
+def test_renderer_reuses_compiled_kernels():
+    """After the first sample, new states, ψ and seeds launch the same JIT kernels, all served from
+    Dr.Jit's in-memory kernel cache: no new code generation or compilation (docs/rendering.md)."""
+    import drjit as dr
+
+    r = renderer("cube")
+    env = get_environment("cube")
+    rng = np.random.default_rng(6)
+    states = env.sample_states(rng, 3)
+    configs = [sample_rendering("cube", "train", rng) for _ in range(3)]
+    was_on = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        launched = []
+        for i in range(3):
+            dr.kernel_history_clear()
+            r.render(states[i], configs[i], seed=100 + i)
+            jit = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+            launched.append(jit)
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, was_on)
+        dr.kernel_history_clear()
+    assert launched[0], "kernel history recorded no JIT kernel"
+    first = {k["hash"] for k in launched[0]}
+    for jit in launched[1:]:
+        assert {k["hash"] for k in jit} <= first  # the same kernels as for the first sample
+        fresh = [k["hash"] for k in jit if not k["cache_hit"] or k["cache_disk"]]
+        assert not fresh, f"kernels compiled or loaded from disk again: {fresh}"
+
+
 def test_camera_projection_matches_mitsuba():
     """The cube's silhouette centroid in a render is where meshes.project puts the cube centre."""
     res = 32

@@ -42,8 +42,14 @@ def test_layout_and_registry():
         "joint_damping.coefficient", "joint_friction.torque")
     assert len(sim.state_names) == 26 and sim.action_dim == 5 and sim.dt == DT
     assert sim.default_params(3).shape == (3, 7)
-    states = torch.randn(4, 7, 26, dtype=torch.float64)
+    states = torch.randn(4, 7, 26, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     assert torch.equal(sim.to_env_state(states), states[..., :13])
+    # the shared interface: bounds, ranges, units, default_state (rest_state is its alias)
+    assert sim.param_bounds == ((0.0, math.inf),) * 7
+    assert sim.spec.base_param_ranges == ((0.0, 1.0),) * 5 and len(sim.spec.base_param_units) == 5
+    assert all(e.bounds and e.units for e in sim.spec.available_effects.values())
+    assert torch.equal(sim.default_state(2), torch.zeros(2, 26, dtype=torch.float64))
+    assert torch.equal(sim.rest_state(2), sim.default_state(2))
 
 
 # -- the planar-chain dynamics against an independent 3-D Lagrangian ---------------------------------------
@@ -126,17 +132,20 @@ def test_torque_schedule_formula_and_gradients():
     steps = 90
     t = torch.arange(steps, dtype=torch.float64)
     hard = m[:, None] * torch.sin(2 * math.pi * ((t[None, :, None] - delta[:, None]) / 40).clamp(0, 1))
+    torch.testing.assert_close(hand_torque_schedule(m, delta, steps), hard)  # default: the exact formula
     torch.testing.assert_close(hand_torque_schedule(m, delta, steps, smoothing=0.0), hard)
-    smooth = hand_torque_schedule(m, delta, steps)
+    smooth = hand_torque_schedule(m, delta, steps, smoothing=1.0)  # opt-in smoothing for optimisation
     assert (smooth - hard).abs().max() < 0.15  # within a step of the corners
     far = ((t[None, :, None] - delta[:, None]).abs() > 6) & ((t[None, :, None] - delta[:, None] - 40).abs() > 6)
     assert (smooth - hard)[far].abs().max() < 1e-3
-    m_ = (0.2 + 0.6 * torch.rand(2, 5, dtype=torch.float64)).requires_grad_()
-    d_ = (1 + 38 * torch.rand(2, 5, dtype=torch.float64)).requires_grad_()
+    gen = torch.Generator().manual_seed(12)
+    m_ = (0.2 + 0.6 * torch.rand(2, 5, generator=gen, dtype=torch.float64)).requires_grad_()
+    d_ = (1 + 38 * torch.rand(2, 5, generator=gen, dtype=torch.float64)).requires_grad_()
+    assert torch.autograd.gradcheck(lambda a, b: hand_torque_schedule(a, b, 60, smoothing=1.0), (m_, d_))
     assert torch.autograd.gradcheck(lambda a, b: hand_torque_schedule(a, b, 60), (m_, d_))
     # the smooth clamp keeps δ's gradient alive on the step just before the ramp starts
     d = torch.tensor([[10.0] * 5], dtype=torch.float64, requires_grad=True)
-    hand_torque_schedule(torch.ones(1, 5, dtype=torch.float64), d, 11)[0, 9].sum().backward()
+    hand_torque_schedule(torch.ones(1, 5, dtype=torch.float64), d, 11, smoothing=1.0)[0, 9].sum().backward()
     assert (d.grad.abs() > 1e-3).all()
 
 

@@ -221,3 +221,66 @@ def test_bad_input_names_the_argument(case, fragment):
         sim.rollout(p, s0, a, 2)
     with pytest.raises(RispError, match="states"):
         sim.to_env_state(torch.zeros(4, 10))
+
+
+# -- the rendered range of the environment covers the documented (E, force) region ---------------------------
+def test_simulated_states_stay_in_the_rendered_range():
+    """docs/models/rod.md, "Rendered range": equilibria and rollouts from the sagged rod under a step
+    force stay inside the risp_data environment's [state_low, state_high]."""
+    from risp_data.envs import get_environment
+
+    env, sim = get_environment("rod"), get_simulator("rod")
+    low = torch.tensor(env.state_low, dtype=torch.float64)
+    high = torch.tensor(env.state_high, dtype=torch.float64)
+
+    def inside(z):
+        return bool(((z >= low) & (z <= high)).all())
+
+    # static equilibria over the whole documented region
+    cases = [(e, f) for e in (5.0, 7.0) for f in (-500.0, 500.0)] + [(4.5, -300.0), (4.5, 300.0), (4.0, -100.0), (4.0, 100.0)]
+    params = torch.tensor([[e] for e, _ in cases], dtype=torch.float64)
+    force = torch.tensor([f for _, f in cases], dtype=torch.float64)
+    eq = sim.equilibrium_state(params, force[:, None, None])
+    assert inside(sim.to_env_state(eq))
+    # rollouts: a ±200 N step at log10 E ∈ {5, 7} from the sagged rod, undamped (worst-case overshoot)
+    params = torch.tensor([[5.0], [5.0], [7.0], [7.0]], dtype=torch.float64)
+    actions = torch.tensor([200.0, -200.0, 200.0, -200.0], dtype=torch.float64)[:, None, None].expand(4, 80, 1)
+    z = sim.to_env_state(sim.rollout(params, sim.equilibrium_state(params), actions, 80))
+    assert inside(z)
+    assert float(z[0].max()) > geometry.REST_HEIGHT + 0.2  # the test is not vacuous: the rod moves a lot
+
+
+# -- the shared interface and the linear algebra's failure modes -------------------------------------------
+def test_spec_declares_bounds_ranges_units_and_default_state():
+    sim = get_simulator("rod", ("rayleigh_damping",))
+    assert sim.param_bounds == ((3.0, 8.0), (0.0, float("inf")), (0.0, float("inf")))
+    assert sim.spec.base_param_ranges == ((4.0, 7.0),) and sim.spec.base_param_units == ("log10 Pa",)
+    assert sim.spec.available_effects["rayleigh_damping"].units == ("1/s", "s")
+    torch.testing.assert_close(sim.rest_state(2), sim.default_state(2))
+    torch.testing.assert_close(sim.to_env_state(sim.default_state(1)),
+                               torch.full((1, 10), geometry.REST_HEIGHT, dtype=torch.float64))
+
+
+def test_indefinite_hessian_is_shifted_in_newton_but_rejected_in_the_adjoint():
+    from risp_tasks.sims.rod import _factor
+
+    band = torch.zeros(2, 2, 4, dtype=torch.float64)
+    band[:, 0] = torch.tensor([[2.0, 2.0, 2.0, 2.0], [2.0, -1e-6, 2.0, 2.0]])  # row 1: not positive definite
+    _, shifts = _factor(band)
+    assert shifts[0] == 0.0 and shifts[1] > 0.0  # the shift is reported
+    with pytest.raises(RispError, match="not positive definite"):
+        _factor(band, allow_shift=False)
+
+
+def test_element_tables_live_on_their_grid():
+    """Tables belong to the grid object (no cache keyed by id() that a new grid could reuse)."""
+    for spacing in ((0.3, 0.2, 0.1), (0.1, 0.4, 0.25)):
+        grid = _fem.build_grid((0.0, 0.0, 0.0), spacing, (3, 2, 2), torch.float64)
+        G = grid.G
+        lap = torch.kron(torch.einsum("qaj,qbj->ab", G, G) * grid.point_volume, torch.eye(3, dtype=torch.float64))
+        torch.testing.assert_close(_fem.grid_laplacian(grid, torch.float64), lap)
+        x = grid.rest + 0.02 * torch.randn(grid.rest.shape, generator=torch.Generator().manual_seed(2), dtype=torch.float64)
+        _, He = _fem.energy_gradient(grid, x[None], 0.3, hessian=True)
+        ref = torch.autograd.functional.hessian(lambda y: _fem.energy(grid, y[None], 0.3)[0], x)
+        torch.testing.assert_close(_fem.assemble_dense(grid, He)[0], ref.reshape(36, 36), rtol=1e-10, atol=1e-12)
+        del grid

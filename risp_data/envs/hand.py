@@ -39,7 +39,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from .base import Camera, Environment, Mesh  # noqa: E402
-from .meshes import box, mat3_mul, transform  # noqa: E402
+from .meshes import box, identity, mat3_mul, transform  # noqa: E402
 
 STATE_LOW = (-JOINT_LIMIT,) * len(JOINT_NAMES)
 STATE_HIGH = (JOINT_LIMIT,) * len(JOINT_NAMES)
@@ -101,10 +101,6 @@ def sample_states(rng: np.random.Generator, n: int) -> np.ndarray:
     return rng.uniform(-JOINT_LIMIT, JOINT_LIMIT, size=(int(n), len(JOINT_NAMES)))
 
 
-def _identity(x: torch.Tensor) -> torch.Tensor:
-    return x.clone()
-
-
 def make_environment() -> Environment:
     return Environment(
         name="hand",
@@ -113,8 +109,8 @@ def make_environment() -> Environment:
         state_low=STATE_LOW,
         state_high=STATE_HIGH,
         camera=CAMERA,
-        state_to_target=_identity,
-        target_to_state=_identity,
+        state_to_target=identity,
+        target_to_state=identity,
         meshes=meshes,
         sample_states=sample_states,
         floor_height=0.0,

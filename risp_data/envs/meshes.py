@@ -32,6 +32,11 @@ _BOX_FACES = np.array(
 )
 
 
+def identity(x: torch.Tensor) -> torch.Tensor:
+    """State <-> target map of environments whose target is the state itself (hand, rod); a copy."""
+    return x.clone()
+
+
 def box(half_extents, center=(0.0, 0.0, 0.0)) -> tuple[torch.Tensor, torch.Tensor]:
     """Axis-aligned box with the given half extents around ``center`` (8 vertices, 12 triangles)."""
     v = _BOX_CORNERS * np.asarray(half_extents, dtype=np.float64) + np.asarray(center, dtype=np.float64)

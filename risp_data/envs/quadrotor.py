@@ -36,6 +36,7 @@ from .meshes import (  # noqa: E402
 
 SCENES_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "scenes")
 MESH_FILES = {"frame": "quadrotor_frame.ply", "rotors": "quadrotor_rotors.ply"}  # made by scenes/make_quadrotor.py
+# (from quadrotor_mesh.py; without a scenes/ folder next to the package the meshes are built in memory)
 MESH_MATERIALS = {"frame": "object", "rotors": "rotor"}
 
 # Sampler ranges (x, y, z [m], yaw, pitch, roll [rad]); the floor is at z = 0.  The flight volume is kept
@@ -48,9 +49,18 @@ CAMERA = Camera(origin=(0.0, -1.7, 2.9), target=(0.0, 0.0, 1.15), up=(0.0, 0.0, 
 
 @lru_cache(maxsize=None)
 def body_meshes() -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """The quadrotor's body-frame meshes {part: (vertices (V, 3) float64, faces (F, 3) int64)}."""
+    """The quadrotor's body-frame meshes {part: (vertices (V, 3) float64, faces (F, 3) int64)}.
+
+    Read from the PLY files in the repository's ``scenes/`` folder; when that folder is missing (a
+    non-editable install ships no ``scenes/``) the same meshes are built in memory by
+    :func:`quadrotor_mesh.build_meshes`, the construction the PLY files were written from.
+    """
     import trimesh
 
+    if not all(os.path.exists(os.path.join(SCENES_DIR, name)) for name in MESH_FILES.values()):
+        from .quadrotor_mesh import build_meshes
+
+        return build_meshes()
     out = {}
     for part, name in MESH_FILES.items():
         path = os.path.join(SCENES_DIR, name)

@@ -22,10 +22,12 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from .base import Camera, Environment, Mesh  # noqa: E402
-from .meshes import box_between, tube_faces  # noqa: E402
+from .meshes import box_between, identity, tube_faces  # noqa: E402
 
 SENSOR_NAMES = tuple(f"z{i}" for i in range(N_SENSORS))
-SENSOR_LOW, SENSOR_HIGH = REST_HEIGHT - 0.5, REST_HEIGHT + 0.3
+# Rendered range of every sensor height.  It covers the simulator's equilibria for log10 E >= 5 with
+# |force| <= 500 N and for log10 E >= 4 with |force| <= 100 N (docs/models/rod.md, "Rendered range").
+SENSOR_LOW, SENSOR_HIGH = REST_HEIGHT - 0.7, REST_HEIGHT + 0.5
 STATE_LOW = (SENSOR_LOW,) * N_SENSORS
 STATE_HIGH = (SENSOR_HIGH,) * N_SENSORS
 KNOTS_X = (-ROD_LENGTH / 2, *SENSOR_X, ROD_LENGTH / 2)  # 12 spline knots: fixed ends + sensors
@@ -33,22 +35,24 @@ N_SECTIONS = 45  # cross-sections along the beam (rings of the swept mesh)
 POST_HALF_WIDTH = 0.05  # m, end posts (x extent 2·0.05, y extent as below)
 POST_HALF_DEPTH = 0.15
 POST_TOP = REST_HEIGHT + 0.15
-CAMERA = Camera(origin=(0.35, -2.6, 1.5), target=(0.0, 0.0, 0.72), up=(0.0, 0.0, 1.0), fov=34.0)
-# Smooth sampled shapes: z(ξ) = REST_HEIGHT + Σ_m a_m sin(m π ξ), ξ = (x + L/2)/L ∈ [0, 1].
-MODE_AMPLITUDES = ((-0.45, 0.25), (-0.12, 0.12), (-0.06, 0.06))
+CAMERA = Camera(origin=(0.35, -2.9, 1.45), target=(0.0, 0.0, 0.8), up=(0.0, 0.0, 1.0), fov=38.0)
+# Smooth sampled shapes: z(ξ) = REST_HEIGHT + Σ_m a_m sin(π ξ) sin(m π ξ), ξ = (x + L/2)/L ∈ [0, 1]:
+# each mode vanishes with zero slope at both ends, like the clamped-clamped rod of the simulator.
+MODE_AMPLITUDES = ((-0.75, 0.55), (-0.2, 0.2), (-0.1, 0.1))
 
 
 def spline_matrices(xs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The natural cubic spline through the 12 knots, as linear maps evaluated at ``xs``.
+    """The clamped cubic spline through the 12 knots, as linear maps evaluated at ``xs``.
 
     Returns (W, dW, d2W), each (len(xs), 12), with z(xs) = W · z_knots, z'(xs) = dW · z_knots and
-    z''(xs) = d2W · z_knots for the natural cubic spline (C², cubic between knots, z'' = 0 at both
-    ends) through (KNOTS_X, z_knots).  The spline is linear in the knot values, so its weights are the
-    splines of the unit vectors (computed once with scipy; the map itself is applied in torch).
+    z''(xs) = d2W · z_knots for the clamped cubic spline (C², cubic between knots, z' = 0 at both
+    ends, like the simulator's clamped rod) through (KNOTS_X, z_knots).  The spline is linear in the
+    knot values, so its weights are the splines of the unit vectors (computed once with scipy; the map
+    itself is applied in torch, so the rendered mesh stays differentiable in the state).
     """
     from scipy.interpolate import CubicSpline
 
-    spline = CubicSpline(np.asarray(KNOTS_X), np.eye(len(KNOTS_X)), axis=0, bc_type="natural")
+    spline = CubicSpline(np.asarray(KNOTS_X), np.eye(len(KNOTS_X)), axis=0, bc_type="clamped")
     xs = np.asarray(xs, np.float64)
     return spline(xs), spline(xs, 1), spline(xs, 2)
 
@@ -109,11 +113,12 @@ def meshes(states: torch.Tensor) -> list[Mesh]:
 
 
 def sample_states(rng: np.random.Generator, n: int) -> np.ndarray:
-    """(n, 10) smooth shapes: z_i = REST + Σ_{m=1..3} a_m sin(m π ξ_i), a_m uniform in MODE_AMPLITUDES;
-    a shape leaving [REST − 0.5, REST + 0.3] has its deviation from REST scaled down to fit."""
+    """(n, 10) smooth shapes: z_i = REST + Σ_{m=1..3} a_m sin(π ξ_i) sin(m π ξ_i), a_m uniform in
+    MODE_AMPLITUDES; a shape leaving [SENSOR_LOW, SENSOR_HIGH] = [REST − 0.7, REST + 0.5] has its
+    deviation from REST scaled down to fit."""
     n = int(n)
     xi = (np.asarray(SENSOR_X) + ROD_LENGTH / 2) / ROD_LENGTH
-    modes = np.stack([np.sin((m + 1) * math.pi * xi) for m in range(len(MODE_AMPLITUDES))])  # (M, 10)
+    modes = np.stack([np.sin(math.pi * xi) * np.sin((m + 1) * math.pi * xi) for m in range(len(MODE_AMPLITUDES))])
     lo, hi = np.asarray(MODE_AMPLITUDES).T
     a = rng.uniform(lo, hi, size=(n, len(MODE_AMPLITUDES)))
     dev = a @ modes
@@ -124,10 +129,6 @@ def sample_states(rng: np.random.Generator, n: int) -> np.ndarray:
     return REST_HEIGHT + dev * scale[:, None]
 
 
-def _identity(x: torch.Tensor) -> torch.Tensor:
-    return x.clone()
-
-
 def make_environment() -> Environment:
     return Environment(
         name="rod",
@@ -136,8 +137,8 @@ def make_environment() -> Environment:
         state_low=STATE_LOW,
         state_high=STATE_HIGH,
         camera=CAMERA,
-        state_to_target=_identity,
-        target_to_state=_identity,
+        state_to_target=identity,
+        target_to_state=identity,
         meshes=meshes,
         sample_states=sample_states,
         floor_height=0.0,

@@ -320,7 +320,8 @@ def fit_model(model: Model, obs: Observer, seg: Segments, sigma: torch.Tensor, c
             A = J.T @ J
             g = J.T @ r
             improved = False
-            for _ in range(8):
+            rel = 0.0
+            for _ in range(8):  # λ from its current value up to ×4⁷
                 D = torch.diag(torch.clamp(torch.diagonal(A), min=1e-12))
                 try:
                     step = torch.linalg.solve(A + lam * D, -g)
@@ -341,10 +342,20 @@ def fit_model(model: Model, obs: Observer, seg: Segments, sigma: torch.Tensor, c
                     lam = max(lam / 3, 1e-9)
                     break
                 lam *= 4
+            # a change below 0.1 in the normalised RSS (a χ² value) is statistically irrelevant
+            if not improved or rel < cfg.tol or rel * rss < 0.1:
+                # Gauss–Newton's curvature JᵀJ can exceed the loss's real curvature by orders of magnitude
+                # where the rollout is chaotic (contact): its steps then stall although the gradient points
+                # the right way.  A backtracking line search along the Jacobi-scaled gradient takes over.
+                ls = _line_search(fn, model, z, rss, g, torch.diagonal(A))
+                if ls is not None:
+                    z, r, rss_new = ls
+                    rel = (rss - rss_new) / max(rss, 1e-300)
+                    rss = rss_new
+                    improved = True
             history.append(rss)
             if progress is not None:
                 progress(model.name, it, rss)
-            # a change below 0.1 in the normalised RSS (a χ² value) is statistically irrelevant
             if not improved or rel < cfg.tol or rel * rss < 0.1:
                 break
         # J from the last iteration's start point: one step stale at most, fine for the covariance
@@ -353,6 +364,23 @@ def fit_model(model: Model, obs: Observer, seg: Segments, sigma: torch.Tensor, c
     values = {name: float(params[i]) for name, i in zip(model.free, model.free_index)}
     stds = parameter_std(model, J, rss, n, seg.horizon) if F else {}
     return FitResult(model, z.detach(), params, values, stds, rss, n, it, history)
+
+
+def _line_search(fn, model: Model, z: torch.Tensor, rss: float, g: torch.Tensor, diag: torch.Tensor):
+    """Backtracking along d = −g/√diag(JᵀJ), normalised to a largest entry of 1 (z units ≈ a quarter of
+    the plausible range): steps 1, ½, … 1/64; the first that lowers ‖ẽ‖² wins.  None when none does."""
+    d = -g / torch.sqrt(torch.clamp(diag, min=1e-300))
+    if not bool(torch.isfinite(d).all()) or float(d.abs().max()) == 0.0:
+        return None
+    d = d / d.abs().max()
+    for t in (1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125, 0.015625):
+        z_new = model.clamp(z + t * d)
+        with torch.no_grad():
+            r_new = fn(z_new)
+        rss_new = float((r_new**2).sum())
+        if np.isfinite(rss_new) and rss_new < rss:
+            return z_new, r_new, rss_new
+    return None
 
 
 def parameter_std(model: Model, J: torch.Tensor, rss: float, n: int, horizon: int) -> dict[str, float]:

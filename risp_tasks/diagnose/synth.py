@@ -6,7 +6,7 @@ as measured CSVs + sidecars exactly like real data, with white measurement noise
 * effect magnitude: every parameter of the hidden effect = its library default × f, one factor
   f ~ U(0.5, 1.5) per trajectory set (drawn from the seed), clipped to the effect's plausible range;
 * "unlisted" effects that are NOT in any simulator's library (so diagnose must answer ``unexplained``):
-  ``periodic_force`` — a world-frame force A·m·g·sin(2π t / T) along x and y (quadrotor, cube);
+  ``periodic_force`` — a world-frame force A·m·g·sin(2π t / T) along x and y (A = 0.3 quadrotor, 0.6 cube);
   ``stiffness_error`` — the hand's joint stiffness 1.6× the simulator's fixed value (a wrong base
   parameter that diagnose does not fit);
 * quadrotor: a geometric position/attitude controller tracks a random smooth reference (heights down to
@@ -42,7 +42,7 @@ DEFAULT_NOISE = {
 MAGNITUDE_FACTOR = (0.5, 1.5)
 UNLISTED = ("periodic_force", "stiffness_error")
 STIFFNESS_ERROR = 1.6  # hand: true joint stiffness = 1.6 × the simulator's (fixed) default
-PERIODIC_AMPLITUDE = 0.3  # × m·g
+PERIODIC_AMPLITUDE = {"quadrotor": 0.3, "cube": 0.6}  # × m·g
 PERIODIC_PERIOD = 0.8  # s
 
 GENERIC_ACTION_AMPLITUDE = {"hand": (0.1, 0.4), "rod": (20.0, 60.0)}  # N·m per finger; N on the rod's centre
@@ -160,15 +160,15 @@ def _simulate_quadrotor(sim, params, k, n_traj, samples, dt, rng, periodic: bool
             for j in range(k):
                 s = sim.step(P, s, f / k_f, i * k + j)
                 if periodic:
-                    s = _add_periodic(s, (i * k + j + 1) * sim.dt, sim.dt, mass, rng_phase=0.0)
+                    s = _add_periodic(s, (i * k + j + 1) * sim.dt, sim.dt, mass, 0.0, "quadrotor")
             states.append(s)
         thrusts.append(thrusts[-1])
     return torch.stack(states, 1).numpy(), torch.stack(thrusts, 1).numpy()
 
 
-def _add_periodic(s: torch.Tensor, t: float, h: float, mass: float, rng_phase: float) -> torch.Tensor:
+def _add_periodic(s: torch.Tensor, t: float, h: float, mass: float, rng_phase: float, env: str) -> torch.Tensor:
     """The unlisted effect: world force A·m·g·sin(2πt/T) along x and (phase-shifted) y, added to the step."""
-    a = PERIODIC_AMPLITUDE * 9.81 * torch.tensor([math.sin(2 * math.pi * t / PERIODIC_PERIOD + rng_phase),
+    a = PERIODIC_AMPLITUDE[env] * 9.81 * torch.tensor([math.sin(2 * math.pi * t / PERIODIC_PERIOD + rng_phase),
                                                   math.cos(2 * math.pi * t / PERIODIC_PERIOD + rng_phase), 0.0],
                                                  dtype=s.dtype)
     s = s.clone()
@@ -200,7 +200,7 @@ def _simulate_cube(sim, params, k, n_traj, samples, dt, rng, periodic: bool):
         for i in range(samples - 1):
             for j in range(k):
                 s = sim.step(P, s, None, i * k + j)
-                s = _add_periodic(s, (i * k + j + 1) * sim.dt, sim.dt, sim.mass, 0.0)
+                s = _add_periodic(s, (i * k + j + 1) * sim.dt, sim.dt, sim.mass, 0.0, "cube")
             states.append(s)
     return torch.stack(states, 1).numpy(), None
 

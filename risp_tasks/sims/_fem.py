@@ -5,9 +5,10 @@ function gradients at the 2×2×2 Gauss points are one constant table G (8 point
 
 Energy density (Smith, de Goes, Kim 2018, "Stable Neo-Hookean Flesh Simulation", without the log term):
 
-    Ψ(F) = μ/2 (‖F‖² − 3) + λ/2 (J − α)²,   J = det F,   α = 1 + μ/λ,
+    Ψ(F) = μ/2 (‖F‖² − 3) + λ/2 (J − α)² − μ²/(2λ),   J = det F,   α = 1 + μ/λ,
 
-rest-stable (P(I) = 0), defined for inverted elements, and a polynomial in the nodal positions.  Here
+rest-stable (P(I) = 0), defined for inverted elements, and a polynomial in the nodal positions; the
+constant −μ²/(2λ) = −λ/2 (1 − α)² makes Ψ(I) = 0 (it changes no force or stiffness).  Here
 everything is evaluated for unit Young's modulus (μ̂, λ̂ from E = 1 and Poisson's ratio ν): the
 physical energy is E · Ψ̂, so the elastic forces and the tangent stiffness are linear in E.
 
@@ -37,6 +38,11 @@ class HexGrid:
     point_volume: float  # volume weight of one Gauss point (element volume / 8)
     node_volume: torch.Tensor  # (N,) lumped volume per node (each element gives 1/8 of its volume)
     hessian_index: torch.Tensor  # (E·24·24,) flat index into an (N·3)² matrix
+    # constant tables of the element Hessian (see _element_hessians), computed once in build_grid and
+    # stored here so they can never be confused with another grid's (no cache keyed by object id)
+    laplacian: torch.Tensor  # (24, 24) Σ_q v ∇N_a·∇N_b δ_ik
+    cross_table: torch.Tensor  # (24, 64) W[(q, n), (a, b)] = (∇N_a × ∇N_b)_n at Gauss point q
+    levi_civita: torch.Tensor  # (9, 3) ε_ikm reshaped to [(i, k), m]
 
 
 def node_id(i: int, j: int, k: int, ny: int, nz: int) -> int:
@@ -73,7 +79,9 @@ def build_grid(origin, spacing, counts, dtype: torch.dtype) -> HexGrid:
     node_volume.index_add_(0, elements.flatten(), torch.full((elements.numel(),), volume / 8, dtype=torch.float64))
     dofs = (elements[:, :, None] * 3 + torch.arange(3)).reshape(-1, 24)  # (E, 24)
     hessian_index = (dofs[:, :, None] * (n_nodes * 3) + dofs[:, None, :]).flatten()
-    return HexGrid(rest, elements, G.to(dtype), volume / 8, node_volume.to(dtype), hessian_index)
+    laplacian, W, eps9 = _hessian_tables(G, volume / 8)
+    return HexGrid(rest, elements, G.to(dtype), volume / 8, node_volume.to(dtype), hessian_index,
+                   laplacian.to(dtype), W.to(dtype), eps9.to(dtype))
 
 
 def lame_unit(nu: float) -> tuple[float, float, float]:
@@ -81,9 +89,6 @@ def lame_unit(nu: float) -> tuple[float, float, float]:
     mu = 1.0 / (2.0 * (1.0 + nu))
     lam = nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
     return mu, lam, 1.0 + mu / lam
-
-
-_TABLE_CACHE: dict = {}
 
 
 def deformation_gradients(grid: HexGrid, x: torch.Tensor) -> torch.Tensor:
@@ -151,7 +156,7 @@ def _element_hessians(grid: HexGrid, F, C, s, mu: float, lam: float) -> ElementH
     * J term: Σ_jl ε_jln ∂N_a/∂X_j ∂N_b/∂X_l = (∇N_a × ∇N_b)_n =: w_q[a, b, n], so
       He[a i, b k] = Σ_m ε_ikm R[m, a, b] with R[m, a, b] = Σ_q v s_q Σ_n F_mn w_q[a, b, n].
     """
-    W, eps9 = _hessian_tables(grid, F.dtype)
+    W, eps9 = grid.cross_table.to(F.dtype), grid.levi_civita.to(F.dtype)
     B, E = F.shape[0], F.shape[1]
     v = grid.point_volume
     u = torch.einsum("qaj,zeqij->zeqai", grid.G, C).reshape(B, E, 8, 24)  # (B, E, q, (a, i))
@@ -164,26 +169,20 @@ def _element_hessians(grid: HexGrid, F, C, s, mu: float, lam: float) -> ElementH
 
 
 def grid_laplacian(grid: HexGrid, dtype: torch.dtype) -> torch.Tensor:
-    """(24, 24): Σ_q v ∇N_a·∇N_b δ_ik, the μ term of every element Hessian."""
-    key = ("laplacian", id(grid), dtype)
-    if key not in _TABLE_CACHE:
-        G = grid.G.to(torch.float64)
-        lap = torch.einsum("qaj,qbj->ab", G, G) * grid.point_volume
-        _TABLE_CACHE[key] = torch.kron(lap, torch.eye(3, dtype=torch.float64)).to(dtype)
-    return _TABLE_CACHE[key]
+    """(24, 24): Σ_q v ∇N_a·∇N_b δ_ik, the μ term of every element Hessian (stored on the grid)."""
+    return grid.laplacian.to(dtype)
 
 
-def _hessian_tables(grid: HexGrid, dtype: torch.dtype):
-    key = ("hessian", id(grid), dtype)
-    if key not in _TABLE_CACHE:
-        G = grid.G.to(torch.float64)
-        w = torch.linalg.cross(G[:, :, None, :].expand(8, 8, 8, 3), G[:, None, :, :].expand(8, 8, 8, 3), dim=-1)
-        W = w.permute(0, 3, 1, 2).reshape(24, 64)  # [(q, n), (a, b)]
-        eps = torch.zeros(3, 3, 3, dtype=torch.float64)
-        for (i, j, k), val in {(0, 1, 2): 1, (1, 2, 0): 1, (2, 0, 1): 1, (0, 2, 1): -1, (2, 1, 0): -1, (1, 0, 2): -1}.items():
-            eps[i, j, k] = val
-        _TABLE_CACHE[key] = (W.to(dtype), eps.reshape(9, 3).to(dtype))
-    return _TABLE_CACHE[key]
+def _hessian_tables(G: torch.Tensor, point_volume: float):
+    """float64 (laplacian (24, 24), W (24, 64), ε (9, 3)) from the shape-function gradients G (8, 8, 3)."""
+    lap = torch.einsum("qaj,qbj->ab", G, G) * point_volume
+    laplacian = torch.kron(lap, torch.eye(3, dtype=torch.float64))
+    w = torch.linalg.cross(G[:, :, None, :].expand(8, 8, 8, 3), G[:, None, :, :].expand(8, 8, 8, 3), dim=-1)
+    W = w.permute(0, 3, 1, 2).reshape(24, 64)  # [(q, n), (a, b)]
+    eps = torch.zeros(3, 3, 3, dtype=torch.float64)
+    for (i, j, k), val in {(0, 1, 2): 1, (1, 2, 0): 1, (2, 0, 1): 1, (0, 2, 1): -1, (2, 1, 0): -1, (1, 0, 2): -1}.items():
+        eps[i, j, k] = val
+    return laplacian, W, eps.reshape(9, 3)
 
 
 def assemble_dense(grid: HexGrid, He: ElementHessians) -> torch.Tensor:

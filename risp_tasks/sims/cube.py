@@ -41,8 +41,6 @@ from .base import Effect, Simulator, SimulatorSpec
 DT = 0.01  # s, one step of the rollout
 SUBSTEPS = 2  # linearly implicit substeps per step (h = dt / substeps)
 CONTACT_WIDTH = 1e-6  # m: δ, the softplus rounding of the penetration
-COUPLE = 1.0
-USE_EXT = True
 FLOOR_WIDTH = 1e-2  # N: rounding width of the zero floor of the normal force
 FRICTION_EPS = 1e-2  # m/s: ε of the smoothed Coulomb law
 ROLLING_EPS = 0.1  # rad/s: ε_ω of the smoothed rolling-friction direction
@@ -209,11 +207,7 @@ class CubeSimulator(Simulator):
             damp = damp + c.alpha * f_k
 
         def normal_force(pen_rate):
-            raw = f_k + damp * pen_rate
-            x = raw / FLOOR_WIDTH
-            sx = torch.sigmoid(x)
-            f_n = raw * sx  # smooth max(raw, 0) that is exactly 0 at raw = 0 (no force out of contact)
-            gate = sx * (1.0 + x * (1.0 - sx))  # ∂f_n/∂raw
+            f_n, gate = _floor(f_k + damp * pen_rate)
             stiff_rate = gate * (h * c.k * sig) * pen_rate
             g_n = gate * damp + gate * (h * c.k * sig)  # damping + h·stiffness: the implicit weight of the corner
             return f_n, g_n, f_n + stiff_rate  # last: f_n extrapolated by h·(stiffness)·ḋ
@@ -234,16 +228,18 @@ class CubeSimulator(Simulator):
             s = torch.sqrt((vt * vt).sum(-1, keepdim=True) + FRICTION_EPS**2)  # (B, 8, 1)
             vhat = vt / s
             coef = c.mu.unsqueeze(-1) / s  # μ / s
-            f_fr = f_ext if USE_EXT else f_n
+            # Friction scales with the extrapolated normal force, floored at zero: a separating corner
+            # (f̃_n < 0 in the linearization) must not be pushed along its sliding direction.
+            f_fr, gate_fr = _floor(f_ext)
             f = torch.cat([-coef * f_fr.unsqueeze(-1) * vt, f_ext.unsqueeze(-1)], -1)  # (B, 8, 3)
-            # G_c = −∂f_c/∂v_c: [[μ f_n/s (I − v̂ v̂ᵀ), −μ v̂ g_n], [0, g_n]] (friction scales with f_n).
-            ct = coef * f_n.unsqueeze(-1)
+            # G_c = −∂f_c/∂v_c: [[μ f_fr/s (I − v̂ v̂ᵀ), −μ v̂ ∂f_fr/∂f̃_n g_n], [0, g_n]].
+            ct = coef * f_fr.unsqueeze(-1)
             W = torch.cat([ct, ct, g_n.unsqueeze(-1)], -1).view(B, 24, 1)
             J4 = J.view(B, 8, 3, 6)
             a = (vhat.unsqueeze(-2) @ J4[:, :, :2]).squeeze(-2)  # (B, 8, 6) = J_tᵀ v̂
             JT = J.transpose(1, 2)
             A = c.M + h * (JT @ (W * J) - (ct * a).transpose(1, 2) @ a
-                           - COUPLE * (c.mu * g_n).unsqueeze(-1).mul(a).transpose(1, 2) @ J4[:, :, 2])
+                           - (c.mu * gate_fr * g_n).unsqueeze(-1).mul(a).transpose(1, 2) @ J4[:, :, 2])
             force = (JT @ f.view(B, 24, 1)).squeeze(-1)
         force = force + c.gravity
         if c.mu_r is not None:  # rolling friction torque (docs §3.3)
@@ -281,6 +277,13 @@ class CubeSimulator(Simulator):
             return s0.unsqueeze(1)
         later = torch.cat([torch.stack(parts, 1) for parts in zip(*traj)], -1)
         return torch.cat([s0.unsqueeze(1), later], 1)
+
+
+def _floor(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """φ(x) = x·σ(x/w), w = FLOOR_WIDTH: a smooth max(x, 0) that is exactly 0 at x = 0; and φ'(x)."""
+    y = x / FLOOR_WIDTH
+    sy = torch.sigmoid(y)
+    return x * sy, sy * (1.0 + y * (1.0 - sy))
 
 
 def make_simulator(effects: tuple[str, ...] = (), **options) -> CubeSimulator:

@@ -46,14 +46,17 @@ EFFECTS = {
     "joint_damping": Effect(
         "joint_damping", ("coefficient",), (0.05,), ((0.0, 0.5),),
         "extra viscous torque −c·q̇ in every joint [N·m·s/rad], added to the base damping 0.05",
+        bounds=((0.0, math.inf),), units=("N·m·s/rad",),
     ),
     "joint_friction": Effect(
         "joint_friction", ("torque",), (0.02,), ((0.0, 0.1),),
         "smoothed Coulomb torque −μ·tanh(q̇ / 0.1 rad/s) in every joint [N·m]",
+        bounds=((0.0, math.inf),), units=("N·m",),
     ),
     "gravity": Effect(
         "gravity", ("g",), (9.81,), ((0.0, 9.81),),
         "gravitational acceleration along world −z acting on the links [m/s²]",
+        bounds=((0.0, math.inf),), units=("m/s²",),
     ),
 }
 
@@ -65,6 +68,9 @@ SPEC = SimulatorSpec(
     base_param_defaults=(1.0,) * N_FINGERS,
     action_dim=N_FINGERS,
     available_effects=EFFECTS,
+    base_param_bounds=((0.0, math.inf),) * N_FINGERS,
+    base_param_ranges=((0.0, 1.0),) * N_FINGERS,
+    base_param_units=("N·m/rad",) * N_FINGERS,
 )
 
 
@@ -222,15 +228,6 @@ class HandSimulator(Simulator):
         q, v = self._padded_step(q, v, action, self._coefficients(params, c), c)
         return torch.cat((self._unpad(q, c), self._unpad(v, c)), -1)
 
-    def check_inputs(self, params, s0, actions, steps) -> None:
-        super().check_inputs(params, s0, actions, steps)
-        if params.dtype != s0.dtype or (actions is not None and actions.dtype != s0.dtype):
-            raise RispError(f"params, s0 and actions must share one dtype, got {params.dtype}, {s0.dtype}, "
-                            f"{None if actions is None else actions.dtype}")
-        negative = [n for i, n in enumerate(self.param_names) if bool((params[:, i] < 0).any())]
-        if negative:
-            raise RispError(f"params must be non-negative; negative values in: {', '.join(negative)}")
-
     def rollout(self, params, s0, actions, steps):
         """Integrate ``steps`` steps (docs/models/hand.md); returns (B, steps + 1, 26), row 0 = s0."""
         self.check_inputs(params, s0, actions, steps)
@@ -255,9 +252,13 @@ class HandSimulator(Simulator):
             raise RispError(f"states must have shape (..., {len(self.state_names)}), got {shape}")
         return states[..., :N_JOINTS]
 
-    def rest_state(self, batch: int = 1, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    def default_state(self, batch: int = 1, dtype: torch.dtype = torch.float64) -> torch.Tensor:
         """All joints at the rest angle 0 with zero velocity: (batch, 26)."""
         return torch.zeros(batch, len(self.state_names), dtype=dtype)
+
+    def rest_state(self, batch: int = 1, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+        """Alias of :meth:`default_state` (kept for existing callers)."""
+        return self.default_state(batch, dtype)
 
 
 def _solve_symmetric_3x3(A: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -277,14 +278,16 @@ def hand_torque_schedule(
     delta: torch.Tensor,
     steps: int,
     period: float = SCHEDULE_PERIOD,
-    smoothing: float = 1.0,
+    smoothing: float = 0.0,
 ) -> torch.Tensor:
     """Per-finger torques u_t = m · sin(2π · clamp((t − δ)/T, 0, 1)), t = 0 … steps−1 (paper, hand task).
 
-    m (B, 5) in [0, 1] [N·m], delta (B, 5) in [0, 40] [steps] -> actions (B, steps, 5).  The clamp is the
-    smooth clamp of ``_smooth.smooth_clamp`` with a corner width of ``smoothing`` steps (``smoothing=0``:
-    the hard clamp), so the torque depends smoothly on δ even where the hard clamp would bind
-    (docs/models/hand.md, "Torque schedule").
+    m (B, 5) in [0, 1] [N·m], delta (B, 5) in [0, 40] [steps] -> actions (B, steps, 5).  The default
+    ``smoothing=0`` is the paper's formula exactly (hard clamp).  ``smoothing > 0`` (opt-in, e.g. 1 step
+    when optimising δ) replaces the clamp by ``_smooth.smooth_clamp`` with a corner width of ``smoothing``
+    steps, so the torque depends smoothly on δ even where the hard clamp would bind; it then differs
+    from the exact formula by up to ~11 % of the peak next to the corners (docs/models/hand.md,
+    "Torque schedule").
     """
     for name, x in (("m", m), ("delta", delta)):
         if not torch.is_tensor(x) or x.ndim != 2 or x.shape[1] != N_FINGERS:

@@ -23,6 +23,8 @@ i = 1…10 along x, j = 0…2 along y, k = 0…1 along z), then their velocities
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 
@@ -40,7 +42,8 @@ POISSON = 0.3
 GRAVITY = 9.81  # m/s², along −z
 FORCE_LIMIT = 500.0  # N, |centre force| (smooth clamp)
 FORCE_WIDTH = 1.0  # N, corner width of the smooth clamp
-LOG10_E_RANGE = (3.0, 8.0)  # accepted log10 E (the identification range [4, 7) lies inside)
+LOG10_E_RANGE = (3.0, 8.0)  # accepted log10 E (validity bounds; the identification range [4, 7] lies inside)
+LOG10_E_TYPICAL = (4.0, 7.0)  # plausible range of log10 E (the paper's identification range)
 NEWTON_MAX_ITERATIONS = 30
 LINE_SEARCH_ABOVE = 1e-3  # m: Newton updates larger than this are line-searched
 CHORD_BELOW = 1e-4  # m: after an update this small the next one reuses the factorisation
@@ -55,6 +58,7 @@ EFFECTS = {
     "rayleigh_damping": Effect(
         "rayleigh_damping", ("alpha", "beta"), (1.0, 0.01), ((0.0, 10.0), (0.0, 0.1)),
         "damping force −(α M + β K₀) v: α [1/s] mass-proportional, β [s] stiffness-proportional (K₀ at rest)",
+        bounds=((0.0, math.inf), (0.0, math.inf)), units=("1/s", "s"),
     ),
 }
 
@@ -74,6 +78,9 @@ SPEC = SimulatorSpec(
     base_param_defaults=(5.0,),
     action_dim=1,
     available_effects=EFFECTS,
+    base_param_bounds=(LOG10_E_RANGE,),
+    base_param_ranges=(LOG10_E_TYPICAL,),
+    base_param_units=("log10 Pa",),
 )
 
 
@@ -211,29 +218,43 @@ class _StepProblem:
         return phi
 
 
-def _factor(band: torch.Tensor) -> list:
+def _factor(band: torch.Tensor, allow_shift: bool = True) -> tuple[list, list[float]]:
     """Banded Cholesky factors of symmetric positive definite H, given in LAPACK lower band storage
     (B, kd + 1, n): LAPACK ``?pbtrf`` through SciPy, one matrix per batch row, O(n kd²) instead of the
-    dense O(n³).  Where H is not positive definite (strongly compressed elements of the stable
-    Neo-Hookean material can make it so) a growing multiple of the mean diagonal is added.
+    dense O(n³).  Returns (factors, shifts).
+
+    Where H is not positive definite (strongly compressed elements of the stable Neo-Hookean material
+    can make it so) and ``allow_shift`` is true, a growing multiple of the mean diagonal is added and
+    the shift used is reported in ``shifts`` (0.0 where none was needed).  That is harmless inside
+    Newton's method (a shifted H still gives a descent direction, and convergence is judged on the
+    unshifted residual), but it would make an adjoint solve wrong, so the backward pass calls this with
+    ``allow_shift=False`` and gets a RispError instead of silently wrong gradients.
     """
     from scipy.linalg import lapack
 
     bands = band.detach().cpu().numpy()
     (pbtrf,) = lapack.get_lapack_funcs(("pbtrf",), (bands,))
-    factors = []
-    for ab in bands:
+    factors, shifts = [], []
+    for b, ab in enumerate(bands):
         c, info = pbtrf(ab, lower=1)
+        used = 0.0
+        if info != 0 and not allow_shift:
+            raise RispError(
+                f"rod: the step Hessian of batch row {b} is not positive definite at the solution, so the "
+                "adjoint (gradient) would be wrong; reduce the force or the time step, or raise log10_E"
+            )
         shift = 1e-8
         while info != 0 and shift < 1e3:
+            used = shift * float(np.abs(ab[0]).mean())
             shifted = ab.copy()
-            shifted[0] += shift * np.abs(ab[0]).mean()
+            shifted[0] += used
             c, info = pbtrf(shifted, lower=1)
             shift *= 10.0
         if info != 0:
             raise RispError("rod: the implicit step's linear system is singular (non-physical parameters?)")
         factors.append(c)
-    return factors
+        shifts.append(used)
+    return factors, shifts
 
 
 def _solve(factors: list, r: torch.Tensor) -> torch.Tensor:
@@ -261,7 +282,7 @@ def _newton(problem: _StepProblem, x0: torch.Tensor, what: str) -> torch.Tensor:
     tol = NEWTON_TOLERANCE.get(x0.dtype, 1e-11)
     x = x0
     g, H = problem.residual(x, hessian=True)
-    factors = _factor(H)
+    factors, _ = _factor(H)
     for _ in range(NEWTON_MAX_ITERATIONS):
         dx = -_solve(factors, g)
         size = dx.abs().amax(-1)
@@ -285,7 +306,7 @@ def _newton(problem: _StepProblem, x0: torch.Tensor, what: str) -> torch.Tensor:
             g, _ = problem.residual(x, hessian=False)
         else:
             g, H = problem.residual(x, hessian=True)
-            factors = _factor(H)
+            factors, _ = _factor(H)
     raise RispError(f"rod: Newton's method did not converge {what} (non-physical parameters or force?)")
 
 
@@ -308,7 +329,8 @@ class _ImplicitEulerStep(torch.autograd.Function):
         with torch.no_grad():
             problem = _StepProblem(m, x_n, v_n, E, alpha, beta, force)
             _, H = problem.residual(x, hessian=True)
-            lam = _solve(_factor(H), x_bar)  # H symmetric: Hᵀ λ = x̄
+            factors, _ = _factor(H, allow_shift=False)  # a shifted H would give wrong gradients: raise
+            lam = _solve(factors, x_bar)  # H symmetric: Hᵀ λ = x̄
             grad_unit, _ = m.elastic(x, hessian=False)
             dx = x - x_n
             m_lam = m.mass * lam
@@ -342,18 +364,10 @@ class RodSimulator(Simulator):
         """Commanded force [N] -> applied force, smoothly clamped to [−500, 500] (width 1 N)."""
         return smooth_clamp(actions, -FORCE_LIMIT, FORCE_LIMIT, FORCE_WIDTH)
 
-    def check_inputs(self, params, s0, actions, steps) -> None:
-        super().check_inputs(params, s0, actions, steps)
-        if params.dtype != s0.dtype or actions.dtype != s0.dtype:
-            raise RispError(f"params, s0 and actions must share one dtype, got {params.dtype}, {s0.dtype}, {actions.dtype}")
+    def check_state(self, s0: torch.Tensor) -> None:
+        # shapes, NaNs, dtypes and parameter bounds are checked by Simulator.check_inputs
         if s0.dtype not in (torch.float32, torch.float64):
             raise RispError(f"s0: the rod simulator runs in float32 or float64, got {s0.dtype}")
-        lo, hi = LOG10_E_RANGE
-        if bool(((params[:, 0] < lo) | (params[:, 0] > hi)).any()):
-            raise RispError(f"params: log10_E must lie in [{lo}, {hi}], got {params[:, 0].tolist()}")
-        negative = [n for i, n in enumerate(self.param_names) if i > 0 and bool((params[:, i] < 0).any())]
-        if negative:
-            raise RispError(f"params must be non-negative; negative values in: {', '.join(negative)}")
 
     def step(self, params, state, action, t):
         model = _model(state.dtype)
@@ -388,10 +402,14 @@ class RodSimulator(Simulator):
         idx = _model(states.dtype).sensor_index
         return states[..., idx].mean(-1)
 
-    def rest_state(self, batch: int = 1, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+    def default_state(self, batch: int = 1, dtype: torch.dtype = torch.float64) -> torch.Tensor:
         """The undeformed rod at rest (no gravity sag): (batch, 360)."""
         rest = _model(dtype).rest
         return torch.cat((rest, torch.zeros_like(rest))).expand(batch, -1).clone()
+
+    def rest_state(self, batch: int = 1, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+        """Alias of :meth:`default_state` (kept for existing callers)."""
+        return self.default_state(batch, dtype)
 
     def equilibrium_state(self, params: torch.Tensor, force: torch.Tensor | float = 0.0) -> torch.Tensor:
         """Static equilibrium under gravity and a constant centre force [N]: (B, 360), zero velocity.
