@@ -27,7 +27,7 @@ def test_hidden_effect_is_named_and_recovered(tmp_path, seed, effect):
 
 @pytest.mark.slow
 def test_unlisted_periodic_force_is_unexplained(tmp_path):
-    _, report = run_case(tmp_path, "cube", "periodic_force", seed=84, samples=120, out=False)
+    _, report = run_case(tmp_path, "cube", "periodic_force", seed=84, n_traj=3, samples=100, out=False)
     assert report["cause"] == "unexplained", report["reason"]
 
 

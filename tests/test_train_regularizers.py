@@ -143,7 +143,7 @@ def test_stochastic_mean_matches_exact_squared_norm(setup):
     assert abs(mean - target) < 4 * se, (mean, target, se)
     # documented variance: Var = 2‖MᵀM‖_F²
     _, m = rendering_gradients(net, x[:1], tangents[:1])
-    mm = m[0] @ m[0].T  # (K, K) = MᵀM in our (K, T) layout
+    mm = (m[0] @ m[0].T).detach()  # (K, K) = MᵀM in our (K, T) layout
     assert float(r.var()) == pytest.approx(2 * float((mm * mm).sum()), rel=0.25)
 
 

@@ -103,6 +103,7 @@ class _Consts:
     jac_offset: torch.Tensor  # (18,)
     jac_z: torch.Tensor  # (3, 6): the z row only
     jac_z_offset: torch.Tensor  # (6,)
+    eye3: torch.Tensor  # (3, 3)
     mu: torch.Tensor | None
     alpha: torch.Tensor | None
     mu_r: torch.Tensor | None
@@ -179,6 +180,7 @@ class CubeSimulator(Simulator):
             jac_offset=jac_offset,
             jac_z=jac.view(3, 3, 6)[:, 2],
             jac_z_offset=jac_offset.view(3, 6)[2],
+            eye3=torch.eye(3, **like),
             mu=eff("friction"),
             alpha=eff("restitution"),
             mu_r=eff("rolling_friction"),
@@ -236,16 +238,26 @@ class CubeSimulator(Simulator):
             ct = coef * f_fr.unsqueeze(-1)
             W = torch.cat([ct, ct, g_n.unsqueeze(-1)], -1).view(B, 24, 1)
             J4 = J.view(B, 8, 3, 6)
+            Jz = J4[:, :, 2]
             a = (vhat.unsqueeze(-2) @ J4[:, :, :2]).squeeze(-2)  # (B, 8, 6) = J_tᵀ v̂
             JT = J.transpose(1, 2)
             A = c.M + h * (JT @ (W * J) - (ct * a).transpose(1, 2) @ a
-                           - (c.mu * gate_fr * g_n).unsqueeze(-1).mul(a).transpose(1, 2) @ J4[:, :, 2])
+                           - (c.mu * gate_fr * g_n).unsqueeze(-1).mul(a).transpose(1, 2) @ Jz)
             force = (JT @ f.view(B, 24, 1)).squeeze(-1)
         force = force + c.gravity
-        if c.mu_r is not None:  # rolling friction torque (docs §3.3)
+        if c.mu_r is not None:
+            # Rolling friction (docs §3.3): τ = −μ_r (Σ_c φ(f̃_n,c)) ω / sqrt(|ω|² + ε_ω²), implicit in ω and,
+            # like sliding friction, linearized in the normal velocities through f̃_n.
             w = u[:, 3:]
-            torque = -c.mu_r * f_n.sum(1, keepdim=True) * w / torch.sqrt((w * w).sum(1, keepdim=True) + ROLLING_EPS**2)
-            force = force + F.pad(torque, (3, 0))
+            s_w = torch.sqrt((w * w).sum(1, keepdim=True) + ROLLING_EPS**2)
+            f_rr, gate_rr = _floor(f_ext)
+            what = w / s_w
+            cr = c.mu_r * f_rr.sum(1, keepdim=True) / s_w  # (B, 1)
+            force = force + F.pad(-cr * w, (3, 0))
+            G_rot = cr.unsqueeze(-1) * (c.eye3 - what.unsqueeze(-1) * what.unsqueeze(-2))  # −∂τ/∂ω
+            b = ((gate_rr * g_n).unsqueeze(1) @ Jz).squeeze(1)  # (B, 6) = Σ_c φ'·g_n·j_z,c
+            G_cpl = -(c.mu_r * what).unsqueeze(-1) * b.unsqueeze(1)  # (B, 3, 6): −∂τ/∂u through f̃_n
+            A = A + h * (F.pad(G_rot, (3, 0, 3, 0)) + F.pad(G_cpl, (0, 0, 3, 0)))
         u_new = u + torch.linalg.solve(A, h * force)
         p_new = p + h * u_new[:, :3]
         q_new = normalize_quat(q + (0.5 * h) * quat_mul_pure_left(u_new[:, 3:], q))

@@ -1,0 +1,60 @@
+"""The README's main job, end to end: ``risp demo --quick`` renders, trains, evaluates and diagnoses."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+
+@pytest.mark.slow
+def test_quick_demo_runs_end_to_end(tmp_path):
+    out = tmp_path / "demo"
+    proc = subprocess.run(
+        [sys.executable, "-m", "cli", "demo", "--quick", "--seed", "3", "--out", str(out)],
+        capture_output=True, text=True, timeout=1500,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+
+    meta = json.loads((out / "demo.json").read_text())
+    assert meta["seed"] == 3
+    assert len(meta["commands"]) >= 4 * 2 * 2 + 6  # render+inspect per env and domain, train set, fit, evals, diagnose
+
+    for env in ("quadrotor", "cube", "hand", "rod"):
+        for domain in ("train", "target"):
+            folder = out / "preview" / f"{env}-{domain}"
+            manifest = json.loads((folder / "manifest.json").read_text())
+            assert manifest["environment"] == env and manifest["domain"] == domain
+            assert (folder / "contact_sheet.png").stat().st_size > 1000
+
+    run = out / "runs" / "cube"
+    assert (run / "model.pt").exists() and (run / "losses.png").exists()
+    for name in ("cube-heldout", "cube-target"):
+        ev = json.loads((run / f"eval-{name}.json").read_text())
+        assert set(ev["results"]) >= {"model", "average", "random"}
+        assert all(r["mean"] > 0 for r in ev["results"].values())
+
+    report = json.loads((out / "diagnose" / "report.json").read_text())
+    for key in ("cause", "parameters", "ranking", "base_error", "extended_error", "gain"):
+        assert key in report
+    assert report["seed"] == 3
+    assert (out / "README.md").read_text().startswith("# risp demo")
+
+
+def test_risp_group_lists_the_three_tools_and_demo():
+    proc = subprocess.run([sys.executable, "-m", "cli", "--help"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0
+    for name in ("data", "train", "task", "demo"):
+        assert f"  {name}" in proc.stdout
+
+
+def test_unknown_environment_is_one_error_line_through_the_group():
+    proc = subprocess.run(
+        [sys.executable, "-m", "cli", "data", "render", "--env", "boat", "--n", "1", "--out", "unused"],
+        capture_output=True, text=True, timeout=120,
+    )
+    assert proc.returncode == 1
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "boat" in lines[0] and "quadrotor" in lines[0]
