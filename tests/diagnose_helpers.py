@@ -12,11 +12,11 @@ REL_TOL = 0.25
 ABS_TOL_OF_RANGE = 0.10
 
 
-def run_case(tmp_path, env, effect, seed, n_traj=4, samples=300, pairs_top=2, out=True):
+def run_case(tmp_path, env, effect, seed, n_traj=4, samples=300, pairs_top=2, out=True, max_iters=25):
     data = tmp_path / "data"
     truth = make_synthetic(SynthConfig(env=env, seed=seed, n_traj=n_traj, samples=samples, effect=effect), data)
     report = diagnose(DiagnoseConfig(data=(str(data),), env=env, out=str(tmp_path / "report") if out else None,
-                                     seed=seed, pairs_top=pairs_top, progress=False, plots=out))
+                                     seed=seed, pairs_top=pairs_top, progress=False, plots=out, max_iters=max_iters))
     return truth, report
 
 

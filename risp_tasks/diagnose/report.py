@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .adapter import measured_columns
 from .fit import make_segments, predict
 from .residuals import one_step, unit_of
 
@@ -154,8 +155,7 @@ def plot_gain(path: Path, base_ev, ext_ev, held_trajs, horizon: int) -> None:
     fig, axes = plt.subplots(len(chans), 1, figsize=(9, 1.5 * len(chans) + 0.6), sharex=True, squeeze=False)
     for c, name in enumerate(chans):
         ax = axes[c, 0]
-        j = meas_names.index(name)
-        ax.plot(tr.t, _measured(tr, name, seg, series["base"][2]), color="k", lw=1.0, label="measured")
+        ax.plot(tr.t, measured_columns(tr)[name], color="k", lw=1.0, label="measured")
         for label, color in (("base", "C3"), ("extended", "C0")):
             sg, pred, nm = series[label]
             jj = nm.index(name)
@@ -165,7 +165,6 @@ def plot_gain(path: Path, base_ev, ext_ev, held_trajs, horizon: int) -> None:
                 ax.plot(tt, pred[s, : len(tt), jj], color=color, lw=0.9, alpha=0.9,
                         label=(f"{label}: {ev_name(base_ev if label == 'base' else ext_ev)}" if s == 0 else None))
         ax.set_ylabel(name, fontsize=8)
-        _ = j
     axes[0, 0].legend(fontsize=7, loc="upper right")
     axes[-1, 0].set_xlabel(f"time [s] — held-out trajectory {tr.name}; open-loop rollouts of {H} samples from measured states")
     _savefig(fig, path)
@@ -174,12 +173,6 @@ def plot_gain(path: Path, base_ev, ext_ev, held_trajs, horizon: int) -> None:
 
 def ev_name(ev) -> str:
     return ev.fit.model.name
-
-
-def _measured(tr, name, seg, names):
-    from .adapter import measured_columns
-
-    return measured_columns(tr)[name]
 
 
 def plot_ranking(path: Path, report: dict) -> None:

@@ -10,7 +10,8 @@ Full state (13), SI units, the layout of the real tosses in data/cube-tosses:
 No control input.  Parameters: λ = log10 k_n (normal stiffness, N/m per corner) and the normal damping
 d_n (N·s/m per corner), plus those of the enabled effects.  Side length and mass are constructor
 options (defaults CUBE_SIDE, CUBE_MASS of risp_data.envs.cube; the real cube: side=0.1048, mass=0.37).
-Integrator: linearly implicit Euler on (v, ω) with ``substeps`` substeps per step of dt (docs §3.4).
+Integrator: linearly implicit Euler on (v, ω) with ``substeps`` substeps per step of dt (docs §3.4),
+contact, friction and rolling friction all linearized into one 6 × 6 solve per substep.
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ from .base import Effect, Simulator, SimulatorSpec
 DT = 0.01  # s, one step of the rollout
 SUBSTEPS = 2  # linearly implicit substeps per step (h = dt / substeps)
 CONTACT_WIDTH = 1e-6  # m: δ, the softplus rounding of the penetration
+_CLAMP = 30.0  # smooth-function arguments are clamped at −30 (σ(−30) ≈ 1e-13)
 FLOOR_WIDTH = 1e-2  # N: rounding width of the zero floor of the normal force
 FRICTION_EPS = 1e-2  # m/s: ε of the smoothed Coulomb law
 ROLLING_EPS = 0.1  # rad/s: ε_ω of the smoothed rolling-friction direction
@@ -53,7 +55,7 @@ _INF = float("inf")
 EFFECTS = {
     "friction": Effect(
         "friction", ("mu",), (0.3,), ((0.0, 1.0),),
-        "smoothed Coulomb friction f_t = −mu·f_k·v_t / sqrt(|v_t|² + ε²) at each corner",
+        "smoothed Coulomb friction f_t = −mu·f_n·v_t / sqrt(|v_t|² + ε²) at each corner (f_n: normal force)",
         bounds=((0.0, _INF),), units=("1",)),
     "restitution": Effect(
         "restitution", ("alpha",), (0.5,), ((0.0, 2.0),),
@@ -62,7 +64,7 @@ EFFECTS = {
         bounds=((0.0, _INF),), units=("s/m",)),
     "rolling_friction": Effect(
         "rolling_friction", ("mu_r",), (0.002,), ((0.0, 0.01),),
-        "torque −mu_r·(Σ f_k)·ω / sqrt(|ω|² + ε_ω²) opposing the rotation while in contact",
+        "torque −mu_r·(Σ f_n)·ω / sqrt(|ω|² + ε_ω²) opposing the rotation while in contact",
         bounds=((0.0, _INF),), units=("m",)),
 }
 
@@ -95,10 +97,13 @@ class _Consts:
     width: float
     mass: float
     k: torch.Tensor  # (B, 1) k_n = 10^λ
+    k_delta: torch.Tensor  # (B, 1) k_n·δ
+    h_k: torch.Tensor  # (B, 1) h·k_n
     dn: torch.Tensor  # (B, 1)
     M: torch.Tensor  # (B, 6, 6) generalized mass diag(m, m, m, I, I, I)
     gravity: torch.Tensor  # (6,) generalized gravity force (0, 0, −m g, 0, 0, 0)
     corner_form: torch.Tensor  # (16, 24): R(q) b_c = vec(q qᵀ) @ corner_form
+    corner_z_form: torch.Tensor  # (16, 56): (r_c,z for the 8 corners, then j_z,c − (e_z, 0)) from vec(q qᵀ)
     jac: torch.Tensor  # (3, 18): J_c = r_c @ jac + jac_offset (3 × 6 per corner)
     jac_offset: torch.Tensor  # (18,)
     jac_z: torch.Tensor  # (3, 6): the z row only
@@ -113,8 +118,9 @@ class CubeSimulator(Simulator):
     """Differentiable cube with penalty floor contact (docs/models.md §3).
 
     Options: ``side`` [m], ``mass`` [kg], ``dt`` [s], ``substeps`` (h = dt/substeps), ``contact_width``
-    δ [m].  The defaults are fast and stable at k_n up to 10^9; the implicit step dissipates energy at
-    impacts it does not resolve (docs §3.4): use more substeps when bounce heights matter.
+    δ [m].  The defaults are fast and stable (stress-tested over the parameter ranges); the implicit step
+    dissipates energy at impacts it does not resolve (docs §3.4): use more substeps when bounce heights
+    matter.
     """
 
     def __init__(self, effects: tuple[str, ...] | list[str] = (), *, side: float = CUBE_SIDE,
@@ -158,6 +164,8 @@ class CubeSimulator(Simulator):
         half = self.side / 2
         corners = torch.tensor(list(itertools.product((-half, half), repeat=3)), **like)
         jac, jac_offset = const("corner_jacobian", params), const("corner_jacobian_offset", params).flatten()
+        jac_z = jac.view(3, 3, 6)[:, 2]  # (3, 6): the z row of J_c as a linear map of r_c
+        form = rotation_form(corners)
 
         def eff(name):
             if name not in self.effects:
@@ -172,13 +180,16 @@ class CubeSimulator(Simulator):
             width=self.contact_width,
             mass=self.mass,
             k=k,
+            k_delta=k * self.contact_width,
+            h_k=k * (self.dt / self.substeps),
             dn=params[:, 1:2],
             M=M,
             gravity=torch.tensor([0.0, 0.0, -self.mass * GRAVITY, 0.0, 0.0, 0.0], **like),
-            corner_form=rotation_form(corners),
+            corner_form=form,
+            corner_z_form=torch.cat([form.view(16, 8, 3)[..., 2], (form.view(16, 8, 3) @ jac_z).flatten(1)], 1),
             jac=jac,
             jac_offset=jac_offset,
-            jac_z=jac.view(3, 3, 6)[:, 2],
+            jac_z=jac_z,
             jac_z_offset=jac_offset.view(3, 6)[2],
             eye3=torch.eye(3, **like),
             mu=eff("friction"),
@@ -197,25 +208,34 @@ class CubeSimulator(Simulator):
         """
         h, delta = c.h, c.width
         B = p.shape[0]
-        r = (quat_outer(q) @ c.corner_form).unflatten(-1, (8, 3))  # (B, 8, 3) corner offsets R b_c, world
-        pen = -(p[:, 2:3] + r[..., 2])  # (B, 8) penetration depth d_c = −z_c
+        qq = quat_outer(q)
+        if c.mu is None:  # one product gives the corner heights r_c,z and the Jacobian rows j_z,c
+            rz_jz = qq @ c.corner_z_form  # (B, 8 + 48)
+            r_z, Jz = rz_jz[:, :8], rz_jz[:, 8:].view(B, 8, 6) + c.jac_z_offset
+        else:
+            r = (qq @ c.corner_form).unflatten(-1, (8, 3))  # (B, 8, 3) corner offsets R b_c, world
+            r_z = r[..., 2]
+        pen = -(p[:, 2:3] + r_z)  # (B, 8) penetration depth d_c = −z_c
 
         # Normal force (docs §3.2): f_n = φ_w(f_k + (d_n σ + α f_k)·ḋ), f_k = k δ sp(d/δ), σ = σ(d/δ):
         # elastic + damping, smoothly floored at zero by φ_w(x) = x·σ(x/w), w = FLOOR_WIDTH (pushes, hardly pulls).
-        sig = torch.sigmoid(pen / delta)
-        f_k = c.k * F.softplus(pen, beta=1.0 / delta, threshold=40.0)
+        # (clamped at −30 δ: beyond it the contact terms are < 1e-13 of their scale, and letting them run on
+        # into subnormal numbers makes the small matrix products 100× slower)
+        x = (pen / delta).clamp(min=-_CLAMP)
+        sig = torch.sigmoid(x)
+        f_k = c.k_delta * F.softplus(x, threshold=40.0)
         damp = c.dn * sig
         if c.alpha is not None:
             damp = damp + c.alpha * f_k
 
         def normal_force(pen_rate):
             f_n, gate = _floor(f_k + damp * pen_rate)
-            stiff_rate = gate * (h * c.k * sig) * pen_rate
-            g_n = gate * damp + gate * (h * c.k * sig)  # damping + h·stiffness: the implicit weight of the corner
+            g_k = gate * (c.h_k * sig)  # h·(stiffness)
+            g_n = gate * damp + g_k  # damping + h·stiffness: the implicit weight of the corner
+            stiff_rate = g_k * pen_rate
             return f_n, g_n, f_n + stiff_rate  # last: f_n extrapolated by h·(stiffness)·ḋ
 
         if c.mu is None:
-            Jz = r @ c.jac_z + c.jac_z_offset  # (B, 8, 6): rows j_z = (e_z, r × e_z)
             pen_rate = -(Jz @ u.unsqueeze(-1)).squeeze(-1)
             f_n, g_n, f_ext = normal_force(pen_rate)
             JzT = Jz.transpose(1, 2)
@@ -293,7 +313,7 @@ class CubeSimulator(Simulator):
 
 def _floor(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """φ(x) = x·σ(x/w), w = FLOOR_WIDTH: a smooth max(x, 0) that is exactly 0 at x = 0; and φ'(x)."""
-    y = x / FLOOR_WIDTH
+    y = (x / FLOOR_WIDTH).clamp(min=-_CLAMP)  # no subnormal numbers (see _substep)
     sy = torch.sigmoid(y)
     return x * sy, sy * (1.0 + y * (1.0 - sy))
 
