@@ -21,13 +21,14 @@ if not CUBE_TOSSES.is_dir():
 @pytest.mark.slow
 @pytest.mark.parametrize("seed, effect", [(81, "friction"), (82, "rolling_friction")])
 def test_hidden_effect_is_named_and_recovered(tmp_path, seed, effect):
-    truth, report = run_case(tmp_path, "cube", effect, seed, samples=120, out=False, max_iters=12)
+    truth, report = run_case(tmp_path, "cube", effect, seed, samples=100, pairs_top=0, out=False, max_iters=12)
     assert_recovered("cube", truth, report)
 
 
 @pytest.mark.slow
 def test_unlisted_periodic_force_is_unexplained(tmp_path):
-    _, report = run_case(tmp_path, "cube", "periodic_force", seed=84, n_traj=3, samples=100, out=False, max_iters=6)
+    _, report = run_case(tmp_path, "cube", "periodic_force", seed=84, n_traj=3, samples=100, pairs_top=0, out=False,
+                         max_iters=6)
     assert report["cause"] == "unexplained", report["reason"]
 
 

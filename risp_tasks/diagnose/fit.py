@@ -368,19 +368,30 @@ def fit_model(model: Model, obs: Observer, seg: Segments, sigma: torch.Tensor, c
 
 def _line_search(fn, model: Model, z: torch.Tensor, rss: float, g: torch.Tensor, diag: torch.Tensor):
     """Backtracking along d = −g/√diag(JᵀJ), normalised to a largest entry of 1 (z units ≈ a quarter of
-    the plausible range): steps 1, ½, … 1/64; the first that lowers ‖ẽ‖² wins.  None when none does."""
+    the plausible range), then along each parameter's own axis (sign of d_j): steps 1, ½, … 1/32, the first
+    that lowers ‖ẽ‖² is taken in each direction in turn.  None when no direction improves."""
     d = -g / torch.sqrt(torch.clamp(diag, min=1e-300))
     if not bool(torch.isfinite(d).all()) or float(d.abs().max()) == 0.0:
         return None
-    d = d / d.abs().max()
-    for t in (1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125, 0.015625):
-        z_new = model.clamp(z + t * d)
-        with torch.no_grad():
-            r_new = fn(z_new)
-        rss_new = float((r_new**2).sum())
-        if np.isfinite(rss_new) and rss_new < rss:
-            return z_new, r_new, rss_new
-    return None
+    # the joint direction first, then each parameter alone (the scaled gradient is often dominated by
+    # one stiff parameter, e.g. the contact stiffness, while another, e.g. μ, is far from its optimum)
+    directions = [d / d.abs().max()]
+    for j in range(d.numel()):
+        if float(d[j]) != 0.0:
+            e = torch.zeros_like(d)
+            e[j] = torch.sign(d[j])
+            directions.append(e)
+    best = None
+    for direction in directions:
+        for t in (1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125):
+            z_new = model.clamp(z + t * direction)
+            with torch.no_grad():
+                r_new = fn(z_new)
+            rss_new = float((r_new**2).sum())
+            if np.isfinite(rss_new) and rss_new < rss:
+                z, rss, best = z_new, rss_new, (z_new, r_new, rss_new)
+                break
+    return best
 
 
 def parameter_std(model: Model, J: torch.Tensor, rss: float, n: int, horizon: int) -> dict[str, float]:

@@ -94,7 +94,7 @@ def one_step(sim, obs: Observer, params: torch.Tensor, trajs: list[Trajectory], 
     return OneStep(
         channels=tuple(obs.channels),
         error=err,
-        accel=err[:, rate] / seg.sample_dt,
+        accel=-err[:, rate] / seg.sample_dt,  # err = pred − meas, so −err/Δ = a_meas − a_model
         accel_names=tuple(f"a_{obs.channels[c]}" for c in rate),
         t=t,
         traj=seg.traj_index,
