@@ -15,12 +15,21 @@ from risp_data.errors import RispError
 from .base import Effect, Simulator, SimulatorSpec
 
 
-def get_simulator(env: str, effects: tuple[str, ...] | list[str] = ()) -> Simulator:
-    """The simulator of environment ``env`` with the named extra effects switched on."""
+def get_simulator(env: str, effects: tuple[str, ...] | list[str] = (), **options) -> Simulator:
+    """The simulator of environment ``env`` with the named extra effects switched on.
+
+    ``options`` go to the environment's constructor (e.g. ``side``, ``mass``, ``dt``, ``substeps`` for the
+    cube; see docs/models.md); an option the simulator does not take raises :class:`RispError`.
+    """
     if env not in ENV_NAMES:
         raise RispError(f"unknown environment {env!r}; choose one of: {', '.join(ENV_NAMES)}")
     module = importlib.import_module(f"{__name__}.{env}")
-    return module.make_simulator(tuple(effects))
+    try:
+        return module.make_simulator(tuple(effects), **options)
+    except TypeError as e:
+        if options and "argument" in str(e):
+            raise RispError(f"{env} simulator does not take option(s) {', '.join(options)}: {e}") from None
+        raise
 
 
 def available_effects(env: str) -> dict[str, Effect]:
