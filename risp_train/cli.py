@@ -24,7 +24,7 @@ def cli():
 @click.argument("shards", type=click.Path())
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="Run folder (checkpoints, logs, plots).")
 @click.option("--reg", default="none", show_default=True, help="Regularizer: none, surrogate, exact or stochastic.")
-@click.option("--gamma", type=float, default=None, help="Final regularizer weight γ [default: paper's per env: quadrotor 1, cube 20, hand 100, rod 30].")
+@click.option("--gamma", type=float, default=None, help="Final regularizer weight γ [default: paper's per env (quadrotor 1, cube 20, hand 100, rod 30), times 1/400 with --preset cpu].")
 @click.option("--gamma-ramp", type=float, default=0.5, show_default=True, help="γ ramps linearly from 0 over this fraction of all steps.")
 @click.option("--preset", default="paper", show_default=True, help="paper (ResNet-18 w64, 100 epochs, lr 1e-2) or cpu (w16, 20 epochs, lr 3e-3).")
 @click.option("--epochs", type=int, default=None, help="Epochs [preset].")
