@@ -20,12 +20,12 @@ Keys (docs/training.md §Checkpoints):
 from __future__ import annotations
 
 import os
-import tempfile
 from typing import Any
 
 import torch
 
 from risp_data.errors import RispError
+from risp_data.atomic import atomic_write
 
 FORMAT = "risp-train-checkpoint"
 FORMAT_VERSION = 1
@@ -56,19 +56,8 @@ def plain(obj: Any) -> Any:
 def save_checkpoint(path: str, payload: dict[str, Any]) -> None:
     """Atomically write ``payload`` (plus the format tags) to ``path``."""
     payload = plain({"format": FORMAT, "format_version": FORMAT_VERSION, **payload})
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".pt", dir=folder)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(payload, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_write(path, "wb", suffix=".pt") as f:
+        torch.save(payload, f)
 
 
 def load_checkpoint(path: str) -> dict[str, Any]:

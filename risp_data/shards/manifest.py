@@ -18,11 +18,11 @@ import datetime as _dt
 import hashlib
 import json
 import os
-import tempfile
 from importlib import metadata as _md
 from typing import Any
 
 from ..errors import RispError
+from ..atomic import atomic_write
 
 MANIFEST = "manifest.json"
 MARKER_DIR = "complete"
@@ -87,19 +87,9 @@ def file_record(folder: str, rel: str) -> dict[str, Any]:
 
 def write_json_atomic(path: str, obj: Any) -> None:
     """Write JSON to a temporary file in the same folder, fsync it, then rename over ``path``."""
-    folder = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".json", dir=folder)
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(obj, f, indent=1, sort_keys=True, allow_nan=False)
-            f.write("\n")
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_write(path, "w", suffix=".json") as f:
+        json.dump(obj, f, indent=1, sort_keys=True, allow_nan=False)
+        f.write("\n")
 
 
 def _read_json(path: str, what: str) -> dict[str, Any]:

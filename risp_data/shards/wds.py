@@ -20,7 +20,6 @@ import io
 import json
 import os
 import tarfile
-import tempfile
 from typing import Any, Iterator
 
 import numpy as np
@@ -28,6 +27,7 @@ import numpy as np
 from ..errors import RispError
 from .manifest import load_manifest
 from .sample import Sample
+from ..atomic import atomic_write
 
 WDS_DIR = "wds"
 MTIME = 0  # fixed member mtime: byte-identical tars for identical samples
@@ -106,26 +106,17 @@ def write_wds_shard(folder: str, shard_index: int, samples: list[Sample]) -> str
     rel = shard_name(shard_index)
     path = os.path.join(folder, rel)
     os.makedirs(os.path.dirname(path), exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".tar", dir=os.path.dirname(path))
-    try:
-        with os.fdopen(fd, "wb") as f:
-            with tarfile.open(fileobj=f, mode="w", format=tarfile.USTAR_FORMAT) as tar:
-                for sample in sorted(samples, key=lambda s: s.index):
-                    for ext, data in sorted(sample_members(sample).items()):
-                        info = tarfile.TarInfo(f"{sample.key}.{ext}")
-                        info.size = len(data)
-                        info.mtime = MTIME
-                        info.mode = 0o644
-                        info.uid = info.gid = 0
-                        info.uname = info.gname = ""
-                        tar.addfile(info, io.BytesIO(data))
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_write(path, "wb", suffix=".tar") as f:
+        with tarfile.open(fileobj=f, mode="w", format=tarfile.USTAR_FORMAT) as tar:
+            for sample in sorted(samples, key=lambda s: s.index):
+                for ext, data in sorted(sample_members(sample).items()):
+                    info = tarfile.TarInfo(f"{sample.key}.{ext}")
+                    info.size = len(data)
+                    info.mtime = MTIME
+                    info.mode = 0o644
+                    info.uid = info.gid = 0
+                    info.uname = info.gname = ""
+                    tar.addfile(info, io.BytesIO(data))
     return rel
 
 

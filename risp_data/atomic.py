@@ -1,0 +1,27 @@
+"""Write a file so that readers see either the old file or the complete new one, never half of it."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from typing import IO, Iterator
+
+
+@contextlib.contextmanager
+def atomic_write(path: str, mode: str = "wb", suffix: str = "") -> Iterator[IO]:
+    """Yield a file in ``path``'s folder under a temporary name (``.tmp-*``); on success flush, fsync and
+    rename it over ``path``; on any exception (including KeyboardInterrupt) remove it and re-raise."""
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=suffix, dir=folder)
+    try:
+        with os.fdopen(fd, mode) as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
