@@ -13,9 +13,10 @@ import pytest
 from diagnose_helpers import assert_recovered, run_case
 from risp_tasks.diagnose.run import DiagnoseConfig, diagnose
 
-CUBE_TOSSES = Path("/work/shared/data/cube-tosses")
+# The project's shared data beside the checkout (CI), else the 12 tosses bundled with the package.
+CUBE_TOSSES = Path(__file__).resolve().parents[2] / "shared" / "data" / "cube-tosses"
 if not CUBE_TOSSES.is_dir():
-    CUBE_TOSSES = Path(__file__).resolve().parents[2] / "shared" / "data" / "cube-tosses"
+    CUBE_TOSSES = Path(__file__).resolve().parents[1] / "risp_tasks" / "data" / "cube_tosses"
 
 
 @pytest.mark.slow
