@@ -132,7 +132,10 @@ def _jsonable(obj: Any) -> Any:
 def render_sample(renderer, env, job: RenderJob, index: int) -> Sample:
     """Render sample ``index``: image and (unless ``job.jacobian`` is off) its forward-mode Jacobian stack."""
     inp = sample_inputs(env, job.domain, job.seed, index)
-    image, jac = renderer.render(inp.state, inp.config, inp.render_seed, jacobian=job.jacobian)
+    if job.jacobian:
+        image, jac = renderer.render(inp.state, inp.config, inp.render_seed, jacobian=True)
+    else:  # image only: the domain's reference integrator (target domain: Mitsuba's `path`)
+        image, jac = renderer.render_reference(inp.state, inp.config, inp.render_seed), None
     # a NaN in one training sample poisons every step that sees it: refuse to store it
     if not np.isfinite(image).all():
         raise RispError(f"sample {index} of {job.env}/{job.domain}: the renderer returned a non-finite image")
@@ -152,6 +155,7 @@ def render_sample(renderer, env, job: RenderJob, index: int) -> Sample:
         "spp": job.spp,
         "variant": getattr(renderer, "variant", job.variant),
         "jacobian": job.jacobian,
+        "integrator": renderer.settings.integrator if job.jacobian else renderer.image_integrator,
     }
     return Sample(
         index=index,

@@ -43,17 +43,22 @@ class DomainSettings:
     forward mode needs an integrator whose ``sample`` runs in ``dr.ADMode.Forward`` from a stored primal
     state (``prbvolpath`` refuses forward mode; the C++ ``path`` has no separate primal/tangent passes);
     the target domain differs in path length and sample count.  No Russian roulette in either: its
-    decisions depend on ψ, which would make same-seed finite differences (the Jacobian check) jump."""
+    decisions depend on ψ, which would make same-seed finite differences (the Jacobian check) jump.
+
+    Images rendered *without* a Jacobian in the target domain (reference videos, evaluation shards) use
+    ``reference``: Mitsuba's C++ unidirectional path tracer ``path`` with Russian roulette, a different
+    integrator with the same expected image (:meth:`Renderer.render_reference`)."""
 
     integrator: str
     max_depth: int
     rr_depth: int
     spp_factor: int
+    reference: str | None = None  # integrator of Jacobian-free images (None: the same as ``integrator``)
 
 
 DOMAIN_SETTINGS = {
     "train": DomainSettings("prb", 3, 5, 1),  # direct light + one indirect bounce, no roulette
-    "target": DomainSettings("prb", 6, 6, TARGET_SPP_FACTOR),  # longer paths, 4× spp
+    "target": DomainSettings("prb", 6, 6, TARGET_SPP_FACTOR, reference="path"),  # longer paths, 4× spp
 }
 
 
@@ -206,6 +211,10 @@ class Renderer:
         self.scene = mi.load_dict(scene)
         self.params = mi.traverse(self.scene)
         self.integrator = self.scene.integrator()
+        self.reference_integrator = None
+        if self.settings.reference is not None:
+            self.reference_integrator = mi.load_dict({"type": self.settings.reference,
+                                                      "max_depth": self.settings.max_depth, "rr_depth": 3})
         self._bindings = self._make_bindings()
         self._texture_key, self._sky_key = None, None  # what the floor pattern / sky currently hold
         self._diff_keys = [b.key for b in self._bindings]
@@ -367,6 +376,31 @@ class Renderer:
             return img, None
         J = np.stack([np.array(g, dtype=np.float32).reshape(H, W, 3) for g in grads])
         return img, J
+
+    @property
+    def image_integrator(self) -> str:
+        """Name of the integrator :meth:`render_reference` uses."""
+        return self.settings.reference or self.settings.integrator
+
+    def render_reference(self, state: np.ndarray, config: RenderConfig, seed: int) -> np.ndarray:
+        """Image only (H, W, 3) float32, by the domain's reference integrator (target: Mitsuba's ``path``
+        with Russian roulette, max depth 6; train: the same ``prb`` pass as :meth:`render`).
+
+        Same expected image as ``render(..., jacobian=False)`` but independent noise: use :meth:`render`
+        wherever images are compared with Jacobians (finite-difference checks, ``risp-data verify``).
+        """
+        if self.reference_integrator is None:
+            return self.render(state, config, seed, jacobian=False)[0]
+        state, psi = self._check_inputs(state, config)
+        if not isinstance(seed, (int, np.integer)) or not 0 <= int(seed) < 2**32:
+            raise RispError(f"seed must be an integer in [0, 2^32), got {seed!r}")
+        self.set_state(state)
+        self.set_config(psi, config.aux, track=False)
+        self.params.update()
+        image = self._mi.render(self.scene, integrator=self.reference_integrator, seed=int(seed),
+                                spp=self.spp * self.settings.spp_factor)
+        H = W = self.resolution
+        return np.array(image, dtype=np.float32).reshape(H, W, 3)
 
     def _tangents(self, psi: np.ndarray, aux: dict) -> list[list]:
         """tangents[j][k] = ∂p_k/∂ψ_j = P_k(e_j; aux) for every binding k (P_k is linear in ψ)."""

@@ -268,3 +268,26 @@ def test_renderer_bad_input():
         Renderer("cube", resolution=0)
     with pytest.raises(RispError, match="spp"):
         Renderer("cube", spp=0)
+
+
+def test_target_reference_images_use_another_integrator_with_the_same_expectation():
+    """Jacobian-free target-domain images come from Mitsuba's `path` (Russian roulette), not `prb`:
+    deterministic per seed, different noise, the same expected image (checked on the image mean)."""
+    from risp_data.render import Renderer
+
+    r = Renderer("cube", "target", resolution=16, spp=16)
+    assert r.image_integrator == "path" and r.settings.integrator == "prb"
+    env = get_environment("cube")
+    rng = np.random.default_rng(11)
+    state, config = env.sample_states(rng, 1)[0], sample_rendering("cube", "target", rng)
+    ref_a = r.render_reference(state, config, seed=3)
+    ref_b = r.render_reference(state, config, seed=3)
+    prb, _ = r.render(state, config, seed=3, jacobian=False)
+    assert ref_a.shape == prb.shape == (16, 16, 3) and np.isfinite(ref_a).all()
+    np.testing.assert_array_equal(ref_a, ref_b)
+    assert not np.allclose(ref_a, prb)  # another integrator: other paths, other noise
+    assert abs(ref_a.mean() - prb.mean()) < 0.1 * prb.mean()
+    # train domain: the reference image is the prb image itself
+    t = Renderer("cube", "train", resolution=16, spp=4)
+    cfg = sample_rendering("cube", "train", rng)
+    np.testing.assert_array_equal(t.render_reference(state, cfg, seed=1), t.render(state, cfg, seed=1, jacobian=False)[0])
