@@ -26,7 +26,7 @@ def test_quick_demo_runs_end_to_end(tmp_path):
         for domain in ("train", "target"):
             folder = out / "preview" / f"{env}-{domain}"
             manifest = json.loads((folder / "manifest.json").read_text())
-            assert manifest["environment"] == env and manifest["domain"] == domain
+            assert manifest["env"] == env and manifest["domain"] == domain
             assert (folder / "contact_sheet.png").stat().st_size > 1000
 
     run = out / "runs" / "cube"
