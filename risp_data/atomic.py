@@ -8,6 +8,12 @@ import tempfile
 from typing import IO, Iterator
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 @contextlib.contextmanager
 def atomic_write(path: str, mode: str = "wb", suffix: str = "") -> Iterator[IO]:
     """Yield a file in ``path``'s folder under a temporary name (``.tmp-*``); on success flush, fsync and
@@ -16,6 +22,7 @@ def atomic_write(path: str, mode: str = "wb", suffix: str = "") -> Iterator[IO]:
     os.makedirs(folder, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=suffix, dir=folder)
     try:
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the file the usual permissions
         with os.fdopen(fd, mode) as f:
             yield f
             f.flush()

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import tempfile
 from dataclasses import dataclass
 
 import numpy as np
@@ -11,6 +10,7 @@ import numpy as np
 from .errors import RispError
 from .shards import load_manifest
 from .shards.reader import complete_indices, read_samples
+from .atomic import atomic_write
 
 
 @dataclass(frozen=True)
@@ -82,17 +82,11 @@ def contact_sheet(samples: list[dict], psi_names: list[str], path: str) -> str:
         ax.set_xticks([])
         ax.set_yticks([])
     fig.tight_layout()
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".png", dir=folder)
-    os.close(fd)
     try:
-        fig.savefig(tmp, dpi=110, format="png")
-        os.replace(tmp, path)
+        with atomic_write(path, "wb", suffix=".png") as f:
+            fig.savefig(f, dpi=110, format="png")
     finally:
         plt.close(fig)
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     return path
 
 

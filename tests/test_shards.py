@@ -244,3 +244,24 @@ def test_missing_or_corrupt_manifest(tmp_path):
     (tmp_path / "manifest.json").write_text('{"format": "risp-shards"}')
     with pytest.raises(RispError, match="missing field"):
         wds_urls(str(tmp_path))
+
+
+def test_atomic_write_gives_normal_permissions_and_cleans_up(tmp_path):
+    """Files written through risp_data.atomic get umask permissions (not mkstemp's 0600); a failure
+    leaves neither the target nor a temporary file behind."""
+    import os
+    import stat
+
+    from risp_data.atomic import atomic_write
+
+    path = tmp_path / "x.json"
+    with atomic_write(str(path), "w") as f:
+        f.write("{}")
+    mask = os.umask(0)
+    os.umask(mask)
+    assert stat.S_IMODE(path.stat().st_mode) == 0o666 & ~mask
+    with pytest.raises(RuntimeError):
+        with atomic_write(str(tmp_path / "y.json"), "w") as f:
+            f.write("half")
+            raise RuntimeError("killed mid-write")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.json"]
