@@ -21,13 +21,7 @@ from risp_tasks.sims.hand import (
 ALL_EFFECTS = ("joint_damping", "joint_friction", "gravity")
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Tiny tensors: intra-op threads only add contention on the 2-core CI machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/conftest.py
 
 
 def _random_state(gen, batch, dtype=torch.float64, angle=0.6, rate=2.0):

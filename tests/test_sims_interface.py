@@ -15,12 +15,7 @@ from risp_data.errors import RispError
 from risp_tasks.sims import available_effects, get_simulator
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/conftest.py
 
 
 def _sim(env, effects=()):

@@ -12,13 +12,7 @@ from risp_tasks.sims import _fem, get_simulator
 from risp_tasks.sims.rod import _model, beam_theory_sag
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Small dense blocks: intra-op threads only add contention on the 2-core CI machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/conftest.py
 
 
 @pytest.fixture(scope="module")

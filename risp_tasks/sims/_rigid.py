@@ -15,6 +15,7 @@ import torch
 import torch.nn.functional as F
 
 from risp_data.envs.rotations import quat_to_euler
+from risp_data.errors import RispError
 
 GRAVITY = 9.81  # m/s², along −z (world z is up)
 
@@ -136,6 +137,13 @@ def soft_clamp(x: torch.Tensor, low: float, high: float, width: float) -> torch.
     """
     sp = functools.partial(F.softplus, beta=1.0 / width, threshold=40.0)
     return x - sp(x - high) + sp(low - x)
+
+
+def check_unit_quaternion_state(s0: torch.Tensor) -> None:
+    """RispError unless s0[:, 3:7] (qw, qx, qy, qz) are unit quaternions (|‖q‖ − 1| ≤ 1e-2)."""
+    norm = torch.linalg.vector_norm(s0[:, 3:7], dim=-1)
+    if bool(((norm - 1).abs() > 1e-2).any()):
+        raise RispError(f"s0[:, 3:7] (qw, qx, qy, qz) must be unit quaternions, got norm {norm.min().item():.4g}")
 
 
 def rigid_to_env_state(states: torch.Tensor) -> torch.Tensor:

@@ -28,6 +28,7 @@ from risp_data.envs.cube import CUBE_MASS, CUBE_SIDE
 from risp_data.errors import RispError
 
 from ._rigid import (
+    check_unit_quaternion_state,
     GRAVITY,
     const,
     normalize_quat,
@@ -153,9 +154,7 @@ class CubeSimulator(Simulator):
         return torch.tensor(s, dtype=dtype).expand(batch, -1).clone()
 
     def check_state(self, s0: torch.Tensor) -> None:
-        norm = torch.linalg.vector_norm(s0[:, 3:7], dim=-1)
-        if bool(((norm - 1).abs() > 1e-2).any()):
-            raise RispError(f"s0[:, 3:7] (qw, qx, qy, qz) must be unit quaternions, got norm {norm.min().item():.4g}")
+        check_unit_quaternion_state(s0)
 
     def to_env_state(self, states: torch.Tensor) -> torch.Tensor:
         """(..., 13) -> (..., 6) = (x, y, z, yaw, pitch, roll) of risp_data's cube environment."""

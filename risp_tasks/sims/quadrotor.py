@@ -26,6 +26,7 @@ from risp_data.envs.quadrotor import ARM_LENGTH, BODY_HALF_EXTENTS, ROTOR_HEIGHT
 from risp_data.errors import RispError
 
 from ._rigid import (
+    check_unit_quaternion_state,
     GRAVITY,
     const,
     normalize_quat,
@@ -144,9 +145,7 @@ class QuadrotorSimulator(Simulator):
         return u[:, None, None].expand(-1, steps, 4).clone()
 
     def check_state(self, s0: torch.Tensor) -> None:
-        norm = torch.linalg.vector_norm(s0[:, 3:7], dim=-1)
-        if bool(((norm - 1).abs() > 1e-2).any()):
-            raise RispError(f"s0[:, 3:7] (qw, qx, qy, qz) must be unit quaternions, got norm {norm.min().item():.4g}")
+        check_unit_quaternion_state(s0)
 
     def to_env_state(self, states: torch.Tensor) -> torch.Tensor:
         """(..., X) -> (..., 6) = (x, y, z, yaw, pitch, roll) of risp_data's quadrotor environment."""
