@@ -15,7 +15,7 @@ def _umask() -> int:
 
 
 @contextlib.contextmanager
-def atomic_write(path: str, mode: str = "wb", suffix: str = "") -> Iterator[IO]:
+def atomic_write(path: "str | os.PathLike", mode: str = "wb", suffix: str = "") -> Iterator[IO]:
     """Yield a file in ``path``'s folder under a temporary name (``.tmp-*``); on success flush, fsync and
     rename it over ``path``; on any exception (including KeyboardInterrupt) remove it and re-raise."""
     folder = os.path.dirname(os.path.abspath(path))
@@ -32,3 +32,9 @@ def atomic_write(path: str, mode: str = "wb", suffix: str = "") -> Iterator[IO]:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> None:
+    """Write ``text`` to ``path`` through :func:`atomic_write`."""
+    with atomic_write(os.fspath(path), "w") as f:
+        f.write(text)

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from risp_data.errors import RispError
+from risp_data.atomic import atomic_write, write_text_atomic
 
 POSE_COLUMNS = ("t", "x", "y", "z", "qw", "qx", "qy", "qz")
 VEL_COLUMNS = ("vx", "vy", "vz")
@@ -418,15 +419,10 @@ def write_trajectory_csv(path: str | os.PathLike, traj_cols: dict[str, np.ndarra
     path = Path(path)
     names = list(traj_cols)
     data = np.stack([np.asarray(traj_cols[k], dtype=np.float64) for k in names], 1)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "w", newline="") as fh:
+    with atomic_write(path, "w", suffix=".csv") as fh:
         w = csv.writer(fh)
         w.writerow(names)
         for row in data:
             w.writerow([repr(float(v)) for v in row])
-    os.replace(tmp, path)
     if sidecar is not None:
-        jp = path.with_suffix(".json")
-        tmpj = jp.with_name(jp.name + ".tmp")
-        tmpj.write_text(json.dumps(sidecar, indent=2))
-        os.replace(tmpj, jp)
+        write_text_atomic(path.with_suffix(".json"), json.dumps(sidecar, indent=2))

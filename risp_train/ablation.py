@@ -32,6 +32,7 @@ import numpy as np
 from risp_data.errors import RispError
 
 from .regularizers import REGULARIZERS
+from risp_data.atomic import write_text_atomic
 
 PER_SAMPLE = "per-sample"
 
@@ -224,7 +225,4 @@ def ablation_markdown(summary: dict) -> str:
 
 
 def _write(path: str, text: str) -> None:
-    tmp = path + ".tmp"
-    with open(tmp, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
+    write_text_atomic(path, text)

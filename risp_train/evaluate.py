@@ -29,6 +29,7 @@ from risp_data.errors import RispError
 from .checkpoint import check_compatible, load_checkpoint
 from .data import iter_batches, manifest_hash, open_shards
 from .predictor import predictor_from_checkpoint
+from risp_data.atomic import write_text_atomic
 
 METRICS = ("l1", "l2")
 ANGLE_NAMES = ("yaw", "pitch", "roll")
@@ -129,7 +130,4 @@ def markdown_table(result: dict) -> str:
 
 
 def _atomic_text(path: str, text: str) -> None:
-    tmp = path + ".tmp"
-    with open(tmp, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
+    write_text_atomic(path, text)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import csv
-import os
+from risp_data.atomic import atomic_write
 
 
 def _pyplot():
@@ -16,9 +16,8 @@ def _pyplot():
 
 
 def _save(fig, path: str) -> None:
-    tmp = path + ".tmp.png"
-    fig.savefig(tmp, dpi=110, bbox_inches="tight")
-    os.replace(tmp, path)
+    with atomic_write(path, "wb", suffix=".png") as f:
+        fig.savefig(f, format="png", dpi=110, bbox_inches="tight")
 
 
 def plot_losses(csv_path: str, png_path: str, history: list[dict] | None = None) -> None:

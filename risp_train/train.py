@@ -32,6 +32,7 @@ from .data import ShardSet, check_environment, iter_batches, make_loader, manife
 from .model import ModelConfig, ResNet18, build_model, stem_for_resolution
 from .normalization import Normalization, StatsAccumulator
 from .regularizers import gamma_at, risp_loss
+from risp_data.atomic import atomic_write, write_text_atomic
 
 LAST = "last.pt"  # the resumable checkpoint, rewritten at each epoch end (and every N steps)
 MODEL = "model.pt"  # the final checkpoint (same format), written when training completes
@@ -117,20 +118,14 @@ def _csv_keep_until(path: str, step: int) -> None:
         return
     with open(path, newline="") as f:
         rows = [r for r in csv.DictReader(f) if int(r["step"]) <= step]
-    tmp = path + ".tmp"
-    with open(tmp, "w", newline="") as f:
+    with atomic_write(path, "w", suffix=".csv") as f:
         w = csv.DictWriter(f, fieldnames=CSV_FIELDS)
         w.writeheader()
         w.writerows(rows)
-    os.replace(tmp, path)
 
 
 def _write_json(path: str, obj) -> None:
-    tmp = path + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump(obj, f, indent=1, sort_keys=True)
-        f.write("\n")
-    os.replace(tmp, path)
+    write_text_atomic(path, json.dumps(obj, indent=1, sort_keys=True) + "\n")
 
 
 def fit(cfg: TrainConfig, *, resume: bool = False, progress: bool = True,

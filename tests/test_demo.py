@@ -58,3 +58,12 @@ def test_unknown_environment_is_one_error_line_through_the_group():
     assert proc.returncode == 1
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert len(lines) == 1 and "boat" in lines[0] and "quadrotor" in lines[0]
+
+
+def test_demo_refuses_a_file_as_output_folder(tmp_path):
+    target = tmp_path / "a-file"
+    target.write_text("keep me")
+    proc = subprocess.run([sys.executable, "-m", "cli", "demo", "--quick", "--out", str(target)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode != 0 and "is a file" in proc.stderr
+    assert target.read_text() == "keep me"  # nothing already written is touched

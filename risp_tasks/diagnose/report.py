@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +12,7 @@ import torch
 from .adapter import measured_columns
 from .fit import make_segments, predict
 from .residuals import one_step, unit_of
+from risp_data.atomic import atomic_write, write_text_atomic
 
 PLOTS = {
     "residuals_time": "residuals_over_time.png",
@@ -22,16 +22,9 @@ PLOTS = {
 }
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
 def _savefig(fig, path: Path) -> None:
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=110, bbox_inches="tight")
-    os.replace(tmp, path)
+    with atomic_write(path, "wb", suffix=".png") as f:
+        fig.savefig(f, format="png", dpi=110, bbox_inches="tight")
 
 
 def _json_default(o):
@@ -268,5 +261,5 @@ def write_report(report: dict, cfg, evaluated, base_ev, ext_ev, fit_trajs, held_
         plot_gain(out / PLOTS["gain"], base_ev, ext_ev, held_trajs, report["base_error"]["rollout_horizon_samples"])
         plot_ranking(out / PLOTS["ranking"], report)
         report["plots"] = {k: str(out / v) for k, v in PLOTS.items()}
-    _atomic_write_text(out / "report.json", json.dumps(_clean(report), indent=2, default=_json_default))
-    _atomic_write_text(out / "report.md", markdown(report))
+    write_text_atomic(out / "report.json", json.dumps(_clean(report), indent=2, default=_json_default))
+    write_text_atomic(out / "report.md", markdown(report))

@@ -31,6 +31,7 @@ from risp_data.errors import RispError
 
 from ..measured import write_trajectory_csv
 from . import candidates as cands
+from risp_data.atomic import write_text_atomic
 
 #: Default measurement noise (1-σ) per channel group, SI units: typical motion-capture levels.
 DEFAULT_NOISE = {
@@ -294,7 +295,5 @@ def _make_synthetic(cfg: SynthConfig, out_dir: str | os.PathLike) -> dict:
         write_trajectory_csv(out / f"traj_{b:03d}.csv", cols, sidecar)
     truth = {"env": cfg.env, "effect": effect, "parameters": values, "noise": noise, "seed": int(cfg.seed),
              "n_traj": cfg.n_traj, "samples": cfg.samples, "dt": dt}
-    tmp = out / "truth.json.tmp"
-    tmp.write_text(json.dumps(truth, indent=2))
-    os.replace(tmp, out / "truth.json")
+    write_text_atomic(out / "truth.json", json.dumps(truth, indent=2))
     return truth
