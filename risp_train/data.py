@@ -181,10 +181,8 @@ def _decoder(need_jacobian: bool):
     def decode(raw: dict) -> dict:
         if need_jacobian and "jacobian.exr" not in raw:
             raise RispError(f"webdataset sample {raw.get('__key__')} in {raw.get('__url__')} has no jacobian.exr")
-        d = decode_wds_sample(raw)  # decodes (and checksums) every member, the Jacobian included
+        d = decode_wds_sample(raw, jacobian=need_jacobian)  # checksums every member either way
         d["url"] = raw.get("__url__", "")
-        if not need_jacobian:
-            d["jacobian"] = None
         return d
 
     return decode

@@ -265,3 +265,25 @@ def test_atomic_write_gives_normal_permissions_and_cleans_up(tmp_path):
             f.write("half")
             raise RuntimeError("killed mid-write")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["x.json"]
+
+
+def test_decode_without_jacobian_skips_it_but_still_checks_checksums(tmp_path):
+    """decode_wds_sample(..., jacobian=False) returns no Jacobian, and a flipped byte in the
+    undecoded jacobian.exr is still caught by its checksum."""
+    import tarfile
+
+    from risp_data.shards import decode_wds_sample, wds_urls
+
+    folder = tmp_path / "s"
+    _write(str(folder), formats=("wds",), jacobian=True)
+    with tarfile.open(wds_urls(str(folder))[0]) as tar:
+        members = {m.name: tar.extractfile(m).read() for m in tar.getmembers()}
+    key = sorted(members)[0].split(".")[0]
+    raw = {name.split(".", 1)[1]: data for name, data in members.items() if name.startswith(key + ".")}
+    raw["__key__"], raw["__url__"] = key, "shard"
+    full, lean = decode_wds_sample(raw), decode_wds_sample(raw, jacobian=False)
+    assert full["jacobian"] is not None and lean["jacobian"] is None
+    np.testing.assert_array_equal(full["image"], lean["image"])
+    bad = dict(raw, **{"jacobian.exr": raw["jacobian.exr"][:-1] + bytes([raw["jacobian.exr"][-1] ^ 1])})
+    with pytest.raises(RispError, match="sha256"):
+        decode_wds_sample(bad, jacobian=False)

@@ -127,11 +127,12 @@ def _where(sample: dict[str, Any]) -> str:
     return f"shard {sample.get('__url__', '<unknown shard>')} key {sample.get('__key__', '<unknown key>')}"
 
 
-def decode_wds_sample(sample: dict[str, Any]) -> dict[str, Any]:
+def decode_wds_sample(sample: dict[str, Any], jacobian: bool = True) -> dict[str, Any]:
     """Decode a raw webdataset sample (bytes per member) into arrays; RispError naming shard and key.
 
     Returns ``dict(key, image (H,W,3) float32, jacobian (K,H,W,3) float32 or None, state (S,) float64,
-    psi (K,) float64, meta dict)``.
+    psi (K,) float64, meta dict)``.  Every member's checksum is verified; with ``jacobian=False`` the
+    Jacobian EXR (the bulk of a sample) is not decoded and ``jacobian`` is None.
     """
     for ext in ("image.exr", "json", "psi.npy", "state.npy"):
         if ext not in sample:
@@ -147,9 +148,9 @@ def decode_wds_sample(sample: dict[str, Any]) -> dict[str, Any]:
         image = decode_exr(sample["image.exr"])["RGB"]
         state = np.load(io.BytesIO(sample["state.npy"]), allow_pickle=False)
         psi = np.load(io.BytesIO(sample["psi.npy"]), allow_pickle=False)
-        jacobian = None
-        if "jacobian.exr" in sample:
-            jacobian = decode_jacobian(sample["jacobian.exr"], list(meta["psi_names"]))
+        jac = None
+        if jacobian and "jacobian.exr" in sample:
+            jac = decode_jacobian(sample["jacobian.exr"], list(meta["psi_names"]))
         if state.shape != (len(meta["state_names"]),) or psi.shape != (len(meta["psi_names"]),):
             raise ValueError(f"state/psi shapes {state.shape}/{psi.shape} disagree with the names in its json")
     except RispError:
@@ -159,7 +160,7 @@ def decode_wds_sample(sample: dict[str, Any]) -> dict[str, Any]:
     return {
         "key": sample.get("__key__", ""),
         "image": image,
-        "jacobian": jacobian,
+        "jacobian": jac,
         "state": state.astype(np.float64, copy=False),
         "psi": psi.astype(np.float64, copy=False),
         "meta": meta,
