@@ -33,6 +33,7 @@ from .model import ModelConfig, ResNet18, build_model, stem_for_resolution
 from .normalization import Normalization, StatsAccumulator
 from .regularizers import gamma_at, risp_loss
 from risp_data.atomic import atomic_write, write_text_atomic
+from risp_data.threads import set_torch_threads
 
 LAST = "last.pt"  # the resumable checkpoint, rewritten at each epoch end (and every N steps)
 MODEL = "model.pt"  # the final checkpoint (same format), written when training completes
@@ -130,10 +131,25 @@ def _write_json(path: str, obj) -> None:
 
 def fit(cfg: TrainConfig, *, resume: bool = False, progress: bool = True,
         stop_after_step: int | None = None) -> str:
-    """Train according to ``cfg``; returns the path of the final checkpoint (``cfg.out/model.pt``)."""
+    """Train according to ``cfg``; returns the path of the final checkpoint (``cfg.out/model.pt``).
+
+    The run uses one fixed torch thread count (``cfg.threads``; 0: the CPUs left after the data workers,
+    risp_data.threads) and gives the caller's setting back when it returns.
+    """
+    dist_info = init_distributed()
+    before = torch.get_num_threads()
+    threads = set_torch_threads(cfg.threads, workers=cfg.workers,
+                                processes=int(os.environ.get("LOCAL_WORLD_SIZE", str(dist_info.world_size))))
+    try:
+        return _fit(cfg, dist_info, threads, resume=resume, progress=progress, stop_after_step=stop_after_step)
+    finally:
+        torch.set_num_threads(before)
+
+
+def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, resume: bool, progress: bool,
+         stop_after_step: int | None) -> str:
     from risp_data.envs import get_environment
 
-    dist_info = init_distributed()
     rank, world = dist_info.rank, dist_info.world_size
     shards = open_shards(cfg.shards, cfg.format)
     env = get_environment(shards.env)
@@ -207,18 +223,19 @@ def fit(cfg: TrainConfig, *, resume: bool = False, progress: bool = True,
             "model": net.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
             "progress": {"epoch": epoch, "batch": batch, "global_step": step, "total_steps": total_steps,
                          "complete": complete},
-            "history": history, "world_size": world, "workers": cfg.workers, "torch_version": torch.__version__,
+            "history": history, "world_size": world, "workers": cfg.workers, "threads": threads,
+            "torch_version": torch.__version__,
         }
 
     if rank == 0:
         _write_json(os.path.join(cfg.out, "config.json"),
                     {"config": cfg.to_dict(), "model_config": model_cfg.to_dict(), "gamma": gamma, "env": shards.env,
                      "manifest_hash": mhash, "normalization": norm.to_dict(), "world_size": world,
-                     "steps_per_epoch": plan})
+                     "threads": threads, "steps_per_epoch": plan})
     from tqdm.auto import tqdm
 
     bar = tqdm(total=total_steps, initial=step, disable=(not progress) or rank != 0, unit="step",
-               desc=f"fit {shards.env} reg={cfg.reg}")
+               desc=f"fit {shards.env} reg={cfg.reg} threads={threads}")
     log = None
     if rank == 0:
         new = not os.path.exists(csv_path)
