@@ -35,20 +35,21 @@ def cli():
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of weights, data order and the stochastic regularizer.")
 @click.option("--workers", type=int, default=2, show_default=True, help="DataLoader worker processes per rank.")
 @click.option("--threads", type=int, default=0, show_default=True, help="torch threads per rank (0: the CPUs left after --workers; 1 on a shared 2-core machine).")
+@click.option("--device", default="auto", show_default=True, help="auto (CUDA when torch sees a GPU), cpu, cuda or cuda:N.")
 @click.option("--format", "fmt", default="auto", show_default=True, help="Read wds or zarr shards (auto: wds if present).")
 @click.option("--checkpoint-every", type=int, default=0, show_default=True, help="Also checkpoint every N steps (0: epoch ends only).")
 @click.option("--val", type=click.Path(), default=None, help="Held-out shard folder evaluated at each epoch end.")
 @click.option("--resume", is_flag=True, help="Continue the run in --out from its last checkpoint.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def fit(shards, out, reg, gamma, gamma_ramp, preset, epochs, batch_size, lr, weight_decay, width, seed, workers,
-        threads, fmt, checkpoint_every, val, resume, quiet):
+        threads, device, fmt, checkpoint_every, val, resume, quiet):
     """Train on the shard folder SHARDS (streamed; resolution from its manifest)."""
     from .config import make_config
     from .train import fit as run_fit
 
     cfg = make_config(shards, out, preset=preset, reg=reg, gamma=gamma, gamma_ramp=gamma_ramp, epochs=epochs,
                       batch_size=batch_size, lr=lr, weight_decay=weight_decay, width=width, seed=seed,
-                      workers=workers, threads=threads, format=fmt, checkpoint_every=checkpoint_every, val=val)
+                      workers=workers, threads=threads, device=device, format=fmt, checkpoint_every=checkpoint_every, val=val)
     path = run_fit(cfg, resume=resume, progress=not quiet)
     import os
 

@@ -41,6 +41,7 @@ class TrainConfig:
     seed: int = 0
     workers: int = 2  # DataLoader worker processes (per rank)
     threads: int = 0  # torch intra-op threads per rank (0: CPUs left after the workers; risp_data.threads)
+    device: str = "auto"  # auto (CUDA when torch sees a GPU) | cpu | cuda | cuda:N
     width: int = 64  # ResNet-18 first-stage channels
     blocks: tuple[int, int, int, int] = (2, 2, 2, 2)
     stem: str = "auto"  # auto | imagenet | small

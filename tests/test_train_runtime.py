@@ -1,6 +1,6 @@
-"""The network runs its convolutions on NCHW tensors, whatever layout its input arrives in.
+"""How a training process runs: NCHW memory layout, thread counts, device.
 
-Regression test for the test-suite hang (issue 13): images permuted from (B, H, W, 3) are channels-last
+Layout: regression test for the test-suite hang (issue 13): images permuted from (B, H, W, 3) are channels-last
 in memory, and oneDNN's 1×1 stride-2 backward-weights kernel for channels-last input with fewer input
 channels than its register block writes past its workspace (uxlfoundation/oneDNN#6035).  Depending on
 what it overwrote, training hung for good inside ``GOMP_parallel``, crashed, or got wrong gradients.
@@ -84,3 +84,33 @@ def test_set_torch_threads_applies_and_validates():
             set_torch_threads(-1)
     finally:
         torch.set_num_threads(before)
+
+
+# -- device --------------------------------------------------------------------------------------------------
+def test_device_resolution_and_errors():
+    from risp_data.errors import RispError
+    from risp_train.train import resolve_device
+
+    assert resolve_device("cpu") == torch.device("cpu")
+    assert resolve_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
+    with pytest.raises(RispError, match="unknown --device"):
+        resolve_device("tpu:x")
+    if not torch.cuda.is_available():
+        with pytest.raises(RispError, match="no CUDA GPU"):
+            resolve_device("cuda")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_batch_tensors_on_gpu():
+    from risp_data.envs import get_environment
+    from risp_train.train import batch_tensors
+
+    env = get_environment("cube")
+    norm = Normalization(image_mean=(0.1,) * 3, image_std=(1.0,) * 3, target_mean=(0.0,) * env.target_dim,
+                         target_std=(1.0,) * env.target_dim)
+    import numpy as np
+
+    batch = {"image": torch.rand(2, 8, 8, 3), "jacobian": torch.rand(2, 4, 8, 8, 3),
+             "state": torch.as_tensor(env.sample_states(np.random.default_rng(0), 2))}
+    x, y, t = batch_tensors(batch, norm, env, True, torch.device("cuda"))
+    assert x.is_cuda and y.is_cuda and t.is_cuda
