@@ -32,8 +32,12 @@ def cli():
 @click.option("--executor", default="local", show_default=True, help="local (process pool) or ray (needs risp[ray]).")
 @click.option("--no-jacobian", is_flag=True, help="Store images only (evaluation shards).")
 @click.option("--variant", default=None, help="Mitsuba variant: llvm_ad_rgb or cuda_ad_rgb (default: cuda if usable).")
+@click.option("--jacobian-path", default="fast", show_default=True,
+              help="fast (merged colour tangents, emitter-split primal) or legacy (one tangent pass per psi; "
+                   "kept for one release). Same J to float32 rounding (docs/rendering.md).")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def render(env, n, out, fmt, resolution, spp, domain, seed, workers, shard_size, executor, no_jacobian, variant, quiet):
+def render(env, n, out, fmt, resolution, spp, domain, seed, workers, shard_size, executor, no_jacobian, variant,
+           jacobian_path, quiet):
     """Render N samples of ENV into shards under OUT (resumable: rerun to complete missing shards)."""
     from .errors import RispError
     from .generate import RenderJob, run_job
@@ -55,6 +59,7 @@ def render(env, n, out, fmt, resolution, spp, domain, seed, workers, shard_size,
         executor=executor,
         jacobian=not no_jacobian,
         variant=variant,
+        jacobian_path=jacobian_path,
     )
     t0 = time.perf_counter()
     before = None

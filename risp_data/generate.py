@@ -61,6 +61,7 @@ class RenderJob:
     executor: str = "local"
     jacobian: bool = True
     variant: str | None = None
+    jacobian_path: str = "fast"  # risp_data.render.JACOBIAN_PATHS; "legacy" kept for one release (issue 9)
 
     @property
     def num_shards(self) -> int:
@@ -89,6 +90,10 @@ def validate_job(job: RenderJob) -> None:
         raise RispError(f"--format must be one of wds, zarr, both; got {','.join(job.formats) or 'nothing'}")
     if job.executor not in EXECUTORS:
         raise RispError(f"unknown executor {job.executor!r}; choose one of: {', '.join(EXECUTORS)}")
+    from .render import JACOBIAN_PATHS
+
+    if job.jacobian_path not in JACOBIAN_PATHS:
+        raise RispError(f"--jacobian-path must be one of {', '.join(JACOBIAN_PATHS)}, got {job.jacobian_path!r}")
 
 
 # ------------------------------------------------------------------------------------ one sample
@@ -179,7 +184,8 @@ def make_renderer(job: RenderJob, threads: int | None = None):
 
         dr.set_thread_count(threads)
     get_environment(job.env)
-    return Renderer(job.env, domain=job.domain, resolution=job.resolution, spp=job.spp, variant=job.variant)
+    return Renderer(job.env, domain=job.domain, resolution=job.resolution, spp=job.spp, variant=job.variant,
+                    jacobian_path=job.jacobian_path)
 
 
 def render_shard(job: RenderJob, shard_index: int, renderer, on_sample: Callable[[], None] | None = None) -> dict:
