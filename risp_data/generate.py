@@ -207,10 +207,9 @@ def render_shard(job: RenderJob, shard_index: int, renderer, on_sample: Callable
 
 def new_manifest(job: RenderJob, variant: str) -> dict[str, Any]:
     from .envs import get_environment
-    from .psi import psi_specs
+    from .psi import psi_manifest
 
     env = get_environment(job.env)
-    specs = psi_specs(job.env)
     return {
         "format": FORMAT_NAME,
         "format_version": FORMAT_VERSION,
@@ -226,13 +225,7 @@ def new_manifest(job: RenderJob, variant: str) -> dict[str, Any]:
         "seed": job.seed,
         "seed_scheme": SEED_SCHEME,
         "formats": list(job.formats),
-        "psi": {
-            "names": [s.name for s in specs],
-            "nominal": [float(s.nominal) for s in specs],
-            "low": [float(s.low) for s in specs],
-            "high": [float(s.high) for s in specs],
-            "descriptions": [s.description for s in specs],
-        },
+        "psi": psi_manifest(job.env, job.domain),  # the folder domain's ranges and units, what J is w.r.t.
         "state_names": list(env.state_names),
         "state_low": [float(v) for v in env.state_low],
         "state_high": [float(v) for v in env.state_high],
