@@ -72,3 +72,33 @@ def test_target_folder_manifest_lists_target_ranges(tmp_path):
     assert m["descriptions"] == [s.description for s in target]
     assert m["train_low"] == [s.low for s in psi_specs("cube", "train")]
     assert m["units"][0].startswith("dimensionless multiple")
+
+
+def test_verify_default_tolerance_catches_a_jacobian_off_by_half_a_percent(tmp_path):
+    """The old default (0.05) let a 0.5 % wrong J through; the new one (1e-3, docs/cli-data.md) fails it,
+    while the untouched folder passes at the new default."""
+    import zarr
+
+    from risp_data.cli import cli
+    from risp_data.shards import load_manifest
+    from risp_data.shards.manifest import file_record, save_manifest
+    from risp_data.verify import TOL, VerifyConfig, verify_folder
+
+    out = tmp_path / "v"
+    args = ["render", "--env", "cube", "--res", "8", "--spp", "2", "--quiet", "--n", "2", "--shard-size", "2",
+            "--workers", "1", "--format", "zarr", "--out", str(out)]
+    assert CliRunner().invoke(cli, args).exit_code == 0
+    ok = verify_folder(VerifyConfig(str(out), samples=2, progress=False))
+    assert not ok.failures and max(ok.rel_error) < TOL / 10, ok.rel_error
+    m = load_manifest(str(out))
+    j = m["psi"]["names"].index("object_g")
+    arr = zarr.open_array(str(out / "data.zarr" / "jacobians"), mode="r+")
+    block = arr[0:2]
+    block[:, j] *= 1.005
+    arr[0:2] = block
+    rec = m["shards"][0]
+    rec["files"] = {rel: file_record(str(out), rel) for rel in rec["files"]}
+    save_manifest(str(out), m)
+    assert not verify_folder(VerifyConfig(str(out), samples=2, tol=0.05, progress=False)).failures
+    bad = verify_folder(VerifyConfig(str(out), samples=2, progress=False))
+    assert len(bad.failures) == 1 and "object_g" in bad.failures[0]
