@@ -97,12 +97,32 @@ def floor_texture(name: str, seed: int, size: int = TEXTURE_SIZE) -> tuple[np.nd
         w = 0.45 * ((np.floor(x * cells) + np.floor(y * cells)) % 2) + rng.uniform(0, 0.1)
         grout = np.minimum((x * cells) % 1, (y * cells) % 1) < 0.06
         return np.where(grout, 1.0, w).astype(np.float32), (0.95, 0.9, 0.8), (0.12, 0.1, 0.09)
-    if name == "wood":  # rings with a wobble between light and dark wood
-        phase = rng.uniform(0, 2 * np.pi)
-        r = np.sqrt((x - 0.3) ** 2 * 0.2 + (y - 0.5) ** 2) * 30 + 2 * np.sin(x * 6 + phase)
-        w = 0.5 + 0.5 * np.sin(r)
-        return w.astype(np.float32), (1.0, 0.78, 0.52), (0.55, 0.33, 0.18)
+    if name == "wood":
+        return _wood(rng, x, y), (1.0, 0.78, 0.52), (0.55, 0.33, 0.18)
     raise RispError(f"unknown floor texture {name!r} in the render config")
+
+
+WOOD_PLANKS = 4  # planks per texture repeat (along y)
+
+
+def _wood(rng: np.random.Generator, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Seamless wood planks on the unit square: w(x + 1, y) = w(x, y + 1) = w(x, y).
+
+    Each of WOOD_PLANKS planks (along x) has grain stripes w = ½ + ½ sin(2π (g·v + A sin(2π(x + φ)) +
+    B sin(2π(2x + v + φ')))), v = WOOD_PLANKS·y − plank index ∈ [0, 1), with integer g and per-plank random
+    phases: every term has an integer frequency in x, so the texture tiles in x; the planks' boundaries
+    (dark joints) fall on y = k / WOOD_PLANKS including y = 0 ≡ 1, so it tiles in y too.  The old ring
+    pattern sqrt((x − 0.3)² · 0.2 + (y − 0.5)²) had a visible seam at every 2 m repeat (issue 9).
+    """
+    plank = np.floor(y * WOOD_PLANKS).astype(int) % WOOD_PLANKS
+    v = y * WOOD_PLANKS - np.floor(y * WOOD_PLANKS)
+    grains = rng.integers(3, 6, WOOD_PLANKS)[plank]
+    phase, phase2 = rng.uniform(0, 1, (2, WOOD_PLANKS))
+    shade = rng.uniform(-0.15, 0.15, WOOD_PLANKS)[plank]
+    w = 0.5 + 0.5 * np.sin(2 * np.pi * (grains * v + 0.35 * np.sin(2 * np.pi * (x + phase[plank]))
+                                        + 0.1 * np.sin(2 * np.pi * (2 * x + v + phase2[plank]))))
+    joint = np.minimum(v, 1 - v) * WOOD_PLANKS < 0.04  # dark joint between planks
+    return np.clip(np.where(joint, 1.0, 0.85 * w + shade + 0.075), 0, 1).astype(np.float32)
 
 
 def sky_map(zenith, horizon, rows: int = SKY_SIZE[0], cols: int = SKY_SIZE[1]) -> np.ndarray:

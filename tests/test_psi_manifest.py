@@ -102,3 +102,27 @@ def test_verify_default_tolerance_catches_a_jacobian_off_by_half_a_percent(tmp_p
     assert not verify_folder(VerifyConfig(str(out), samples=2, tol=0.05, progress=False)).failures
     bad = verify_folder(VerifyConfig(str(out), samples=2, progress=False))
     assert len(bad.failures) == 1 and "object_g" in bad.failures[0]
+
+
+def _wrap_jumps(w: np.ndarray) -> tuple[float, float, float, float]:
+    """(largest |jump| across the x wrap, largest between neighbouring columns, same for y)."""
+    dx, dy = np.abs(np.diff(w, axis=1)), np.abs(np.diff(w, axis=0))
+    return (float(np.abs(w[:, 0] - w[:, -1]).max()), float(dx.max()),
+            float(np.abs(w[0] - w[-1]).max()), float(dy.max()))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_target_wood_floor_tiles_seamlessly(seed):
+    """Mitsuba repeats the floor texture (wrap_mode repeat, bilinear): the step across the texture's
+    edge must be no larger than the steps inside it, for x and y."""
+    from risp_data.render import floor_texture
+
+    w, c0, c1 = floor_texture("wood", seed)
+    assert w.dtype == np.float32 and 0 <= w.min() and w.max() <= 1 and w.std() > 0.1  # a pattern, not flat
+    wrap_x, inner_x, wrap_y, inner_y = _wrap_jumps(w.astype(np.float64))
+    assert wrap_x <= inner_x * 1.01 and wrap_y <= inner_y * 1.01
+    # the test can fail: the old ring pattern's seam is several inner steps high
+    yy, xx = np.mgrid[0:64, 0:64] / 64
+    old = 0.5 + 0.5 * np.sin(np.sqrt((xx - 0.3) ** 2 * 0.2 + (yy - 0.5) ** 2) * 30 + 2 * np.sin(xx * 6 + 1.0))
+    ox, oix, _, _ = _wrap_jumps(old)
+    assert ox > 2 * oix
