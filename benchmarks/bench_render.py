@@ -64,7 +64,8 @@ def bench_env(env: str, domain: str, resolution: int, spp: int, repeats: int, wa
 
 
 def run_job(path: str, n: int, workers: int, env: str, shard_size: int) -> float:
-    """samples/s of one ``risp-data render`` run (as printed by the command: rendering + shard writing)."""
+    """samples/s of one ``risp-data render`` run as the command prints it: everything from start to the last
+    shard on disk (process start-up, kernel compilation or cache loads, rendering, EXR/zarr writing)."""
     with tempfile.TemporaryDirectory(prefix="bench-render-") as tmp:
         cmd = [sys.executable, "-m", "risp_data", "render", "--env", env, "--n", str(n), "--out",
                os.path.join(tmp, "out"), "--workers", str(workers), "--shard-size", str(shard_size),
@@ -85,7 +86,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--env", action="append", choices=ENV_NAMES, help="environment(s); default: all")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-job", action="store_true", help="skip the risp-data render job comparison")
-    ap.add_argument("--job-n", type=int, default=None, help="samples per job run (default 64; 32 with --quick)")
+    ap.add_argument("--job-n", type=int, default=None, help="samples per job run (default 256; 64 with --quick)")
     ap.add_argument("--job-runs", type=int, default=None, help="runs per path (default 3; 2 with --quick)")
     args = ap.parse_args(argv)
     repeats, warmup = (4, 2) if args.quick else (12, 3)
@@ -103,14 +104,14 @@ def main(argv: list[str] | None = None) -> None:
     print(f"# {load()}")
     if args.no_job:
         return
-    n = args.job_n or (32 if args.quick else 64)
+    n = args.job_n or (64 if args.quick else 256)
     runs = args.job_runs or (2 if args.quick else 3)
-    print(f"# job: risp-data render --env cube --n {n} --workers 2 --shard-size {n // 2} (64x64, 16 spp), "
+    print(f"# job: risp-data render --env cube --n {n} --workers 2 --shard-size {n // 4} (64x64, 16 spp), "
           f"{runs} runs per path alternated; {load()}")
     rates: dict[str, list[float]] = {"fast": [], "legacy": []}
     for _ in range(runs):
         for path in rates:
-            rates[path].append(run_job(path, n, 2, "cube", n // 2))
+            rates[path].append(run_job(path, n, 2, "cube", n // 4))
             print(f"  {path:6s} {rates[path][-1]:6.2f} samples/s   ({load()})", flush=True)
     med = {k: statistics.median(v) for k, v in rates.items()}
     print(f"job samples/s: fast {med['fast']:.2f}, legacy {med['legacy']:.2f}, ratio {med['fast'] / med['legacy']:.2f}"
