@@ -25,6 +25,7 @@ import numpy as np
 
 from .envs import get_environment
 from .errors import RispError
+from .emitter_split import sample_per_emitter
 from .mitsuba_setup import init_mitsuba
 from .psi import RenderConfig, _check_domain, psi_specs
 
@@ -240,11 +241,23 @@ class Renderer:
             self.reference_integrator = mi.load_dict({"type": self.settings.reference,
                                                       "max_depth": self.settings.max_depth, "rr_depth": 3})
         self._bindings = self._make_bindings()
+        self._emitters = {k: self._emitter_named(b.key.split(".")[0]) for k, b in enumerate(self._bindings)
+                          if b.emitter}  # the Mitsuba emitter object each emitter binding sets
         self._texture_key, self._sky_key = None, None  # what the floor pattern / sky currently hold
         self._diff_keys = [b.key for b in self._bindings]
         missing = [k for k in self._diff_keys + list(self._mesh_keys.values()) if k not in self.params]
         if missing:  # a Mitsuba version with other parameter names: a programming error, not user input
             raise RuntimeError(f"scene parameters not found: {missing}")
+
+    def _emitter_named(self, name: str):
+        """The emitter of scene object ``name``: an emitter with that id, or the area emitter of a shape."""
+        for shape in self.scene.shapes():
+            if shape.id() == name and shape.emitter() is not None:
+                return shape.emitter()
+        for emitter in self.scene.emitters():
+            if emitter.id() == name:
+                return emitter
+        raise RuntimeError(f"no emitter named {name!r} in the scene")  # a programming error, not user input
 
     def _object_bsdf(self):
         mi = self._mi
@@ -457,16 +470,19 @@ class Renderer:
 
     def jacobian_plan(self, psi: np.ndarray, aux: dict) -> "JacobianPlan":
         """How the fast path gets each J_j (docs/rendering.md, "The fast Jacobian path")."""
+        return self._plan(self._tangent_values(psi, aux))
+
+    def _plan(self, T: list[list[np.ndarray]]) -> "JacobianPlan":
         emitters = [k for k, b in enumerate(self._bindings) if b.emitter]
-        return plan_jacobian(self.psi_names, self._tangent_values(psi, aux), [b.kind for b in self._bindings],
-                             emitters, all_emitters_bound=len(self.scene.emitters()) == len(emitters))
+        bound = {id(self._emitters[k]) for k in emitters} == {id(e) for e in self.scene.emitters()}
+        return plan_jacobian(self.psi_names, T, [b.kind for b in self._bindings], emitters, all_emitters_bound=bound)
 
     def _passes_fast(self, psi: np.ndarray, aux: dict, seed) -> tuple:
         """Image and J (K, H, W, 3) float32 by the fast path: emitter-split primal passes and merged colour
         tangents (docs/rendering.md).  Same J as :meth:`_passes` up to float32 rounding."""
         mi, dr = self._mi, self._dr
-        plan = self.jacobian_plan(psi, aux)
         T = self._tangent_values(psi, aux)
+        plan = self._plan(T)
         integ, scene = self.integrator, self.scene
         sensor = scene.sensors()[0]
         spp = self.spp * self.settings.spp_factor
@@ -475,20 +491,23 @@ class Renderer:
         with dr.suspend_grad():
             sampler, spp = integ.prepare(sensor, seed, spp, integ.aov_names())
             ray, weight, pos = integ.sample_rays(scene, sensor, sampler)
-            # (1) primal: one pass per emitter ψ_j with the emitters set to P(e_j) (then L_j = ∂L/∂ψ_j
-            #     exactly, L linear in the emitters), L = Σ_j ψ_j L_j; or one ordinary primal pass.
+            # (1) primal.  Emitter split: every emitter set to its tangent value ∂p_e/∂ψ_j(e), one pass that
+            #     keeps each emitter's radiance L_e apart; then ∂L/∂ψ_j = Σ_{e driven by ψ_j} L_e and
+            #     L = Σ_e ψ_j(e) L_e exactly (L is linear in the emitters).  Otherwise one ordinary primal.
             split = {}
-            for j in plan.emitter:
-                for k in emitter_keys:
-                    self.params[self._bindings[k].key] = self._to_mitsuba(T[j][k], self._bindings[k].kind)
-                self.params.update()
-                split[j], _, _, _ = integ.sample(mode=dr.ADMode.Primal, sampler=sampler.clone(), ray=ray,
-                                                 δL=None, state_in=None, **kw)
             if plan.emitter:
+                driver = {k: next(j for j in plan.emitter if np.any(T[j][k] != 0)) for k in emitter_keys}
+                for k in emitter_keys:
+                    self.params[self._bindings[k].key] = self._to_mitsuba(T[driver[k]][k], self._bindings[k].kind)
+                self.params.update()
+                per_emitter = sample_per_emitter(scene, sampler.clone(), ray, [self._emitters[k] for k in emitter_keys],
+                                                 self.settings.max_depth, self.settings.rr_depth)
                 for k in emitter_keys:  # back to the gradient-enabled values of ψ
                     self.params[self._bindings[k].key] = self._leaves[k]
                 self.params.update()
-                L = sum(self._var(float(psi[j])) * split[j] for j in plan.emitter)
+                L_e = dict(zip(emitter_keys, per_emitter))
+                split = {j: sum(L_e[k] for k in emitter_keys if driver[k] == j) for j in plan.emitter}
+                L = sum(self._var(float(psi[driver[k]])) * L_e[k] for k in emitter_keys)
             else:
                 L, _, _, _ = integ.sample(mode=dr.ADMode.Primal, sampler=sampler.clone(), ray=ray, δL=None,
                                           state_in=None, **kw)
@@ -586,15 +605,17 @@ class JacobianPlan:
 def plan_jacobian(names, T, kinds, emitters, all_emitters_bound: bool) -> JacobianPlan:
     """Classify every ψ_j from its tangents T[j][k] = ∂p_k/∂ψ_j (docs/rendering.md says why each is exact).
 
-    Emitter split: every binding ψ_j moves is an emitter, no other ψ moves an emitter, and every emitter
-    of the scene is a binding (else I ≠ Σ_j ψ_j ∂I/∂ψ_j).  Colour group: ψ named ``<x>_r``, ``<x>_g``,
+    Emitter split: every binding ψ_j moves is an emitter, no other ψ moves an emitter, every emitter
+    binding is moved by exactly one ψ (one pass then separates them by emitter), and every emitter of the
+    scene is a binding (else I ≠ Σ_j ψ_j ∂I/∂ψ_j).  Colour group: ψ named ``<x>_r``, ``<x>_g``,
     ``<x>_b`` whose tangents are non-zero only in their own channel of colour bindings (the ``rgb``
     variant never mixes channels, so one pass with the summed tangent carries all three)."""
     K = len(names)
     moves = [{k for k, t in enumerate(T[j]) if np.any(t != 0)} for j in range(K)]
     emitter_j = [j for j in range(K) if moves[j] and moves[j] <= set(emitters)]
     others_touch = any(moves[j] & set(emitters) for j in range(K) if j not in emitter_j)
-    if not all_emitters_bound or others_touch:
+    one_driver = all(sum(k in moves[j] for j in emitter_j) == 1 for k in emitters)
+    if not all_emitters_bound or others_touch or not one_driver:
         emitter_j = []
     groups, used = [], set(emitter_j)
     for j, name in enumerate(names):
