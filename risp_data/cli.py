@@ -32,8 +32,12 @@ def cli():
 @click.option("--executor", default="local", show_default=True, help="local (process pool) or ray (needs risp[ray]).")
 @click.option("--no-jacobian", is_flag=True, help="Store images only (evaluation shards).")
 @click.option("--variant", default=None, help="Mitsuba variant: llvm_ad_rgb or cuda_ad_rgb (default: cuda if usable).")
+@click.option("--jacobian-path", default="fast", show_default=True,
+              help="fast (merged colour tangents, emitter-split primal) or legacy (one tangent pass per psi; "
+                   "kept for one release). Same J to float32 rounding (docs/rendering.md).")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def render(env, n, out, fmt, resolution, spp, domain, seed, workers, shard_size, executor, no_jacobian, variant, quiet):
+def render(env, n, out, fmt, resolution, spp, domain, seed, workers, shard_size, executor, no_jacobian, variant,
+           jacobian_path, quiet):
     """Render N samples of ENV into shards under OUT (resumable: rerun to complete missing shards)."""
     from .errors import RispError
     from .generate import RenderJob, run_job
@@ -55,6 +59,7 @@ def render(env, n, out, fmt, resolution, spp, domain, seed, workers, shard_size,
         executor=executor,
         jacobian=not no_jacobian,
         variant=variant,
+        jacobian_path=jacobian_path,
     )
     t0 = time.perf_counter()
     before = None
@@ -92,8 +97,10 @@ def inspect(folder, png, samples):
 @cli.command()
 @click.argument("folder", type=click.Path())
 @click.option("--samples", default=8, show_default=True, type=int, help="Samples to re-render (evenly spaced).")
-@click.option("--eps", default=1e-3, show_default=True, type=float, help="Step, as a fraction of each psi's training range.")
-@click.option("--tol", default=0.05, show_default=True, type=float, help="Largest accepted relative error per psi.")
+@click.option("--eps", default=1e-2, show_default=True, type=float,
+              help="Step, as a fraction of each psi's range in the folder's domain (manifest psi.low/high).")
+@click.option("--tol", default=1e-3, show_default=True, type=float,
+              help="Largest accepted relative error per psi (measured <= 2.5e-5 at --eps 1e-2; docs/cli-data.md).")
 @click.option("--checksums/--no-checksums", default=True, show_default=True, help="Also hash every shard file.")
 def verify(folder, samples, eps, tol, checksums):
     """Compare stored Jacobians with central differences of re-renders (same seed); exit 1 beyond --tol."""

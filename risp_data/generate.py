@@ -61,6 +61,7 @@ class RenderJob:
     executor: str = "local"
     jacobian: bool = True
     variant: str | None = None
+    jacobian_path: str = "fast"  # risp_data.render.JACOBIAN_PATHS; "legacy" kept for one release (issue 9)
 
     @property
     def num_shards(self) -> int:
@@ -89,6 +90,10 @@ def validate_job(job: RenderJob) -> None:
         raise RispError(f"--format must be one of wds, zarr, both; got {','.join(job.formats) or 'nothing'}")
     if job.executor not in EXECUTORS:
         raise RispError(f"unknown executor {job.executor!r}; choose one of: {', '.join(EXECUTORS)}")
+    from .render import JACOBIAN_PATHS
+
+    if job.jacobian_path not in JACOBIAN_PATHS:
+        raise RispError(f"--jacobian-path must be one of {', '.join(JACOBIAN_PATHS)}, got {job.jacobian_path!r}")
 
 
 # ------------------------------------------------------------------------------------ one sample
@@ -179,7 +184,8 @@ def make_renderer(job: RenderJob, threads: int | None = None):
 
         dr.set_thread_count(threads)
     get_environment(job.env)
-    return Renderer(job.env, domain=job.domain, resolution=job.resolution, spp=job.spp, variant=job.variant)
+    return Renderer(job.env, domain=job.domain, resolution=job.resolution, spp=job.spp, variant=job.variant,
+                    jacobian_path=job.jacobian_path)
 
 
 def render_shard(job: RenderJob, shard_index: int, renderer, on_sample: Callable[[], None] | None = None) -> dict:
@@ -201,10 +207,9 @@ def render_shard(job: RenderJob, shard_index: int, renderer, on_sample: Callable
 
 def new_manifest(job: RenderJob, variant: str) -> dict[str, Any]:
     from .envs import get_environment
-    from .psi import psi_specs
+    from .psi import psi_manifest
 
     env = get_environment(job.env)
-    specs = psi_specs(job.env)
     return {
         "format": FORMAT_NAME,
         "format_version": FORMAT_VERSION,
@@ -220,13 +225,7 @@ def new_manifest(job: RenderJob, variant: str) -> dict[str, Any]:
         "seed": job.seed,
         "seed_scheme": SEED_SCHEME,
         "formats": list(job.formats),
-        "psi": {
-            "names": [s.name for s in specs],
-            "nominal": [float(s.nominal) for s in specs],
-            "low": [float(s.low) for s in specs],
-            "high": [float(s.high) for s in specs],
-            "descriptions": [s.description for s in specs],
-        },
+        "psi": psi_manifest(job.env, job.domain),  # the folder domain's ranges and units, what J is w.r.t.
         "state_names": list(env.state_names),
         "state_low": [float(v) for v in env.state_low],
         "state_high": [float(v) for v in env.state_high],

@@ -37,13 +37,17 @@ TARGET_FLOOR_TEXTURES: tuple[str, ...] = ("tiles", "wood")
 
 @dataclass(frozen=True)
 class PsiSpec:
-    """One differentiable rendering parameter: name ([a-z0-9_], no dots), nominal value, training range."""
+    """One differentiable rendering parameter in one domain: name ([a-z0-9_], no dots), nominal value,
+    the range ψ is sampled from — ``intervals`` (a union of closed intervals), ``low``/``high`` their
+    hull — what it means in that domain and its unit."""
 
     name: str
     nominal: float
     low: float
     high: float
     description: str
+    unit: str = ""
+    intervals: tuple[tuple[float, float], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -61,10 +65,49 @@ _OBJECT_NOMINAL = {
     "hand": (0.80, 0.60, 0.50),
     "rod": (0.30, 0.60, 0.30),
 }
+# Training ranges (domain ``train``: ψ_j uniform in [low, high]).
 OBJECT_RANGE = (0.1, 0.9)
 FLOOR_RANGE = (0.2, 0.8)
 LIGHT_RANGE = (0.5, 2.0)
 AMBIENT_RANGE = (0.05, 0.5)
+# Target domain: brighter light and ambient, colours *outside* the training ranges (each channel below
+# or above, by at most the margin, clipped to the physical reflectances REFLECTANCE_CLIP).
+TARGET_LIGHT_RANGE = (1.0, 3.0)
+TARGET_AMBIENT_RANGE = (0.3, 0.8)
+TARGET_OBJECT_MARGIN = 0.09
+TARGET_FLOOR_MARGIN = 0.15
+REFLECTANCE_CLIP = (0.01, 0.99)
+
+# What each ψ is per domain, and its unit (the manifest's ``psi.descriptions`` and ``psi.units``).
+_LIGHT_UNIT = ("dimensionless multiple of the nominal key light: 1 gives an irradiance of LIGHT_IRRADIANCE = 3 "
+               "(linear image units) at the camera target, facing the light")
+_DESCRIPTIONS = {
+    "train": {
+        "light_intensity": "key light strength, point light (1 = nominal irradiance at the target)",
+        "ambient": "radiance of the constant grey environment",
+        "object": "object reflectance (diffuse), {C} channel",
+        "floor": "floor reflectance tint, {C} channel: reflectance = tint x texture colour",
+    },
+    "target": {
+        "light_intensity": "key light strength, square area light tinted by aux light_color "
+                           "(1 = nominal irradiance at the target)",
+        "ambient": "scale of the procedural sky map (aux sky_zenith, sky_horizon) lighting the scene",
+        "object": "object reflectance, {C} channel, of the diffuse base under a rough metal coat "
+                  "(aux object_gloss, object_roughness)",
+        "floor": "floor reflectance tint, {C} channel: reflectance = tint x texture colour (tiles or wood)",
+    },
+}
+_UNITS = {
+    "train": {"ambient": "radiance in the images' linear RGB units (the same units as the image pixels)"},
+    "target": {"ambient": "dimensionless scale on the sky map's radiance (sky map values in linear image units)"},
+}
+_REFLECTANCE_UNIT = "dimensionless reflectance (albedo, fraction of light reflected) in [0, 1]"
+_TINT_UNIT = "dimensionless factor on the floor texture's reflectance colours"
+
+
+def _outside(low: float, high: float, margin: float) -> tuple[tuple[float, float], tuple[float, float]]:
+    """[low − margin, low] ∪ [high, high + margin], clipped to REFLECTANCE_CLIP."""
+    return (max(low - margin, REFLECTANCE_CLIP[0]), low), (high, min(high + margin, REFLECTANCE_CLIP[1]))
 
 
 def _check_env(env: str) -> None:
@@ -77,19 +120,63 @@ def _check_domain(domain: str) -> None:
         raise RispError(f"unknown domain {domain!r}; choose one of: {', '.join(DOMAINS)}")
 
 
-def psi_specs(env: str) -> tuple[PsiSpec, ...]:
-    """The K = 8 rendering parameters of ``env`` (training ranges; same names in both domains)."""
+def psi_specs(env: str, domain: str = "train") -> tuple[PsiSpec, ...]:
+    """The K = 8 rendering parameters of ``env`` (same names and order in both domains) with the ranges,
+    descriptions and units of ``domain``: ``train`` gives the training ranges; ``target`` the ranges
+    :func:`sample_rendering` draws target-domain ψ from (outside the training ranges for colours)."""
     _check_env(env)
+    _check_domain(domain)
     obj = _OBJECT_NOMINAL[env]
+    text, target = _DESCRIPTIONS[domain], domain == "target"
+    light = TARGET_LIGHT_RANGE if target else LIGHT_RANGE
+    ambient = TARGET_AMBIENT_RANGE if target else AMBIENT_RANGE
+
+    def spec(name, nominal, intervals, description, unit):
+        intervals = tuple((float(a), float(b)) for a, b in intervals)
+        return PsiSpec(name, nominal, min(a for a, _ in intervals), max(b for _, b in intervals), description,
+                       unit, intervals)
+
     specs = [
-        PsiSpec("light_intensity", 1.0, *LIGHT_RANGE, "key light strength (1 = nominal irradiance at the target)"),
-        PsiSpec("ambient", 0.2, *AMBIENT_RANGE, "environment radiance (grey)"),
+        spec("light_intensity", 1.0, [light], text["light_intensity"], _LIGHT_UNIT),
+        spec("ambient", 0.2, [ambient], text["ambient"], _UNITS[domain]["ambient"]),
     ]
     for c, ch in enumerate("rgb"):
-        specs.append(PsiSpec(f"object_{ch}", obj[c], *OBJECT_RANGE, f"object reflectance, {ch.upper()} channel"))
+        rng = _outside(*OBJECT_RANGE, TARGET_OBJECT_MARGIN) if target else [OBJECT_RANGE]
+        specs.append(spec(f"object_{ch}", obj[c], rng, text["object"].format(C=ch.upper()), _REFLECTANCE_UNIT))
     for ch in "rgb":
-        specs.append(PsiSpec(f"floor_{ch}", 0.5, *FLOOR_RANGE, f"floor reflectance tint, {ch.upper()} channel"))
+        rng = _outside(*FLOOR_RANGE, TARGET_FLOOR_MARGIN) if target else [FLOOR_RANGE]
+        specs.append(spec(f"floor_{ch}", 0.5, rng, text["floor"].format(C=ch.upper()), _TINT_UNIT))
     return tuple(specs)
+
+
+JACOBIAN_MEANING = (
+    "jacobian[j] = dI/dpsi_j, the derivative of the stored linear-RGB image with respect to the raw value of "
+    "psi_j exactly as stored with the sample (psi.npy / zarr psi), in psi_j's unit (psi.units): no "
+    "normalisation by the ranges, so J_j has image units per unit of psi_j")
+
+
+def psi_manifest(env: str, domain: str) -> dict:
+    """The manifest's ``psi`` block for a folder of ``domain``: names, nominal values, the ranges ψ is
+    sampled from in that domain (``low``/``high`` hull and ``intervals``), the training ranges
+    (``train_low``/``train_high``), descriptions and units, and what J is differentiated with respect to."""
+    specs, train = psi_specs(env, domain), psi_specs(env, "train")
+    sampling = ("uniform in [low, high]" if domain == "train" else
+                "light_intensity, ambient: uniform in [low, high]; colours: each channel uniform in one of its "
+                "two intervals (below or above the training range, chosen with probability 1/2)")
+    return {
+        "names": [s.name for s in specs],
+        "nominal": [float(s.nominal) for s in specs],
+        "domain": domain,
+        "low": [float(s.low) for s in specs],
+        "high": [float(s.high) for s in specs],
+        "intervals": [[list(i) for i in s.intervals] for s in specs],
+        "sampling": sampling,
+        "train_low": [float(s.low) for s in train],
+        "train_high": [float(s.high) for s in train],
+        "descriptions": [s.description for s in specs],
+        "units": [s.unit for s in specs],
+        "jacobian": JACOBIAN_MEANING,
+    }
 
 
 def psi_names(env: str) -> tuple[str, ...]:
@@ -118,9 +205,10 @@ def nominal_rendering(env: str, domain: str = "train") -> RenderConfig:
 
 
 def _sample_outside(rng: np.random.Generator, low: float, high: float, margin: float, size: int) -> np.ndarray:
-    """Values in [low − margin, low) ∪ (high, high + margin], clipped to [0.01, 0.99] (reflectances)."""
-    below = rng.uniform(max(low - margin, 0.01), low, size)
-    above = rng.uniform(high, min(high + margin, 0.99), size)
+    """Values in [low − margin, low) ∪ (high, high + margin], clipped to REFLECTANCE_CLIP (reflectances)."""
+    (a, b), (c, d) = _outside(low, high, margin)
+    below = rng.uniform(a, b, size)
+    above = rng.uniform(c, d, size)
     return np.where(rng.random(size) < 0.5, below, above)
 
 
@@ -130,8 +218,9 @@ def sample_rendering(env: str, domain: str, rng: np.random.Generator) -> RenderC
     ``train``: ψ_j uniform in [low_j, high_j]; light direction uniform in azimuth, elevation uniform in
     [30°, 75°], distance uniform in [3, 5] m from the camera target; floor texture uniform over
     TRAIN_FLOOR_TEXTURES with a random texture seed.
-    ``target``: light intensity in [1, 3], ambient in [0.3, 0.8], object and floor colours *outside* the
-    training ranges (each channel below or above it), area light of side [0.5, 1.5] m with a warm/cool
+    ``target``: light intensity in TARGET_LIGHT_RANGE = [1, 3], ambient in TARGET_AMBIENT_RANGE = [0.3, 0.8],
+    object and floor colours *outside* the training ranges (each channel below or above it; the intervals
+    of ``psi_specs(env, "target")``), area light of side [0.5, 1.5] m with a warm/cool
     tint, a procedural sky, tiled or wood floor, glossy objects (blend weight of a rough metal coat in
     [0.15, 0.4], GGX roughness in [0.05, 0.3]).
     """
@@ -150,9 +239,9 @@ def sample_rendering(env: str, domain: str, rng: np.random.Generator) -> RenderC
                "texture_seed": seed}
         return RenderConfig(psi=psi, aux=aux)
     psi = np.concatenate([
-        [rng.uniform(1.0, 3.0), rng.uniform(0.3, 0.8)],
-        _sample_outside(rng, *OBJECT_RANGE, 0.09, 3),
-        _sample_outside(rng, *FLOOR_RANGE, 0.15, 3),
+        [rng.uniform(*TARGET_LIGHT_RANGE), rng.uniform(*TARGET_AMBIENT_RANGE)],
+        _sample_outside(rng, *OBJECT_RANGE, TARGET_OBJECT_MARGIN, 3),
+        _sample_outside(rng, *FLOOR_RANGE, TARGET_FLOOR_MARGIN, 3),
     ]).astype(np.float64)
     warm = float(rng.uniform(-1, 1))
     aux = {"light_direction": direction, "light_distance": distance,

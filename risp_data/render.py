@@ -25,6 +25,7 @@ import numpy as np
 
 from .envs import get_environment
 from .errors import RispError
+from .emitter_split import sample_per_emitter
 from .mitsuba_setup import init_mitsuba
 from .psi import RenderConfig, _check_domain, psi_specs
 
@@ -97,12 +98,32 @@ def floor_texture(name: str, seed: int, size: int = TEXTURE_SIZE) -> tuple[np.nd
         w = 0.45 * ((np.floor(x * cells) + np.floor(y * cells)) % 2) + rng.uniform(0, 0.1)
         grout = np.minimum((x * cells) % 1, (y * cells) % 1) < 0.06
         return np.where(grout, 1.0, w).astype(np.float32), (0.95, 0.9, 0.8), (0.12, 0.1, 0.09)
-    if name == "wood":  # rings with a wobble between light and dark wood
-        phase = rng.uniform(0, 2 * np.pi)
-        r = np.sqrt((x - 0.3) ** 2 * 0.2 + (y - 0.5) ** 2) * 30 + 2 * np.sin(x * 6 + phase)
-        w = 0.5 + 0.5 * np.sin(r)
-        return w.astype(np.float32), (1.0, 0.78, 0.52), (0.55, 0.33, 0.18)
+    if name == "wood":
+        return _wood(rng, x, y), (1.0, 0.78, 0.52), (0.55, 0.33, 0.18)
     raise RispError(f"unknown floor texture {name!r} in the render config")
+
+
+WOOD_PLANKS = 4  # planks per texture repeat (along y)
+
+
+def _wood(rng: np.random.Generator, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Seamless wood planks on the unit square: w(x + 1, y) = w(x, y + 1) = w(x, y).
+
+    Each of WOOD_PLANKS planks (along x) has grain stripes w = ½ + ½ sin(2π (g·v + A sin(2π(x + φ)) +
+    B sin(2π(2x + v + φ')))), v = WOOD_PLANKS·y − plank index ∈ [0, 1), with integer g and per-plank random
+    phases: every term has an integer frequency in x, so the texture tiles in x; the planks' boundaries
+    (dark joints) fall on y = k / WOOD_PLANKS including y = 0 ≡ 1, so it tiles in y too.  The old ring
+    pattern sqrt((x − 0.3)² · 0.2 + (y − 0.5)²) had a visible seam at every 2 m repeat (issue 9).
+    """
+    plank = np.floor(y * WOOD_PLANKS).astype(int) % WOOD_PLANKS
+    v = y * WOOD_PLANKS - np.floor(y * WOOD_PLANKS)
+    grains = rng.integers(3, 6, WOOD_PLANKS)[plank]
+    phase, phase2 = rng.uniform(0, 1, (2, WOOD_PLANKS))
+    shade = rng.uniform(-0.15, 0.15, WOOD_PLANKS)[plank]
+    w = 0.5 + 0.5 * np.sin(2 * np.pi * (grains * v + 0.35 * np.sin(2 * np.pi * (x + phase[plank]))
+                                        + 0.1 * np.sin(2 * np.pi * (2 * x + v + phase2[plank]))))
+    joint = np.minimum(v, 1 - v) * WOOD_PLANKS < 0.04  # dark joint between planks
+    return np.clip(np.where(joint, 1.0, 0.85 * w + shade + 0.075), 0, 1).astype(np.float32)
 
 
 def sky_map(zenith, horizon, rows: int = SKY_SIZE[0], cols: int = SKY_SIZE[1]) -> np.ndarray:
@@ -126,15 +147,19 @@ class _Binding:
     key: str
     value: Callable[[np.ndarray, dict], np.ndarray]
     kind: str  # "color" (Color3f) or "float" (Float)
+    emitter: bool = False  # the radiance/intensity of an emitter (the image is linear in it)
 
 
 class Renderer:
     """Render images and Jacobian stacks J = [∂I/∂ψ_1 … ∂I/∂ψ_K] of one environment in one domain."""
 
     def __init__(self, env: str, domain: str = "train", resolution: int = 64, spp: int = 16,
-                 variant: str | None = None):
+                 variant: str | None = None, jacobian_path: str = "fast"):
         self.env = get_environment(env)
         _check_domain(domain)
+        if jacobian_path not in JACOBIAN_PATHS:
+            raise RispError(f"unknown Jacobian path {jacobian_path!r}; choose one of: {', '.join(JACOBIAN_PATHS)}")
+        self.jacobian_path = jacobian_path
         if not isinstance(resolution, (int, np.integer)) or resolution < 1:
             raise RispError(f"resolution must be a positive integer, got {resolution!r}")
         if not isinstance(spp, (int, np.integer)) or spp < 1:
@@ -216,11 +241,23 @@ class Renderer:
             self.reference_integrator = mi.load_dict({"type": self.settings.reference,
                                                       "max_depth": self.settings.max_depth, "rr_depth": 3})
         self._bindings = self._make_bindings()
+        self._emitters = {k: self._emitter_named(b.key.split(".")[0]) for k, b in enumerate(self._bindings)
+                          if b.emitter}  # the Mitsuba emitter object each emitter binding sets
         self._texture_key, self._sky_key = None, None  # what the floor pattern / sky currently hold
         self._diff_keys = [b.key for b in self._bindings]
         missing = [k for k in self._diff_keys + list(self._mesh_keys.values()) if k not in self.params]
         if missing:  # a Mitsuba version with other parameter names: a programming error, not user input
             raise RuntimeError(f"scene parameters not found: {missing}")
+
+    def _emitter_named(self, name: str):
+        """The emitter of scene object ``name``: an emitter with that id, or the area emitter of a shape."""
+        for shape in self.scene.shapes():
+            if shape.id() == name and shape.emitter() is not None:
+                return shape.emitter()
+        for emitter in self.scene.emitters():
+            if emitter.id() == name:
+                return emitter
+        raise RuntimeError(f"no emitter named {name!r} in the scene")  # a programming error, not user input
 
     def _object_bsdf(self):
         mi = self._mi
@@ -265,9 +302,9 @@ class Renderer:
 
         obj_key = "mesh_object.bsdf.bsdf_0.reflectance.value" if target else "mesh_object.bsdf.reflectance.value"
         return [
-            _Binding("light.emitter.radiance.value" if target else "light.intensity.value", light, "color"),
-            _Binding("ambient.scale", lambda psi, aux: np.asarray(psi[1]), "float") if target
-            else _Binding("ambient.radiance.value", lambda psi, aux: psi[1] * np.ones(3), "color"),
+            _Binding("light.emitter.radiance.value" if target else "light.intensity.value", light, "color", True),
+            _Binding("ambient.scale", lambda psi, aux: np.asarray(psi[1]), "float", True) if target
+            else _Binding("ambient.radiance.value", lambda psi, aux: psi[1] * np.ones(3), "color", True),
             _Binding(obj_key, lambda psi, aux: psi[2:5], "color"),
             _Binding("floor.bsdf.bsdf_0.reflectance.value", floor(0), "color"),
             _Binding("floor.bsdf.bsdf_1.reflectance.value", floor(1), "color"),
@@ -277,11 +314,16 @@ class Renderer:
 
     def _var(self, value: float, dtype=np.float32):
         """A one-element Dr.Jit array backed by memory, not a literal: literal values are compiled into
-        the kernels, so new ψ values would mean new kernels (and Dr.Jit merges equal literals)."""
-        mi = self._mi
-        if dtype == np.uint32:
-            return mi.UInt32(np.array([value], np.uint32))
-        return mi.Float(np.array([value], np.float32))
+        the kernels, so new ψ values would mean new kernels (and Dr.Jit merges equal literals).
+
+        ``dr.make_opaque`` copies the value into memory Dr.Jit allocates.  Built from a numpy array
+        instead, the variable may point at numpy's buffer, whose alignment varies from call to call;
+        the kernel's load instruction records that alignment, so the same render then compiled a new
+        kernel every few samples (issue 9: measured as 1–3 s compiles among 0.1 s renders)."""
+        mi, dr = self._mi, self._dr
+        v = mi.UInt32(int(value)) if dtype == np.uint32 else mi.Float(float(value))
+        dr.make_opaque(v)
+        return v
 
     def _to_mitsuba(self, value: np.ndarray, kind: str):
         """ψ-dependent scene parameter value as memory-backed Dr.Jit arrays (see :meth:`_var`)."""
@@ -358,19 +400,29 @@ class Renderer:
 
     # -- rendering -------------------------------------------------------------------------------------
 
-    def render(self, state: np.ndarray, config: RenderConfig, seed: int, jacobian: bool = True
-               ) -> tuple[np.ndarray, np.ndarray | None]:
+    def render(self, state: np.ndarray, config: RenderConfig, seed: int, jacobian: bool = True,
+               jacobian_path: str | None = None) -> tuple[np.ndarray, np.ndarray | None]:
         """Image (H, W, 3) float32 linear RGB and, with ``jacobian``, J (K, H, W, 3) float32 with
-        J[j] = ∂I/∂ψ_j, rendered with the random stream ``seed`` (same seed → same paths)."""
+        J[j] = ∂I/∂ψ_j, rendered with the random stream ``seed`` (same seed → same paths).
+
+        ``jacobian_path`` overrides the renderer's (``fast`` or ``legacy``, JACOBIAN_PATHS) for this call;
+        both give the same image and J up to float32 rounding (docs/rendering.md)."""
+        path = self.jacobian_path if jacobian_path is None else jacobian_path
+        if path not in JACOBIAN_PATHS:
+            raise RispError(f"unknown Jacobian path {path!r}; choose one of: {', '.join(JACOBIAN_PATHS)}")
         state, psi = self._check_inputs(state, config)
         if not isinstance(seed, (int, np.integer)) or not 0 <= int(seed) < 2**32:
             raise RispError(f"seed must be an integer in [0, 2^32), got {seed!r}")
         self.set_state(state)
         self.set_config(psi, config.aux, track=jacobian)
         self.params.update()
-        tangents = self._tangents(psi, config.aux) if jacobian else []
-        image, grads = self._passes(self.scene, self._var(int(seed), np.uint32), self._leaves, tangents)
+        seed_var = self._var(int(seed), np.uint32)
         H = W = self.resolution
+        if jacobian and path == "fast":
+            image, J = self._passes_fast(psi, config.aux, seed_var)
+            return np.array(image, dtype=np.float32).reshape(H, W, 3), J
+        tangents = self._tangents(psi, config.aux) if jacobian else []
+        image, grads = self._passes(self.scene, seed_var, self._leaves, tangents)
         img = np.array(image, dtype=np.float32).reshape(H, W, 3)
         if not jacobian:
             return img, None
@@ -402,14 +454,85 @@ class Renderer:
         H = W = self.resolution
         return np.array(image, dtype=np.float32).reshape(H, W, 3)
 
-    def _tangents(self, psi: np.ndarray, aux: dict) -> list[list]:
-        """tangents[j][k] = ∂p_k/∂ψ_j = P_k(e_j; aux) for every binding k (P_k is linear in ψ)."""
+    def _tangent_values(self, psi: np.ndarray, aux: dict) -> list[list[np.ndarray]]:
+        """T[j][k] = ∂p_k/∂ψ_j = P_k(e_j; aux) for every binding k (P_k is linear in ψ), as numpy."""
         out = []
         for j in range(len(psi)):
             e = np.zeros_like(psi)
             e[j] = 1.0
-            out.append([self._to_mitsuba(b.value(e, aux), b.kind) for b in self._bindings])
+            out.append([np.asarray(b.value(e, aux), np.float64) for b in self._bindings])
         return out
+
+    def _tangents(self, psi: np.ndarray, aux: dict) -> list[list]:
+        """tangents[j][k] = P_k(e_j; aux) as Dr.Jit values (one forward pass per ψ_j: the legacy path)."""
+        return [[self._to_mitsuba(t, b.kind) for t, b in zip(T, self._bindings)]
+                for T in self._tangent_values(psi, aux)]
+
+    def jacobian_plan(self, psi: np.ndarray, aux: dict) -> "JacobianPlan":
+        """How the fast path gets each J_j (docs/rendering.md, "The fast Jacobian path")."""
+        return self._plan(self._tangent_values(psi, aux))
+
+    def _plan(self, T: list[list[np.ndarray]]) -> "JacobianPlan":
+        emitters = [k for k, b in enumerate(self._bindings) if b.emitter]
+        bound = {id(self._emitters[k]) for k in emitters} == {id(e) for e in self.scene.emitters()}
+        return plan_jacobian(self.psi_names, T, [b.kind for b in self._bindings], emitters, all_emitters_bound=bound)
+
+    def _passes_fast(self, psi: np.ndarray, aux: dict, seed) -> tuple:
+        """Image and J (K, H, W, 3) float32 by the fast path: emitter-split primal passes and merged colour
+        tangents (docs/rendering.md).  Same J as :meth:`_passes` up to float32 rounding."""
+        mi, dr = self._mi, self._dr
+        T = self._tangent_values(psi, aux)
+        plan = self._plan(T)
+        integ, scene = self.integrator, self.scene
+        sensor = scene.sensors()[0]
+        spp = self.spp * self.settings.spp_factor
+        kw = dict(scene=scene, depth=mi.UInt32(0), active=mi.Bool(True))
+        emitter_keys = [k for k, b in enumerate(self._bindings) if b.emitter]
+        with dr.suspend_grad():
+            sampler, spp = integ.prepare(sensor, seed, spp, integ.aov_names())
+            ray, weight, pos = integ.sample_rays(scene, sensor, sampler)
+            # (1) primal.  Emitter split: every emitter set to its tangent value ∂p_e/∂ψ_j(e), one pass that
+            #     keeps each emitter's radiance L_e apart; then ∂L/∂ψ_j = Σ_{e driven by ψ_j} L_e and
+            #     L = Σ_e ψ_j(e) L_e exactly (L is linear in the emitters).  Otherwise one ordinary primal.
+            split = {}
+            if plan.emitter:
+                driver = {k: next(j for j in plan.emitter if np.any(T[j][k] != 0)) for k in emitter_keys}
+                for k in emitter_keys:
+                    self.params[self._bindings[k].key] = self._to_mitsuba(T[driver[k]][k], self._bindings[k].kind)
+                self.params.update()
+                per_emitter = sample_per_emitter(scene, sampler.clone(), ray, [self._emitters[k] for k in emitter_keys],
+                                                 self.settings.max_depth, self.settings.rr_depth)
+                for k in emitter_keys:  # back to the gradient-enabled values of ψ
+                    self.params[self._bindings[k].key] = self._leaves[k]
+                self.params.update()
+                L_e = dict(zip(emitter_keys, per_emitter))
+                split = {j: sum(L_e[k] for k in emitter_keys if driver[k] == j) for j in plan.emitter}
+                L = sum(self._var(float(psi[driver[k]])) * L_e[k] for k in emitter_keys)
+            else:
+                L, _, _, _ = integ.sample(mode=dr.ADMode.Primal, sampler=sampler.clone(), ray=ray, δL=None,
+                                          state_in=None, **kw)
+            image = self._splat(pos, L * weight, spp)
+            outputs = {("emitter", j): self._splat(pos, split[j] * weight, spp) for j in plan.emitter}
+            # (2) forward-mode passes: one per merged colour group (tangent Σ_c T[j_c]) and per other ψ_j
+            for name, group in [("group", g) for g in plan.groups] + [("single", (j,)) for j in plan.single]:
+                with dr.resume_grad():
+                    for k, leaf in enumerate(self._leaves):
+                        t = sum(T[j][k] for j in group)
+                        dr.set_grad(leaf, self._to_mitsuba(t, self._bindings[k].kind))
+                δL, _, _, _ = integ.sample(mode=dr.ADMode.Forward, sampler=sampler.clone(), ray=ray, δL=None,
+                                           δaovs=None, state_in=L, **kw)
+                outputs[(name, group)] = self._splat(pos, δL * weight, spp)
+            dr.eval(image, list(outputs.values()))
+        H = W = self.resolution
+        J = np.zeros((len(psi), H, W, 3), np.float32)
+        for (name, which), value in outputs.items():
+            arr = np.array(value, dtype=np.float32).reshape(H, W, 3)
+            if name == "group":  # channel c of the merged pass is ∂I_c/∂ψ_{j_c}; other channels are exact 0
+                for c, j in enumerate(which):
+                    J[j, ..., c] = arr[..., c]
+            else:
+                J[which if name == "emitter" else which[0]] = arr
+        return image, J
 
     def _passes(self, scene, seed, leaves, tangents):
         """One primal pass and one forward-mode pass per tangent, all sharing rays and sampler state.
@@ -463,6 +586,53 @@ class Renderer:
         return mi.TensorXf(out, shape=(H, W, 3))
 
 
+JACOBIAN_PATHS: tuple[str, ...] = ("fast", "legacy")
+
+
+@dataclass(frozen=True)
+class JacobianPlan:
+    """Which pass gives each J_j on the fast path.
+
+    ``emitter``: ψ_j that only scale emitters (J_j is a primal pass with the emitters set to P(e_j));
+    ``groups``: (j_R, j_G, j_B) triples whose tangents each live in one colour channel (one merged
+    forward pass, split by channel); ``single``: every other ψ_j (one forward pass each)."""
+
+    emitter: tuple[int, ...]
+    groups: tuple[tuple[int, int, int], ...]
+    single: tuple[int, ...]
+
+
+def plan_jacobian(names, T, kinds, emitters, all_emitters_bound: bool) -> JacobianPlan:
+    """Classify every ψ_j from its tangents T[j][k] = ∂p_k/∂ψ_j (docs/rendering.md says why each is exact).
+
+    Emitter split: every binding ψ_j moves is an emitter, no other ψ moves an emitter, every emitter
+    binding is moved by exactly one ψ (one pass then separates them by emitter), and every emitter of the
+    scene is a binding (else I ≠ Σ_j ψ_j ∂I/∂ψ_j).  Colour group: ψ named ``<x>_r``, ``<x>_g``,
+    ``<x>_b`` whose tangents are non-zero only in their own channel of colour bindings (the ``rgb``
+    variant never mixes channels, so one pass with the summed tangent carries all three)."""
+    K = len(names)
+    moves = [{k for k, t in enumerate(T[j]) if np.any(t != 0)} for j in range(K)]
+    emitter_j = [j for j in range(K) if moves[j] and moves[j] <= set(emitters)]
+    others_touch = any(moves[j] & set(emitters) for j in range(K) if j not in emitter_j)
+    one_driver = all(sum(k in moves[j] for j in emitter_j) == 1 for k in emitters)
+    if not all_emitters_bound or others_touch or not one_driver:
+        emitter_j = []
+    groups, used = [], set(emitter_j)
+    for j, name in enumerate(names):
+        if not name.endswith("_r") or j in used:
+            continue
+        trio = [names.index(name[:-1] + c) if name[:-1] + c in names else None for c in "rgb"]
+        if None in trio or used & set(trio):
+            continue
+        own = all(kinds[k] == "color" and all(T[jc][k][c2] == 0 for c2 in range(3) if c2 != c)
+                  for c, jc in enumerate(trio) for k in moves[jc])
+        if own:
+            groups.append(tuple(trio))
+            used |= set(trio)
+    single = tuple(j for j in range(K) if j not in used)
+    return JacobianPlan(tuple(emitter_j), tuple(groups), single)
+
+
 def _look_at(origin: np.ndarray, target: np.ndarray, up) -> np.ndarray:
     """Mitsuba's look_at as a 4×4 numpy matrix: columns (left, up', forward, origin)."""
     fwd = (target - origin) / np.linalg.norm(target - origin)
@@ -478,4 +648,4 @@ def _any_up(direction: np.ndarray) -> list[float]:
     return [0.0, 1.0, 0.0] if abs(direction[2]) > 0.99 else [0.0, 0.0, 1.0]
 
 
-__all__ = ["Renderer", "DOMAIN_SETTINGS", "floor_texture", "sky_map"]
+__all__ = ["Renderer", "DOMAIN_SETTINGS", "JACOBIAN_PATHS", "JacobianPlan", "plan_jacobian", "floor_texture", "sky_map"]
