@@ -174,6 +174,26 @@ def test_quadrotor_front_and_left_are_marked():
     assert len(colours) == 3 and min(np.abs(a - b).max() for a in rgb for b in rgb if a is not b) > 0.3
 
 
+def test_cube_target_is_the_continuous_6d_rotation():
+    """The cube's target holds R's first two columns (continuous on SO(3), unlike Euler sin/cos); a perturbed
+    6-vector maps back (Gram–Schmidt) to a nearby rotation, also across the gimbal-lock pitch ±π/2."""
+    from risp_data.envs.rotations import euler_to_matrix
+
+    env = get_environment("cube")
+    assert env.target_names[3:] == ("r00", "r10", "r20", "r01", "r11", "r21")
+    s = torch.tensor([[0.1, -0.1, 0.3, 2.0, math.pi / 2 - 1e-9, -1.0], [0.0, 0.0, 0.2, -3.0, 0.3, 3.1]],
+                     dtype=torch.float64)
+    t = env.state_to_target(s)
+    R = euler_to_matrix(s[:, 3], s[:, 4], s[:, 5])
+    torch.testing.assert_close(t[:, 3:6], R[:, :, 0])
+    torch.testing.assert_close(t[:, 6:9], R[:, :, 1])
+    noisy = t + 0.01 * torch.randn(t.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    back = env.target_to_state(noisy)
+    R_back = euler_to_matrix(back[:, 3], back[:, 4], back[:, 5])
+    angle = torch.arccos(((R_back * R).sum((-1, -2)) - 1).clamp(-2, 2) / 2)
+    assert float(angle.max()) < 0.05  # radians: a small target error is a small rotation error
+
+
 def test_cube_is_marked_like_a_die():
     """Face value v carries v pips on its own face, opposite faces sum to 7, one colour per value, and
     1-2-3 run counter-clockwise around their corner: no rotation of the cube maps the marks onto themselves."""

@@ -1,7 +1,8 @@
 """Cube: a rigid cube over a floor (z = 0).
 
 State (6): x, y, z [m] of the centre, yaw, pitch, roll [rad] (R = Rz(yaw) Ry(pitch) Rx(roll)).
-Target (9): x, y, z, sin yaw, sin pitch, sin roll, cos yaw, cos pitch, cos roll.
+Target (9): x, y, z and the first two columns of R (r00, r10, r20, r01, r11, r21): the orientation is
+uniform on SO(3), where Euler sin/cos targets are discontinuous (meshes.rot6d_state_to_target).
 Geometry constants are shared with the simulator (risp_tasks.sims.cube).
 
 Appearance: a die.  The body takes the object colour ψ; each face carries its value's pips (thin boxes
@@ -27,12 +28,12 @@ import torch  # noqa: E402
 from .base import Camera, Environment, Mesh  # noqa: E402
 from .meshes import (  # noqa: E402
     RIGID_STATE_NAMES,
-    RIGID_TARGET_NAMES,
+    ROT6D_TARGET_NAMES,
     box,
     merge,
     rigid_pose,
-    rigid_state_to_target,
-    rigid_target_to_state,
+    rot6d_state_to_target,
+    rot6d_target_to_state,
     transform,
 )
 from .rotations import quat_to_euler  # noqa: E402
@@ -109,12 +110,12 @@ def make_environment() -> Environment:
     return Environment(
         name="cube",
         state_names=RIGID_STATE_NAMES,
-        target_names=RIGID_TARGET_NAMES,
+        target_names=ROT6D_TARGET_NAMES,
         state_low=STATE_LOW,
         state_high=STATE_HIGH,
         camera=CAMERA,
-        state_to_target=rigid_state_to_target,
-        target_to_state=rigid_target_to_state,
+        state_to_target=rot6d_state_to_target,
+        target_to_state=rot6d_target_to_state,
         meshes=meshes,
         sample_states=sample_states,
         floor_height=0.0,
