@@ -21,7 +21,7 @@ def cli():
 @cli.command()
 @click.option("--env", "env", required=True, help="Environment: quadrotor, cube, hand or rod.")
 @click.option("--n", "n", required=True, type=int, help="Number of samples (> 0).")
-@click.option("--out", "out", required=True, help="Output folder (created; resumed if it holds this job).")
+@click.option("--out", "out", default=None, help="Output folder (created; resumed if it holds this job) [shards/ENV-DOMAIN].")
 @click.option("--format", "fmt", default="both", show_default=True, help="wds, zarr or both.")
 @click.option("--res", "resolution", default=64, show_default=True, type=int, help="Image width = height in pixels.")
 @click.option("--spp", default=16, show_default=True, type=int, help="Samples per pixel.")
@@ -41,6 +41,10 @@ def render(env, n, out, fmt, resolution, spp, domain, seed, workers, shard_size,
     """Render N samples of ENV into shards under OUT (resumable: rerun to complete missing shards)."""
     from .errors import RispError
     from .generate import RenderJob, run_job
+
+    if out is None:  # the user's command `risp-data render --env cube --n 10000` works as written
+        out = os.path.join("shards", f"{env}-{domain}")
+        click.echo(f"output folder: {out}", err=True)
 
     formats = {"both": ("wds", "zarr"), "wds": ("wds",), "zarr": ("zarr",)}.get(fmt)
     if formats is None:

@@ -24,6 +24,7 @@ from typing import Callable
 import numpy as np
 
 from .envs import get_environment
+from .envs.materials import FIXED_MATERIALS  # RGB reflectances of the non-ψ materials
 from .errors import RispError
 from .emitter_split import sample_per_emitter
 from .mitsuba_setup import init_mitsuba
@@ -35,7 +36,6 @@ TEXTURE_SIZE = 64  # floor texture resolution (pixels per repeat)
 FLOOR_HALF_SIZE = 10.0  # m, the floor rectangle spans [−10, 10]²
 TEXTURE_REPEATS = 10  # the floor texture repeats 10× across the floor (2 m per repeat)
 SKY_SIZE = (32, 64)  # target-domain environment map (rows, columns)
-FIXED_MATERIALS = {"rotor": 0.06, "post": 0.35}  # grey reflectances of non-ψ materials
 
 
 @dataclass(frozen=True)
@@ -186,8 +186,8 @@ class Renderer:
         nominal_state = (np.asarray(self.env.state_low) + np.asarray(self.env.state_high)) / 2
         parts = self._merged_meshes(nominal_state)
         bsdfs = {"object": self._object_bsdf()}
-        for name, albedo in FIXED_MATERIALS.items():
-            bsdfs[name] = mi.load_dict({"type": "diffuse", "reflectance": {"type": "rgb", "value": [albedo] * 3}})
+        for name, rgb in FIXED_MATERIALS.items():
+            bsdfs[name] = mi.load_dict({"type": "diffuse", "reflectance": {"type": "rgb", "value": list(rgb)}})
         scene: dict = {
             "type": "scene",
             "integrator": {"type": self.settings.integrator, "max_depth": self.settings.max_depth,

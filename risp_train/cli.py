@@ -1,6 +1,6 @@
 """``risp-train``: fit, eval and ablation (thin: click options → frozen config → a function).
 
-    risp-train fit SHARDS --out runs/NAME [--reg none|surrogate|exact|stochastic] [--preset paper|cpu] ...
+    risp-train fit SHARDS [--out runs/NAME] [--reg none|surrogate|exact|stochastic] [--preset paper|cpu] ...
     risp-train eval MODEL SHARDS [--metric l1|l2]
     risp-train ablation --env cube --out runs/ablation ...
     torchrun --nproc-per-node 2 -m risp_train fit SHARDS --out runs/NAME ...
@@ -10,9 +10,14 @@ docs/cli-train.md lists every option.
 
 from __future__ import annotations
 
+import os
+
 import click
 
 from risp_data.cli_util import RispGroup, run_cli
+from risp_data.errors import RispError
+
+from .config import DEFAULT_REG
 
 
 @click.group(cls=RispGroup)
@@ -22,11 +27,11 @@ def cli():
 
 @cli.command()
 @click.argument("shards", type=click.Path())
-@click.option("--out", required=True, type=click.Path(file_okay=False), help="Run folder (checkpoints, logs, plots).")
-@click.option("--reg", default="none", show_default=True, help="Regularizer: none, surrogate, exact or stochastic.")
-@click.option("--gamma", type=float, default=None, help="Final regularizer weight γ [default: paper's per env (quadrotor 1, cube 20, hand 100, rod 30), times 1/400 with --preset cpu].")
+@click.option("--out", default=None, type=click.Path(file_okay=False), help="Run folder (checkpoints, logs, plots) [runs/DATASET-REG-sSEED].")
+@click.option("--reg", default=DEFAULT_REG, show_default=True, help="Regularizer: none, surrogate, exact or stochastic.")
+@click.option("--gamma", type=float, default=None, help="Final weight γ of the calibrated regularizer (dimensionless) [per environment, docs/training.md].")
 @click.option("--gamma-ramp", type=float, default=0.5, show_default=True, help="γ ramps linearly from 0 over this fraction of all steps.")
-@click.option("--preset", default="paper", show_default=True, help="paper (ResNet-18 w64, 100 epochs, lr 1e-2) or cpu (w16, 20 epochs, lr 3e-3).")
+@click.option("--preset", default=None, help="paper (ResNet-18 w64, 100 epochs, lr 1e-2) or cpu (w16, 20 epochs, lr 3e-3) [paper with a CUDA GPU, else cpu].")
 @click.option("--epochs", type=int, default=None, help="Epochs [preset].")
 @click.option("--batch-size", type=int, default=None, help="Images per step and process [preset: 16].")
 @click.option("--lr", type=float, default=None, help="Adam learning rate, cosine-decayed to 0 [preset].")
@@ -41,20 +46,68 @@ def cli():
 @click.option("--val", type=click.Path(), default=None, help="Held-out shard folder evaluated at each epoch end.")
 @click.option("--resume", is_flag=True, help="Continue the run in --out from its last checkpoint.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
+<<<<<<< HEAD
 def fit(shards, out, reg, gamma, gamma_ramp, preset, epochs, batch_size, lr, weight_decay, width, seed, workers,
         threads, device, fmt, checkpoint_every, val, resume, quiet):
     """Train on the shard folder SHARDS (streamed; resolution from its manifest)."""
     from .config import make_config
+=======
+def fit(shards, out, reg, gamma, gamma_ramp, preset, epochs, batch_size, lr, weight_decay, width, seed, workers, fmt,
+        checkpoint_every, val, resume, quiet):
+    """Train on the shard folder SHARDS (streamed; resolution from its manifest).
+
+    SHARDS may also be a folder holding data sets (e.g. shards/ after `risp-data render`): the one data set in
+    it, or its one train-domain set with Jacobians, is used; otherwise the error lists what it holds."""
+    from .config import default_preset, make_config
+>>>>>>> predictor
     from .train import fit as run_fit
 
+    rank0 = int(os.environ.get("RANK", "0")) == 0
+    shards = find_dataset(shards, need_jacobian=reg != "none")
+    why = "--preset"
+    if preset is None:
+        preset = default_preset()
+        why = "default: " + ("a CUDA GPU is present" if preset == "paper" else "no CUDA GPU")
+    if out is None:
+        out = os.path.join("runs", f"{os.path.basename(os.path.normpath(shards))}-{reg}-s{seed}")
+    if rank0:
+        click.echo(f"data: {shards}; preset: {preset} ({why}); regularizer: {reg}; run folder: {out}", err=True)
     cfg = make_config(shards, out, preset=preset, reg=reg, gamma=gamma, gamma_ramp=gamma_ramp, epochs=epochs,
                       batch_size=batch_size, lr=lr, weight_decay=weight_decay, width=width, seed=seed,
                       workers=workers, threads=threads, device=device, format=fmt, checkpoint_every=checkpoint_every, val=val)
     path = run_fit(cfg, resume=resume, progress=not quiet)
-    import os
-
-    if int(os.environ.get("RANK", "0")) == 0:
+    if rank0:
         click.echo(f"model: {path}")
+
+
+def find_dataset(folder: str, need_jacobian: bool) -> str:
+    """The shard folder to train on: ``folder`` itself when it holds a manifest.json, else its one data-set
+    subfolder, or, among several, its one train-domain set (with Jacobians when ``need_jacobian``)."""
+    import json
+
+    if not os.path.isdir(folder):
+        raise RispError(f"shard folder {folder} does not exist; render one with `risp-data render --env ENV --n N`")
+    if os.path.exists(os.path.join(folder, "manifest.json")):
+        return folder
+    sets = {}
+    for name in sorted(os.listdir(folder)):
+        path = os.path.join(folder, name, "manifest.json")
+        if os.path.isfile(path):
+            try:
+                with open(path) as f:
+                    sets[os.path.join(folder, name)] = json.load(f)
+            except (OSError, ValueError):
+                continue  # an unreadable manifest is not a data set to offer
+    if len(sets) == 1:
+        return next(iter(sets))
+    usable = [p for p, m in sets.items() if m.get("domain") == "train" and (m.get("jacobian") or not need_jacobian)]
+    if len(usable) == 1:
+        return usable[0]
+    if not sets:
+        raise RispError(f"{folder} holds no data set (no manifest.json in it or its subfolders); "
+                        "render one with `risp-data render --env ENV --n N`")
+    listing = ", ".join(f"{p} ({m.get('env')}, {m.get('domain')}, n={m.get('n')})" for p, m in sets.items())
+    raise RispError(f"{folder} holds {len(sets)} data sets: {listing}; pass one of them")
 
 
 @cli.command("eval")

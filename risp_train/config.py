@@ -4,10 +4,13 @@
 decay to zero over all steps, batch 16, 100 epochs.  ``cpu`` is for this 2-core, GPU-less machine: the
 same topology at width 16 (≈ 1/16 of the multiply-adds), 20 epochs, lr 3e-3 (the narrower network
 diverged less often at a smaller step in our runs), everything else as in ``paper``.  Options given on
-the command line override the preset.  γ defaults to the paper's per-environment value times the preset's
-``GAMMA_SCALE``: 1 for ``paper``; 1/400 for ``cpu``, because with our input/target normalization the
-regularizer starts at ‖M‖_F ≈ 1.8 against a state error ≈ 0.9 and the paper's cube γ = 20 (even γ = 1)
-collapsed small runs to the mean predictor, while γ = 0.05 = 20/400 trained normally (docs/training.md).
+the command line override the preset; ``default_preset()`` is ``paper`` where torch sees a CUDA GPU and
+``cpu`` elsewhere.
+
+γ is dimensionless: it weighs the calibrated rendering-induced error R against the state error
+(risp_train/regularizers.py, §One scale), so no factor depends on the preset.  The paper's γ values (quadrotor
+1, cube 20, hand 100, rod 30) belong to its own normalization and do not carry over; the defaults below
+were chosen by the sweep in docs/training.md §Calibrated regularizer (per environment, several seeds).
 """
 
 from __future__ import annotations
@@ -18,8 +21,8 @@ from risp_data.errors import RispError
 
 from .regularizers import REGULARIZERS
 
-GAMMA_DEFAULTS = {"quadrotor": 1.0, "cube": 20.0, "hand": 100.0, "rod": 30.0}  # paper, per environment
-GAMMA_SCALE = {"paper": 1.0, "cpu": 1.0 / 400.0}  # default γ = GAMMA_DEFAULTS[env] · GAMMA_SCALE[preset]
+GAMMA_DEFAULTS = {"quadrotor": 1.0, "cube": 1.0, "hand": 1.0, "rod": 1.0}  # dimensionless, from the sweep
+DEFAULT_REG = "stochastic"  # RISP's regularizer by default (docs/training.md §Calibrated regularizer)
 
 PRESETS: dict[str, dict] = {
     "paper": dict(epochs=100, batch_size=16, lr=1e-2, weight_decay=1e-6, width=64),
@@ -31,8 +34,8 @@ PRESETS: dict[str, dict] = {
 class TrainConfig:
     shards: str  # training shard folder (manifest.json inside)
     out: str  # run folder
-    reg: str = "none"  # none | surrogate | exact | stochastic
-    gamma: float | None = None  # final regularizer weight; None → GAMMA_DEFAULTS[env] · GAMMA_SCALE[preset]
+    reg: str = "none"  # none | surrogate | exact | stochastic (the CLI's default is DEFAULT_REG)
+    gamma: float | None = None  # final regularizer weight (dimensionless); None → GAMMA_DEFAULTS[env]
     gamma_ramp: float = 0.5  # γ ramps linearly from 0 over this fraction of all steps
     epochs: int = 100
     batch_size: int = 16
@@ -71,6 +74,13 @@ RESUME_FIELDS = ("reg", "gamma", "gamma_ramp", "epochs", "batch_size", "lr", "we
                  "blocks", "stem", "format", "shuffle_buffer", "stats_samples")
 
 
+def default_preset() -> str:
+    """``paper`` where torch sees a CUDA GPU, else ``cpu`` (the preset a user without a GPU can live with)."""
+    import torch
+
+    return "paper" if torch.cuda.is_available() else "cpu"
+
+
 def make_config(shards: str, out: str, preset: str = "paper", **overrides) -> TrainConfig:
     """Preset values, then every override that is not None; validates the plain values."""
     if preset not in PRESETS:
@@ -105,7 +115,7 @@ def resolved_gamma(cfg: TrainConfig, env: str) -> float:
         return 0.0
     if cfg.gamma is not None:
         return float(cfg.gamma)
-    return float(GAMMA_DEFAULTS[env] * GAMMA_SCALE.get(cfg.preset, 1.0))
+    return float(GAMMA_DEFAULTS[env])
 
 
 def with_(cfg: TrainConfig, **kw) -> TrainConfig:

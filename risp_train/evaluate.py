@@ -13,6 +13,17 @@ table does, and the per-dimension mean absolute error, for
 * ``average``: ŝ_b = the training mean, i.e. target_to_state(μ) of the stored target mean μ (for sin/cos
   pairs that is the circular mean), the same for every image;
 * ``random``:  ŝ_b drawn from the environment's state sampler (seeded by ``--seed``).
+
+Per state group, in physical units (:func:`group_errors`; mean ± std over the images and the count):
+
+* ``position`` [m] (quadrotor, cube):  ‖p̂_b − p_b‖₂, the Euclidean distance of the centres;
+* ``attitude`` [deg] (quadrotor, cube): the geodesic angle between the orientations,
+  θ_b = arccos((tr(R̂_bᵀ R_b) − 1) / 2), R = Rz(yaw) Ry(pitch) Rx(roll) — the angle of the one rotation
+  that takes the prediction to the truth, free of Euler-angle wrap-around and gimbal effects;
+* ``joints`` [rad] (hand):  (1/13) Σ_i |θ̂_bi − θ_bi|, the mean joint-angle error;
+* ``sensors`` [m] (rod):    (1/10) Σ_i |ẑ_bi − z_bi|, the mean sensor-height error.
+
+``risp-train eval`` also writes ``<prefix>_scatter.png``: predicted vs true, one panel per state entry.
 """
 
 from __future__ import annotations
@@ -69,6 +80,50 @@ def summarize(diff: np.ndarray, metric: str) -> dict:
     return {"mean": float(e.mean()), "std": float(e.std()), "per_dim_mae": np.abs(diff).mean(axis=0).tolist()}
 
 
+# state groups per environment: name -> (unit, state indices); see group_errors for the formulas
+STATE_GROUPS = {
+    "quadrotor": {"position": ("m", (0, 1, 2)), "attitude": ("deg", (3, 4, 5))},
+    "cube": {"position": ("m", (0, 1, 2)), "attitude": ("deg", (3, 4, 5))},
+    "hand": {"joints": ("rad", tuple(range(13)))},
+    "rod": {"sensors": ("m", tuple(range(10)))},
+}
+
+
+def geodesic_angle_deg(pred_euler: np.ndarray, true_euler: np.ndarray) -> np.ndarray:
+    """θ = arccos((tr(R̂ᵀR) − 1)/2) in degrees for (N, 3) yaw, pitch, roll arrays → (N,)."""
+    from risp_data.envs.rotations import euler_to_matrix
+
+    def matrices(e):
+        e = torch.as_tensor(np.asarray(e, np.float64))
+        return euler_to_matrix(e[:, 0], e[:, 1], e[:, 2]).numpy()
+
+    Rp, Rt = matrices(pred_euler), matrices(true_euler)
+    cos = (np.einsum("nij,nij->n", Rp, Rt) - 1.0) / 2.0  # tr(R̂ᵀR) = Σ_ij R̂_ij R_ij
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def group_errors(env_name: str, pred: np.ndarray, true: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-image errors per state group (module docstring): {group: (N,) array} in the group's unit."""
+    pred, true = np.asarray(pred, np.float64), np.asarray(true, np.float64)
+    out = {}
+    for group, (_, idx) in STATE_GROUPS[env_name].items():
+        idx = list(idx)
+        if group == "position":
+            out[group] = np.linalg.norm(pred[:, idx] - true[:, idx], axis=1)
+        elif group == "attitude":
+            out[group] = geodesic_angle_deg(pred[:, idx], true[:, idx])
+        else:  # joints, sensors: mean absolute error over the entries
+            out[group] = np.abs(pred[:, idx] - true[:, idx]).mean(axis=1)
+    return out
+
+
+def summarize_groups(env_name: str, pred: np.ndarray, true: np.ndarray) -> dict:
+    """{group: {"mean", "std", "n", "unit"}} of :func:`group_errors`."""
+    units = {g: u for g, (u, _) in STATE_GROUPS[env_name].items()}
+    return {g: {"mean": float(e.mean()), "std": float(e.std()), "n": int(e.size), "unit": units[g]}
+            for g, e in group_errors(env_name, pred, true).items()}
+
+
 def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
     """Evaluate the model and the baselines on ``cfg.shards``; writes JSON + markdown, returns the dict."""
     from tqdm.auto import tqdm
@@ -98,16 +153,14 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
     avg_state = env.target_to_state(mean_target[None]).numpy()
     rand_state = np.asarray(env.sample_states(np.random.default_rng(np.random.SeedSequence(cfg.seed)), n), np.float64)
     names = list(env.state_names)
+    estimates = {"model": pred, "average": np.repeat(avg_state, n, 0), "random": rand_state}
     result = {
         "env": shards.env, "shards": os.path.abspath(cfg.shards), "domain": shards.manifest.get("domain"),
         "manifest_hash": manifest_hash(shards.manifest), "model": os.path.abspath(cfg.model),
         "train_manifest_hash": ckpt.get("manifest_hash"), "reg": ckpt.get("config", {}).get("reg"),
         "metric": cfg.metric, "n": n, "seed": cfg.seed, "state_names": names,
-        "results": {
-            "model": summarize(state_differences(pred, true, names), cfg.metric),
-            "average": summarize(state_differences(np.repeat(avg_state, n, 0), true, names), cfg.metric),
-            "random": summarize(state_differences(rand_state, true, names), cfg.metric),
-        },
+        "results": {k: summarize(state_differences(v, true, names), cfg.metric) for k, v in estimates.items()},
+        "groups": {k: summarize_groups(shards.env, v, true) for k, v in estimates.items()},
         "config": asdict(cfg),
     }
     prefix = cfg.out or os.path.join(os.path.dirname(os.path.abspath(cfg.model)),
@@ -115,18 +168,35 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
     os.makedirs(os.path.dirname(os.path.abspath(prefix)), exist_ok=True)
     _atomic_text(prefix + ".json", json.dumps(result, indent=1, sort_keys=True) + "\n")
     _atomic_text(prefix + ".md", markdown_table(result) + "\n")
-    result["files"] = [prefix + ".json", prefix + ".md"]
+    from .plots import plot_predicted_vs_true
+
+    plot_predicted_vs_true(pred, true, names, prefix + "_scatter.png",
+                           title=f"{shards.env}, {result['domain']} domain, {n} images")
+    result["files"] = [prefix + ".json", prefix + ".md", prefix + "_scatter.png"]
     return result
 
 
 def markdown_table(result: dict) -> str:
+    """One row per method: each state group's error (mean ± std, unit) and the paper's per-image L1/L2."""
     m = result["metric"].upper()
+    groups = result.get("groups", {})
+    names = list(next(iter(groups.values()), {}))
+    head = [f"{g} [{groups['model'][g]['unit']}]" for g in names] + [f"paper {m} (all entries)"]
     lines = [f"State estimation on `{result['shards']}` ({result['env']}, domain {result['domain']}, "
-             f"{result['n']} images, per-image {m} state error)", "",
-             f"| method | mean {m} | std {m} |", "|---|---:|---:|"]
-    for name, r in result["results"].items():
-        lines.append(f"| {name} | {r['mean']:.4f} | {r['std']:.4f} |")
+             f"n = {result['n']} images; mean ± std over images)", "",
+             "| method | " + " | ".join(head) + " |", "|---|" + "---:|" * len(head)]
+    for method, r in result["results"].items():
+        cells = [_pm(groups[method][g]["mean"], groups[method][g]["std"], groups[method][g]["unit"])
+                 for g in names] + [_pm(r["mean"], r["std"], "")]
+        lines.append(f"| {method} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def _pm(mean: float, std: float, unit: str) -> str:
+    """'mean ± std' with digits that suit the unit (degrees: 1 decimal, else 4 significant-ish)."""
+    if unit == "deg":
+        return f"{mean:.1f} ± {std:.1f}"
+    return f"{mean:.4f} ± {std:.4f}"
 
 
 def _atomic_text(path: str, text: str) -> None:

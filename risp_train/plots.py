@@ -1,4 +1,4 @@
-"""PNG figures (matplotlib, Agg backend): the loss curves of a run and the ablation figure."""
+"""PNG figures (matplotlib, Agg backend): loss curves of a run, predicted vs true states, the ablation figure."""
 
 from __future__ import annotations
 
@@ -46,6 +46,33 @@ def plot_losses(csv_path: str, png_path: str, history: list[dict] | None = None)
         ax[1].text(0.5, 0.5, "no regularizer (--reg none)", ha="center", va="center", transform=ax[1].transAxes)
     ax[1].set_xlabel("step")
     ax[1].set_ylabel("regularizer r (batch mean)")
+    _save(fig, png_path)
+    plt.close(fig)
+
+
+def plot_predicted_vs_true(pred, true, names, png_path: str, title: str = "") -> None:
+    """One scatter panel per state entry: prediction (y) against truth (x), with the diagonal y = x."""
+    import numpy as np
+
+    pred, true = np.asarray(pred), np.asarray(true)
+    cols = min(len(names), 5)
+    rows = -(-len(names) // cols)
+    plt = _pyplot()
+    fig, axes = plt.subplots(rows, cols, figsize=(2.6 * cols, 2.5 * rows), squeeze=False)
+    for i, ax in enumerate(axes.ravel()):
+        if i >= len(names):
+            ax.axis("off")
+            continue
+        lo, hi = float(min(true[:, i].min(), pred[:, i].min())), float(max(true[:, i].max(), pred[:, i].max()))
+        ax.plot([lo, hi], [lo, hi], color="0.6", lw=0.8)
+        ax.scatter(true[:, i], pred[:, i], s=4, alpha=0.6)
+        ax.set_title(names[i], fontsize=9)
+        ax.tick_params(labelsize=7)
+    axes[0, 0].set_ylabel("predicted")
+    axes[-1, 0].set_xlabel("true")
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
     _save(fig, png_path)
     plt.close(fig)
 

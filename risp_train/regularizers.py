@@ -23,12 +23,34 @@ prediction and y_b the normalized target (T values).  The rendering-gradient mat
   One double backward: the gradient of the state error w.r.t. the image, built with
   ``create_graph=True``, contracted with the stored tangents.
 
-The loss is L = (1/B) Σ_b ℓ_b + γ (1/B) Σ_b r_b (γ = 0 for ``none``).  Images are independent under
-instance normalization, so ∂(Σ_b ℓ_b)/∂x_b = ∂ℓ_b/∂x_b and the per-image quantities are exact.
+Images are independent under instance normalization, so ∂(Σ_b ℓ_b)/∂x_b = ∂ℓ_b/∂x_b and the per-image
+quantities are exact.
+
+**One scale for the three forms** (issue 8, docs/training.md §Calibrated regularizer).  The raw forms above
+live on different scales (‖M‖_F, ‖M‖_F², ≈‖M‖_F/T) and ψ's components on different ranges.  The loss
+uses them calibrated to one quantity with a meaning: the first-order *rendering-induced error*
+
+    R = E_ψ' [(1/T) Σ_t |ŷ_t(ψ') − ŷ_t(ψ)|] ≈ √(2/π) · ‖M̃‖_F / √T,     M̃ = M · diag(σ_ψ)
+
+i.e. the L1 distance (in the state error's own units) by which the prediction moves when the rendering
+parameters are redrawn from the training distribution (σ_ψj = (high_j − low_j)/√12, the standard
+deviation of the uniform ψ_j; Gaussian approximation of E|·|).  Per batch, with c_T = √(2/π)/√T and the
+tangents scaled by σ_ψ:
+
+* ``exact``       R = c_T · (1/B) Σ_b ‖M̃_b‖_F
+* ``stochastic``  R = c_T · √((1/B) Σ_b ‖M̃_b v_b‖²)   (the square root of the batch-mean estimate of
+  ‖M̃‖_F²: consistent for the batch's RMS of ‖M̃_b‖_F, which is ≥ and close to its mean)
+* ``surrogate``   R = √(2/π) · √T · (1/B) Σ_b ‖∂ℓ_b/∂ψ̃‖   (T ∂ℓ_b/∂ψ̃ = M̃_bᵀ sign(ŷ_b − y_b), whose norm
+  is ‖M̃_b‖_F in expectation over sign patterns independent of M̃_b)
+
+and L = (1/B) Σ_b ℓ_b + γ R with a dimensionless γ: γ = 1 weighs the rendering-induced error like the state
+error itself (γ = 0 for ``none``).  No factor depends on the preset; the per-environment default γ comes
+from a sweep (risp_train/config.py).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -36,6 +58,7 @@ from torch import nn
 from torch.func import jvp, vmap
 
 REGULARIZERS = ("none", "surrogate", "exact", "stochastic")
+SQRT_2_OVER_PI = math.sqrt(2.0 / math.pi)  # E|z| for z ~ N(0, 1)
 
 
 def state_error(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -107,11 +130,36 @@ def surrogate_regularizer(
     return pred, err, torch.linalg.vector_norm(dl_dpsi, dim=1)
 
 
+def psi_scale(env: str) -> torch.Tensor:
+    """σ_ψ (K,) float64: the standard deviation (high − low)/√12 of each uniformly sampled ψ_j of ``env``."""
+    from risp_data.psi import psi_specs
+
+    return torch.tensor([(s.high - s.low) / math.sqrt(12.0) for s in psi_specs(env)], dtype=torch.float64)
+
+
+def calibrated_regularizer(net: nn.Module, x: torch.Tensor, target: torch.Tensor, reg: str, tangents: torch.Tensor,
+                           v: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """(ℓ (B,), R scalar): the state errors and the batch's rendering-induced error R of form ``reg``
+    (module docstring §One scale).  ``tangents`` are ∂x/∂ψ̃, i.e. already multiplied by σ_ψ."""
+    T = target.shape[-1]
+    c_t = SQRT_2_OVER_PI / math.sqrt(T)
+    if reg == "exact":
+        pred, r = exact_regularizer(net, x, tangents)
+        return state_error(pred, target), c_t * r.mean()
+    if reg == "stochastic":
+        pred, r = stochastic_regularizer(net, x, tangents, v)
+        return state_error(pred, target), c_t * torch.sqrt(r.mean() + 1e-20)  # tiny floor: finite gradient at 0
+    if reg == "surrogate":
+        _, err, r = surrogate_regularizer(net, x, tangents, target)
+        return err, SQRT_2_OVER_PI * math.sqrt(T) * r.mean()
+    raise ValueError(f"unknown regularizer {reg!r}; choose one of {REGULARIZERS}")
+
+
 @dataclass(frozen=True)
 class LossTerms:
     total: torch.Tensor  # scalar, differentiable
     error: torch.Tensor  # scalar, mean_b ℓ_b (detached)
-    reg: torch.Tensor  # scalar, mean_b r_b (detached; 0 for "none")
+    reg: torch.Tensor  # scalar, the calibrated rendering-induced error R (detached; 0 for "none")
 
 
 def risp_loss(
@@ -122,11 +170,13 @@ def risp_loss(
     gamma: float,
     tangents: torch.Tensor | None = None,
     generator: torch.Generator | None = None,
+    psi_scale: torch.Tensor | None = None,
 ) -> LossTerms:
-    """L = mean_b ℓ_b + γ mean_b r_b for regularizer ``reg`` (one of :data:`REGULARIZERS`).
+    """L = mean_b ℓ_b + γ R for regularizer ``reg`` (one of :data:`REGULARIZERS`; R calibrated, module docstring).
 
-    ``tangents`` (B, K, C, H, W) is required unless reg is ``none``; ``generator`` draws v for
-    ``stochastic`` (explicit, so that a resumed run draws the same v).
+    ``tangents`` (B, K, C, H, W) = ∂x/∂ψ is required unless reg is ``none``; ``psi_scale`` σ_ψ (K,) turns
+    them into ∂x/∂ψ̃ (None: ψ taken as already standardized); ``generator`` draws v for ``stochastic``
+    (explicit, so that a resumed run draws the same v).
     """
     if reg not in REGULARIZERS:
         raise ValueError(f"unknown regularizer {reg!r}; choose one of {REGULARIZERS}")
@@ -135,19 +185,16 @@ def risp_loss(
         return LossTerms(err.mean(), err.mean().detach(), torch.zeros((), dtype=err.dtype))
     if tangents is None:
         raise ValueError(f"regularizer {reg!r} needs the rendering Jacobians")
-    if reg == "exact":
-        pred, r = exact_regularizer(net, x, tangents)
-        err = state_error(pred, target)
-    elif reg == "stochastic":
+    if psi_scale is not None:
+        tangents = tangents * psi_scale.to(tangents).view(1, -1, 1, 1, 1)
+    v = None
+    if reg == "stochastic":
         if generator is None:
             raise ValueError("the stochastic regularizer needs an explicit torch.Generator")
         v = torch.randn(x.shape[0], tangents.shape[1], generator=generator, dtype=x.dtype, device="cpu").to(x.device)
-        pred, r = stochastic_regularizer(net, x, tangents, v)
-        err = state_error(pred, target)
-    else:  # surrogate
-        _, err, r = surrogate_regularizer(net, x, tangents, target)
-    total = err.mean() + gamma * r.mean()
-    return LossTerms(total, err.mean().detach(), r.mean().detach())
+    err, r = calibrated_regularizer(net, x, target, reg, tangents, v)
+    total = err.mean() + gamma * r
+    return LossTerms(total, err.mean().detach(), r.detach())
 
 
 def gamma_at(step: int, total_steps: int, gamma: float, ramp_fraction: float) -> float:

@@ -31,7 +31,7 @@ from .config import RESUME_FIELDS, TrainConfig, resolved_gamma
 from .data import ShardSet, check_environment, iter_batches, make_loader, manifest_hash, open_shards, steps_per_epoch
 from .model import ModelConfig, ResNet18, build_model, stem_for_resolution
 from .normalization import Normalization, StatsAccumulator
-from .regularizers import gamma_at, risp_loss
+from .regularizers import gamma_at, psi_scale, risp_loss
 from risp_data.atomic import atomic_write, write_text_atomic
 from risp_data.threads import set_torch_threads
 
@@ -179,6 +179,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, resume: bool, progr
             raise RispError(f"--val shards {cfg.val} are of environment {val.env!r}, training shards of {shards.env!r}")
         check_environment(val, env)
     gamma = resolved_gamma(cfg, shards.env)
+    psi_std = psi_scale(shards.env)  # σ_ψ: the regularizer measures ψ in standard deviations (regularizers.py)
     mhash = manifest_hash(shards.manifest)
 
     plan = [steps_per_epoch(shards, cfg.seed, e, cfg.batch_size, world, cfg.workers) for e in range(cfg.epochs)]
@@ -279,7 +280,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, resume: bool, progr
                 # ---- one optimizer step ------------------------------------------------------------
                 g_t = gamma_at(step, total_steps, gamma, cfg.gamma_ramp)
                 x, y, tangents = batch_tensors(batch, norm, env, need_j, device)
-                terms = risp_loss(net, x, y, cfg.reg, g_t, tangents, step_generator(cfg.seed, rank, step))
+                terms = risp_loss(net, x, y, cfg.reg, g_t, tangents, step_generator(cfg.seed, rank, step), psi_std)
                 if not torch.isfinite(terms.total):
                     raise RispError(f"loss is not finite at step {step} (epoch {epoch}); lower --lr or --gamma")
                 opt.zero_grad(set_to_none=True)

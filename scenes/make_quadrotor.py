@@ -1,6 +1,7 @@
 """Generate the quadrotor meshes in this folder (deterministic; run ``python scenes/make_quadrotor.py``).
 
-Writes two ASCII PLY files, ``quadrotor_frame.ply`` and ``quadrotor_rotors.ply``, from the trimesh
+Writes the ASCII PLY files ``quadrotor_frame.ply``, ``quadrotor_rotor_front.ply`` (red front rotor),
+``quadrotor_rotor_left.ply`` (white left rotor) and ``quadrotor_rotors.ply`` (back and right rotors) from the trimesh
 construction in ``risp_data/envs/quadrotor_mesh.py`` (which documents the parts and the body frame);
 an installed package without this folder builds the same meshes in memory from that module.
 """
@@ -13,7 +14,8 @@ import sys
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
-from risp_data.envs.quadrotor_mesh import frame_mesh, rotor_mesh  # noqa: E402
+from risp_data.envs.quadrotor import MESH_FILES  # noqa: E402
+from risp_data.envs.quadrotor_mesh import ROTOR_PARTS, frame_mesh, rotor_mesh  # noqa: E402
 
 
 def write_ply(mesh, path: str) -> None:
@@ -28,8 +30,9 @@ def write_ply(mesh, path: str) -> None:
 
 
 def main(out_dir: str = HERE) -> None:
-    write_ply(frame_mesh(), os.path.join(out_dir, "quadrotor_frame.ply"))
-    write_ply(rotor_mesh(), os.path.join(out_dir, "quadrotor_rotors.ply"))
+    write_ply(frame_mesh(), os.path.join(out_dir, MESH_FILES["frame"]))
+    for part, indices in ROTOR_PARTS.items():
+        write_ply(rotor_mesh(indices), os.path.join(out_dir, MESH_FILES[part]))
 
 
 if __name__ == "__main__":

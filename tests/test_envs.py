@@ -139,8 +139,8 @@ def test_meshes_batch_like_single_states():
 def test_quadrotor_mesh_layout():
     """The PLY meshes follow the shared constants: rotor discs around ARM_LENGTH·(cos iπ/2, sin iπ/2)."""
     parts = quadrotor.body_meshes()
-    assert set(parts) == {"frame", "rotors"}
-    rv = parts["rotors"][0]
+    assert set(parts) == {"frame", "rotor_front", "rotor_left", "rotors"}
+    rv = np.concatenate([parts[p][0] for p in ("rotor_front", "rotor_left", "rotors")])
     for i in range(4):
         c = quadrotor.ARM_LENGTH * np.array([math.cos(i * math.pi / 2), math.sin(i * math.pi / 2)])
         near = rv[np.linalg.norm(rv[:, :2] - c, axis=1) <= quadrotor.ROTOR_RADIUS + 1e-6]
@@ -148,6 +148,73 @@ def test_quadrotor_mesh_layout():
         assert np.abs(near[:, 2] - quadrotor.ROTOR_HEIGHT).max() < 0.02
     extent = np.abs(np.concatenate([p[0] for p in parts.values()])[:, :2]).max()
     assert extent == pytest.approx(quadrotor.ARM_LENGTH + quadrotor.ROTOR_RADIUS, abs=1e-3)
+
+
+def _rotor_centres(vertices: np.ndarray) -> set[int]:
+    """Indices i of the rotor axes ARM_LENGTH·(cos iπ/2, sin iπ/2) that the vertices lie around."""
+    out = set()
+    for i in range(4):
+        c = quadrotor.ARM_LENGTH * np.array([math.cos(i * math.pi / 2), math.sin(i * math.pi / 2)])
+        if (np.linalg.norm(vertices[:, :2] - c, axis=1) <= quadrotor.ROTOR_RADIUS + 1e-6).any():
+            out.add(i)
+    return out
+
+
+def test_quadrotor_front_and_left_are_marked():
+    """Front (+x) and left (+y) rotors are separate meshes with their own, mutually distinct fixed colours,
+    so the rendered vehicle has no rotational symmetry (yaw is not ambiguous modulo 90°)."""
+    from risp_data.envs.materials import FIXED_MATERIALS
+
+    parts = quadrotor.body_meshes()
+    assert _rotor_centres(parts["rotor_front"][0]) == {0}
+    assert _rotor_centres(parts["rotor_left"][0]) == {1}
+    assert _rotor_centres(parts["rotors"][0]) == {2, 3}
+    colours = {quadrotor.MESH_MATERIALS[p] for p in ("rotor_front", "rotor_left", "rotors")}
+    rgb = [np.asarray(FIXED_MATERIALS[c]) for c in colours]
+    assert len(colours) == 3 and min(np.abs(a - b).max() for a in rgb for b in rgb if a is not b) > 0.3
+
+
+def test_cube_target_is_the_continuous_6d_rotation():
+    """The cube's target holds R's first two columns (continuous on SO(3), unlike Euler sin/cos); a perturbed
+    6-vector maps back (Gram–Schmidt) to a nearby rotation, also across the gimbal-lock pitch ±π/2."""
+    from risp_data.envs.rotations import euler_to_matrix
+
+    env = get_environment("cube")
+    assert env.target_names[3:] == ("r00", "r10", "r20", "r01", "r11", "r21")
+    s = torch.tensor([[0.1, -0.1, 0.3, 2.0, math.pi / 2 - 1e-9, -1.0], [0.0, 0.0, 0.2, -3.0, 0.3, 3.1]],
+                     dtype=torch.float64)
+    t = env.state_to_target(s)
+    R = euler_to_matrix(s[:, 3], s[:, 4], s[:, 5])
+    torch.testing.assert_close(t[:, 3:6], R[:, :, 0])
+    torch.testing.assert_close(t[:, 6:9], R[:, :, 1])
+    noisy = t + 0.01 * torch.randn(t.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    back = env.target_to_state(noisy)
+    R_back = euler_to_matrix(back[:, 3], back[:, 4], back[:, 5])
+    angle = torch.arccos(((R_back * R).sum((-1, -2)) - 1).clamp(-2, 2) / 2)
+    assert float(angle.max()) < 0.05  # radians: a small target error is a small rotation error
+
+
+def test_cube_is_marked_like_a_die():
+    """Face value v carries v pips on its own face, opposite faces sum to 7, one colour per value, and
+    1-2-3 run counter-clockwise around their corner: no rotation of the cube maps the marks onto themselves."""
+    from risp_data.envs.materials import FIXED_MATERIALS
+
+    h = cube.CUBE_SIDE / 2
+    s = torch.zeros(6, dtype=torch.float64)
+    meshes = {m.material: m for m in cube.meshes(s)}
+    normals = {}
+    for value in range(1, 7):
+        m = meshes[f"pip{value}"]
+        v = m.vertices.numpy()
+        assert len(v) == 8 * value and len(m.faces) == 12 * value  # one box per pip
+        axis = int(np.argmax(np.abs(v).min(0)))  # all pip vertices are near the face plane of this axis
+        assert np.all(np.abs(np.abs(v[:, axis]) - h) <= 0.002 + 1e-9)
+        assert np.abs(v[:, axis]).max() == pytest.approx(h + cube.PIP_RAISE)
+        normals[value] = np.sign(v[0, axis]) * np.eye(3)[axis]
+    for value in (1, 2, 3):
+        np.testing.assert_array_equal(normals[value], -normals[7 - value])
+    assert np.dot(np.cross(normals[1], normals[2]), normals[3]) > 0  # right-handed 1-2-3 corner
+    assert len({FIXED_MATERIALS[f"pip{v}"] for v in range(1, 7)}) == 6
 
 
 def _read_ply(path):

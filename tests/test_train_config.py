@@ -3,15 +3,25 @@
 import pytest
 
 from risp_data.errors import RispError
-from risp_train.config import GAMMA_DEFAULTS, make_config, resolved_gamma
+from risp_train.config import DEFAULT_REG, GAMMA_DEFAULTS, default_preset, make_config, resolved_gamma
 
 
-def test_paper_preset_uses_the_papers_gamma_and_cpu_preset_scales_it():
-    paper = make_config("s", "o", preset="paper", reg="exact")
-    cpu = make_config("s", "o", preset="cpu", reg="stochastic")
-    assert resolved_gamma(paper, "cube") == GAMMA_DEFAULTS["cube"] == 20.0
-    assert resolved_gamma(cpu, "cube") == pytest.approx(0.05)
-    assert resolved_gamma(cpu, "hand") == pytest.approx(100.0 / 400.0)
+def test_default_gamma_is_per_environment_and_the_same_in_both_presets():
+    """γ is dimensionless (calibrated regularizer): no preset factor; the default regularizer is RISP's."""
+    for env in GAMMA_DEFAULTS:
+        paper = make_config("s", "o", preset="paper", reg="exact")
+        cpu = make_config("s", "o", preset="cpu", reg=DEFAULT_REG)
+        assert DEFAULT_REG != "none"
+        assert resolved_gamma(paper, env) == resolved_gamma(cpu, env) == GAMMA_DEFAULTS[env] > 0
+
+
+def test_default_preset_follows_the_hardware(monkeypatch):
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert default_preset() == "cpu"
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert default_preset() == "paper"
 
 
 def test_explicit_gamma_wins_and_none_regularizer_has_no_weight():

@@ -85,6 +85,11 @@ def test_fit_lowers_held_out_error_and_writes_outputs(shards, tmp_path):
     for v in res["results"].values():
         assert v["mean"] > 0 and v["std"] >= 0 and len(v["per_dim_mae"]) == 6
     assert "| model |" in open(tmp_path / "ev.md").read()
+    for method in ("model", "average", "random"):  # per state group, physical units (issue 8)
+        g = res["groups"][method]
+        assert set(g) == {"position", "attitude"} and g["position"]["n"] == 32 and g["attitude"]["unit"] == "deg"
+        assert 0 < g["position"]["mean"] < 2 and 0 < g["attitude"]["mean"] <= 180
+    assert os.path.getsize(tmp_path / "ev_scatter.png") > 1000
     assert res["results"]["model"]["mean"] < res["results"]["random"]["mean"]
 
 

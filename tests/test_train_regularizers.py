@@ -16,6 +16,7 @@ from risp_train.model import ModelConfig, ResNet18, build_model
 from risp_train.norms import InstanceNorm, instance_norm
 from risp_train.normalization import Normalization, StatsAccumulator
 from risp_train.regularizers import (
+    SQRT_2_OVER_PI,
     exact_regularizer,
     gamma_at,
     rendering_gradients,
@@ -50,6 +51,9 @@ def _objective(kind, net, x, tangents, y, v):
         return surrogate_regularizer(net, x, tangents, y)[2].sum()
     if kind == "stochastic":
         return stochastic_regularizer(net, x, tangents, v)[1].sum()
+    if kind.startswith("loss-"):  # the calibrated training loss L = mean ℓ + γ R, ψ scaled by σ_ψ
+        scale = torch.tensor([0.5, 2.0, 1.3], dtype=torch.float64)
+        return risp_loss(net, x, y, kind[5:], 0.7, tangents, torch.Generator().manual_seed(3), scale).total
     raise AssertionError(kind)
 
 
@@ -58,7 +62,8 @@ def _grads(f, params):
     return [torch.zeros_like(p) if g is None else g for g, p in zip(gs, params)]
 
 
-@pytest.mark.parametrize("kind", ["exact", "surrogate", "stochastic", "exact-functorch", "stochastic-functorch"])
+@pytest.mark.parametrize("kind", ["exact", "surrogate", "stochastic", "exact-functorch", "stochastic-functorch",
+                                  "loss-exact", "loss-surrogate", "loss-stochastic"])
 def test_parameter_gradient_matches_central_differences(setup, kind):
     net, x, tangents, y, v = setup
     params = list(net.parameters())
@@ -156,6 +161,24 @@ def test_surrogate_is_norm_of_loss_gradient_wrt_psi(setup):
     expected = torch.linalg.vector_norm(torch.einsum("bkt,bt->bk", m, s), dim=1)
     torch.testing.assert_close(r, expected, rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(err, state_error(pred, y))
+
+
+def test_calibrated_forms_share_one_scale(setup):
+    """R_exact = c_T mean_b ‖M̃_b‖_F with M̃ = M diag(σ_ψ); the stochastic form squared, averaged over
+    many draws of v, gives c_T² mean_b ‖M̃_b‖_F² (unbiased inner estimate); the surrogate is within a
+    small factor of the exact form (equal in expectation over sign patterns)."""
+    net, x, tangents, y, _ = setup
+    scale = torch.tensor([0.5, 2.0, 1.3], dtype=torch.float64)
+    c_t = SQRT_2_OVER_PI / math.sqrt(T)
+    pred, m = rendering_gradients(net, x, tangents * scale.view(1, -1, 1, 1, 1))
+    norms = torch.linalg.vector_norm(m.flatten(1), dim=1)
+    r_exact = risp_loss(net, x, y, "exact", 1.0, tangents, psi_scale=scale).reg
+    assert float(r_exact) == pytest.approx(float(c_t * norms.mean().detach()), rel=1e-10)
+    g = torch.Generator().manual_seed(5)
+    draws = torch.stack([risp_loss(net, x, y, "stochastic", 1.0, tangents, g, scale).reg for _ in range(3000)])
+    assert float((draws**2).mean()) == pytest.approx(float(c_t**2 * (norms**2).mean()), rel=0.1)
+    r_surr = float(risp_loss(net, x, y, "surrogate", 1.0, tangents, psi_scale=scale).reg)
+    assert 1 / 3 < r_surr / float(r_exact) < 3
 
 
 def test_risp_loss_combines_terms(setup):

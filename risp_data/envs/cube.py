@@ -1,12 +1,22 @@
 """Cube: a rigid cube over a floor (z = 0).
 
 State (6): x, y, z [m] of the centre, yaw, pitch, roll [rad] (R = Rz(yaw) Ry(pitch) Rx(roll)).
-Target (9): x, y, z, sin yaw, sin pitch, sin roll, cos yaw, cos pitch, cos roll.
+Target (9): x, y, z and the first two columns of R (r00, r10, r20, r01, r11, r21): the orientation is
+uniform on SO(3), where Euler sin/cos targets are discontinuous (meshes.rot6d_state_to_target).
 Geometry constants are shared with the simulator (risp_tasks.sims.cube).
+
+Appearance: a die.  The body takes the object colour ψ; each face carries its value's pips (thin boxes
+standing PIP_RAISE proud of the face, one fixed colour per value, risp_data/envs/materials.py).  Face
+values: +x 1, +y 2, +z 3, −z 4, −y 5, −x 6 (opposite faces sum to 7; 1, 2, 3 run counter-clockwise
+around their common corner, as on a Western die).  Distinct faces remove the cube's 24-fold rotational
+symmetry: two visible faces and the orientation of the 2-, 3- or 6-pattern fix the rotation.
 """
 
 CUBE_SIDE = 0.2  # m (edge length)
 CUBE_MASS = 1.0  # kg (simulator default)
+PIP_HALF = 0.022  # m, half side of a square pip
+PIP_SPACING = 0.055  # m, pip grid pitch on a face (3 × 3 grid around the face centre)
+PIP_RAISE = 0.001  # m, pips stand this far proud of the face (and reach 2 mm into the cube)
 
 # --- Rendering (risp_data): mesh, camera, sampler -----------------------------------------------------
 
@@ -18,41 +28,79 @@ import torch  # noqa: E402
 from .base import Camera, Environment, Mesh  # noqa: E402
 from .meshes import (  # noqa: E402
     RIGID_STATE_NAMES,
-    RIGID_TARGET_NAMES,
+    ROT6D_TARGET_NAMES,
     box,
+    merge,
     rigid_pose,
-    rigid_state_to_target,
-    rigid_target_to_state,
+    rot6d_state_to_target,
+    rot6d_target_to_state,
     transform,
 )
 from .rotations import quat_to_euler  # noqa: E402
 
-XY_RANGE = 0.5  # x, y ∈ [−0.5, 0.5] m
-Z_MAX = 1.0  # m, highest sampled centre height
+# Framing (issue 8): the 0.2 m die spans 13-24 of 64 pixels (median 19; pips 2-3 pixels) over this range
+# seen from 45° above at 2 m (fov 30°); earlier x, y ∈ ±0.5 m, z ≤ 1 m gave 7-16 pixels.
+XY_RANGE = 0.25  # x, y ∈ [−0.25, 0.25] m
+Z_MAX = 0.6  # m, highest sampled centre height
 # Documented sampler box; z's lower bound is the resting height of an axis-aligned cube (the sampler's
 # actual lower bound depends on the orientation: the lowest vertex touches the floor).
 STATE_LOW = (-XY_RANGE, -XY_RANGE, CUBE_SIDE / 2, -math.pi, -math.pi / 2, -math.pi)
 STATE_HIGH = (XY_RANGE, XY_RANGE, Z_MAX, math.pi, math.pi / 2, math.pi)
-CAMERA = Camera(origin=(0.0, -2.3, 1.5), target=(0.0, 0.0, 0.45), up=(0.0, 0.0, 1.0), fov=40.0)
+CAMERA = Camera(origin=(0.0, -1.414, 1.764), target=(0.0, 0.0, 0.35), up=(0.0, 0.0, 1.0), fov=30.0)
+
+
+# face value -> (axis, sign) of the face normal; pip patterns on the 3 × 3 grid (u, v) ∈ {−1, 0, 1}²
+PIP_FACES = {1: (0, 1), 2: (1, 1), 3: (2, 1), 4: (2, -1), 5: (1, -1), 6: (0, -1)}
+PIP_PATTERNS = {
+    1: [(0, 0)],
+    2: [(-1, -1), (1, 1)],
+    3: [(-1, -1), (0, 0), (1, 1)],
+    4: [(-1, -1), (-1, 1), (1, -1), (1, 1)],
+    5: [(-1, -1), (-1, 1), (0, 0), (1, -1), (1, 1)],
+    6: [(-1, -1), (-1, 0), (-1, 1), (1, -1), (1, 0), (1, 1)],
+}
+
+
+def pip_meshes() -> dict[int, tuple[torch.Tensor, torch.Tensor]]:
+    """Body-frame pips {face value: (vertices, faces)}: thin boxes on the face with normal sign·e_axis,
+    spanning depth [h − 2 mm, h + PIP_RAISE] along the normal (h = CUBE_SIDE/2)."""
+    h = CUBE_SIDE / 2
+    out = {}
+    for value, (axis, sign) in PIP_FACES.items():
+        u_axis, v_axis = (axis + 1) % 3, (axis + 2) % 3
+        parts = []
+        for pu, pv in PIP_PATTERNS[value]:
+            half, centre = [0.0] * 3, [0.0] * 3
+            half[axis], centre[axis] = (0.002 + PIP_RAISE) / 2, sign * (h + (PIP_RAISE - 0.002) / 2)
+            half[u_axis], centre[u_axis] = PIP_HALF, pu * PIP_SPACING
+            half[v_axis], centre[v_axis] = PIP_HALF, pv * PIP_SPACING
+            parts.append(box(half, centre))
+        out[value] = merge(parts)
+    return out
 
 
 def meshes(states: torch.Tensor) -> list[Mesh]:
-    """The cube (side CUBE_SIDE) posed by states (..., 6): v_world = R(yaw, pitch, roll) v_body + p."""
+    """The die (side CUBE_SIDE, material "object") and its pips (materials "pip1" … "pip6") posed by
+    states (..., 6): v_world = R(yaw, pitch, roll) v_body + p."""
     v, f = box((CUBE_SIDE / 2,) * 3)
     R, t = rigid_pose(states)
-    return [Mesh("cube", transform(v.to(states.dtype), R, t), f, "object")]
+    out = [Mesh("cube", transform(v.to(states.dtype), R, t), f, "object")]
+    for value, (pv, pf) in pip_meshes().items():
+        out.append(Mesh(f"pips{value}", transform(pv.to(states.dtype), R, t), pf, f"pip{value}"))
+    return out
 
 
 def sample_states(rng: np.random.Generator, n: int) -> np.ndarray:
-    """(n, 6) states: x, y uniform in [−0.5, 0.5]; orientation uniform on SO(3) (normalised Gaussian
+    """(n, 6) states: x, y uniform in [−XY_RANGE, XY_RANGE]; orientation uniform on SO(3) (normalised Gaussian
     quaternion, converted to yaw/pitch/roll); z uniform between resting on the floor (lowest vertex at
-    z = 0, i.e. z = CUBE_SIDE/2 · Σ_j |R_2j|) and Z_MAX."""
+    z = 0, i.e. z = CUBE_SIDE/2 · Σ_j |R_2j|, raised by PIP_RAISE so that no pip dips into the floor)
+    and Z_MAX."""
     n = int(n)
     q = rng.standard_normal((n, 4))
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     euler = quat_to_euler(torch.from_numpy(q)).numpy()  # (yaw, pitch, roll)
     R = rigid_pose(torch.from_numpy(np.c_[np.zeros((n, 3)), euler]))[0].numpy()
-    z_rest = CUBE_SIDE / 2 * np.abs(R[:, 2, :]).sum(-1)
+    z_rest = CUBE_SIDE / 2 * np.abs(R[:, 2, :]).sum(-1) + PIP_RAISE
     xy = rng.uniform(-XY_RANGE, XY_RANGE, size=(n, 2))
     z = z_rest + rng.uniform(0.0, 1.0, size=n) * (Z_MAX - z_rest)
     return np.c_[xy, z, euler]
@@ -62,14 +110,14 @@ def make_environment() -> Environment:
     return Environment(
         name="cube",
         state_names=RIGID_STATE_NAMES,
-        target_names=RIGID_TARGET_NAMES,
+        target_names=ROT6D_TARGET_NAMES,
         state_low=STATE_LOW,
         state_high=STATE_HIGH,
         camera=CAMERA,
-        state_to_target=rigid_state_to_target,
-        target_to_state=rigid_target_to_state,
+        state_to_target=rot6d_state_to_target,
+        target_to_state=rot6d_target_to_state,
         meshes=meshes,
         sample_states=sample_states,
         floor_height=0.0,
-        description="rigid cube over a floor",
+        description="rigid cube marked like a die, over a floor",
     )

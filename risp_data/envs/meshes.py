@@ -154,6 +154,33 @@ def rigid_target_to_state(targets: torch.Tensor) -> torch.Tensor:
     return torch.cat([targets[..., :3], torch.atan2(targets[..., 3:6], targets[..., 6:9])], -1)
 
 
+# The cube's orientation is uniform on SO(3): sin/cos of Euler angles are discontinuous there (gimbal lock
+# at pitch ±π/2, roll and yaw trading places), so its network target holds the first two columns of R
+# instead — the continuous "6D" representation of Zhou et al. (CVPR 2019); Gram–Schmidt maps any
+# prediction back to a rotation.
+ROT6D_TARGET_NAMES = ("x", "y", "z", "r00", "r10", "r20", "r01", "r11", "r21")
+
+
+def rot6d_state_to_target(states: torch.Tensor) -> torch.Tensor:
+    """(x, y, z, yaw, pitch, roll) -> (x, y, z, R[:, 0], R[:, 1]) with R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    R = euler_to_matrix(states[..., 3], states[..., 4], states[..., 5])
+    return torch.cat([states[..., :3], R[..., :, 0], R[..., :, 1]], -1)
+
+
+def rot6d_target_to_state(targets: torch.Tensor) -> torch.Tensor:
+    """Inverse of :func:`rot6d_state_to_target` on its range; any 6-vector is projected onto a rotation
+    by Gram–Schmidt (a = â/‖â‖, b = (b̂ − (a·b̂)a)/‖·‖, c = a × b), then converted to yaw, pitch, roll."""
+    from .rotations import matrix_to_euler
+
+    a = targets[..., 3:6]
+    a = a / torch.linalg.vector_norm(a, dim=-1, keepdim=True).clamp_min(1e-12)
+    b = targets[..., 6:9]
+    b = b - (a * b).sum(-1, keepdim=True) * a
+    b = b / torch.linalg.vector_norm(b, dim=-1, keepdim=True).clamp_min(1e-12)
+    R = torch.stack([a, b, torch.linalg.cross(a, b)], -1)
+    return torch.cat([targets[..., :3], matrix_to_euler(R)], -1)
+
+
 def uniform_states(rng: np.random.Generator, n: int, low, high) -> np.ndarray:
     """(n, S) float64 states drawn uniformly and independently in the box [low, high]."""
     low, high = np.asarray(low, np.float64), np.asarray(high, np.float64)

@@ -35,16 +35,19 @@ from .meshes import (  # noqa: E402
 )
 
 SCENES_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "scenes")
-MESH_FILES = {"frame": "quadrotor_frame.ply", "rotors": "quadrotor_rotors.ply"}  # made by scenes/make_quadrotor.py
+MESH_FILES = {"frame": "quadrotor_frame.ply", "rotor_front": "quadrotor_rotor_front.ply",
+              "rotor_left": "quadrotor_rotor_left.ply", "rotors": "quadrotor_rotors.ply"}  # scenes/make_quadrotor.py
 # (from quadrotor_mesh.py; without a scenes/ folder next to the package the meshes are built in memory)
-MESH_MATERIALS = {"frame": "object", "rotors": "rotor"}
+# frame: object colour ψ; front rotor red, left rotor white, back/right rotors dark (envs/materials.py)
+MESH_MATERIALS = {"frame": "object", "rotor_front": "rotor_front", "rotor_left": "rotor_left", "rotors": "rotor"}
 
-# Sampler ranges (x, y, z [m], yaw, pitch, roll [rad]); the floor is at z = 0.  The flight volume is kept
-# small enough (0.8 m cube) that the 0.84 m-wide quadrotor spans ~15-25 pixels of a 64x64 image: with a
-# 2 m-wide volume it covered ~5 pixels and the network had little to see.
-STATE_LOW = (-0.4, -0.4, 0.8, -math.pi, -math.pi / 6, -math.pi / 6)
-STATE_HIGH = (0.4, 0.4, 1.6, math.pi, math.pi / 6, math.pi / 6)
-CAMERA = Camera(origin=(0.0, -1.7, 2.9), target=(0.0, 0.0, 1.15), up=(0.0, 0.0, 1.0), fov=50.0)
+# Sampler ranges (x, y, z [m], yaw, pitch, roll [rad]); the floor is at z = 0.  Framing (issue 8): the
+# 0.84 m-wide quadrotor must span >= ~30 of 64 pixels to show its attitude, so the flight volume is a
+# 0.36 × 0.36 × 0.3 m box seen from 75° above the horizon at 1.9 m (fov 40°): 29-43 pixels across
+# (benchmarks/object_coverage.py; docs/environments.md §Framing).  Earlier: a 0.8 m cube, 15-28 pixels.
+STATE_LOW = (-0.18, -0.18, 1.0, -math.pi, -math.pi / 6, -math.pi / 6)
+STATE_HIGH = (0.18, 0.18, 1.3, math.pi, math.pi / 6, math.pi / 6)
+CAMERA = Camera(origin=(0.0, -0.49, 2.985), target=(0.0, 0.0, 1.15), up=(0.0, 0.0, 1.0), fov=40.0)
 
 
 @lru_cache(maxsize=None)

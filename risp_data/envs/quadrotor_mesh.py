@@ -1,12 +1,15 @@
 """The quadrotor's body-frame meshes, built deterministically from trimesh primitives.
 
-Body frame (see quadrotor.py): x forward, z the thrust axis, origin at the body centre.  Two parts, sized
+Body frame (see quadrotor.py): x forward, z the thrust axis, origin at the body centre.  Parts, sized
 by the constants shared with the simulator:
 
 - frame : central body box, four arms (boxes) in a "+" layout, four motor pods (cylinders) and a small
   camera pod at the front — rendered with the object reflectance ψ;
-- rotors: four thin rotor discs of radius ROTOR_RADIUS at height ROTOR_HEIGHT above the body centre,
-  each with two crossed blades — rendered dark grey.
+- rotor_front, rotor_left, rotors: thin rotor discs of radius ROTOR_RADIUS at height ROTOR_HEIGHT above
+  the body centre, each with two crossed blades.  As on real vehicles the rotors are coloured so that
+  the image shows front/back and left/right (a plain "+" quadrotor is 4-fold symmetric: yaw would be
+  ambiguous modulo 90°): the front rotor (0, +x) is red, the left rotor (1, +y) white, the back and
+  right rotors (2, 3) dark grey (materials in risp_data/envs/materials.py).
 
 Rotor i sits at ARM_LENGTH · (cos(i·π/2), sin(i·π/2), 0), i = 0..3 (0: +x, 1: +y, 2: −x, 3: −y).
 ``scenes/make_quadrotor.py`` writes these meshes to the PLY files in ``scenes/`` (the source of truth
@@ -51,12 +54,15 @@ def frame_mesh():
     return trimesh.util.concatenate(parts)
 
 
-def rotor_mesh():
-    """Four rotor discs with two crossed blades each, as one ``trimesh.Trimesh``."""
+ROTOR_PARTS = {"rotor_front": (0,), "rotor_left": (1,), "rotors": (2, 3)}  # part -> rotor indices
+
+
+def rotor_mesh(indices=(0, 1, 2, 3)):
+    """Rotor discs ``indices`` with two crossed blades each, as one ``trimesh.Trimesh``."""
     import trimesh
 
     parts = []
-    for i in range(4):
+    for i in indices:
         c, s = math.cos(i * math.pi / 2), math.sin(i * math.pi / 2)
         centre = (c * ARM_LENGTH, s * ARM_LENGTH, ROTOR_HEIGHT)
         disc = trimesh.creation.cylinder(radius=ROTOR_RADIUS, height=0.006, sections=SECTIONS * 2)
@@ -69,8 +75,9 @@ def rotor_mesh():
 
 
 def build_meshes() -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """{part: (vertices (V, 3) float64, faces (F, 3) int64)} for the parts "frame" and "rotors"."""
+    """{part: (vertices (V, 3) float64, faces (F, 3) int64)} for the parts "frame" and ROTOR_PARTS."""
     out = {}
-    for part, mesh in (("frame", frame_mesh()), ("rotors", rotor_mesh())):
+    parts = [("frame", frame_mesh())] + [(part, rotor_mesh(idx)) for part, idx in ROTOR_PARTS.items()]
+    for part, mesh in parts:
         out[part] = (np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64))
     return out

@@ -1,0 +1,64 @@
+"""The users' two commands, verbatim (tiny --n): `risp-data render --env cube --n N` then `risp-train fit shards/`
+(issue 8, item 7): default output under shards/, a folder of data sets accepted, default run folder under
+runs/, the hardware's preset and RISP's regularizer, both printed."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from risp_data.errors import RispError
+from risp_train.cli import find_dataset
+
+
+def _run(args, cwd):
+    env = dict(os.environ, OMP_NUM_THREADS="1",
+               PYTHONPATH=os.pathsep.join([os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                                           os.environ.get("PYTHONPATH", "")]))
+    return subprocess.run([sys.executable, "-m", *args], cwd=cwd, env=env, capture_output=True, text=True,
+                          timeout=900)
+
+
+@pytest.mark.slow
+def test_render_then_fit_work_as_users_write_them(tmp_path):
+    r = _run(["risp_data", "render", "--env", "cube", "--n", "32", "--quiet"], tmp_path)
+    assert r.returncode == 0, r.stderr
+    manifest = json.load(open(tmp_path / "shards" / "cube-train" / "manifest.json"))
+    assert manifest["env"] == "cube" and manifest["counts"]["complete_samples"] == 32 and manifest["jacobian"]
+    r = _run(["risp_train", "fit", "shards/", "--quiet"], tmp_path)
+    assert r.returncode == 0, r.stderr
+    run = tmp_path / "runs" / "cube-train-stochastic-s0"
+    assert (run / "model.pt").exists()
+    cfg = json.load(open(run / "config.json"))["config"]
+    import torch
+
+    expected = "paper" if torch.cuda.is_available() else "cpu"
+    assert cfg["preset"] == expected and cfg["reg"] == "stochastic"
+    assert f"preset: {expected}" in r.stderr and "regularizer: stochastic" in r.stderr
+
+
+def _dataset(folder, domain="train", jacobian=True, env="cube"):
+    os.makedirs(folder)
+    with open(os.path.join(folder, "manifest.json"), "w") as f:
+        json.dump({"env": env, "domain": domain, "jacobian": jacobian, "n": 4}, f)
+    return str(folder)
+
+
+def test_find_dataset_picks_the_one_training_set_or_lists_them(tmp_path):
+    one = _dataset(tmp_path / "a" / "cube-train")
+    assert find_dataset(str(tmp_path / "a"), need_jacobian=True) == one
+    assert find_dataset(one, need_jacobian=True) == one
+    _dataset(tmp_path / "a" / "cube-target", domain="target", jacobian=False)
+    assert find_dataset(str(tmp_path / "a"), need_jacobian=True) == one  # the one train-domain set
+    _dataset(tmp_path / "a" / "quadrotor-train", env="quadrotor")
+    with pytest.raises(RispError, match="holds 3 data sets: .*cube-target.*cube-train.*quadrotor-train"):
+        find_dataset(str(tmp_path / "a"), need_jacobian=True)
+    os.makedirs(tmp_path / "empty")
+    with pytest.raises(RispError, match="holds no data set"):
+        find_dataset(str(tmp_path / "empty"), need_jacobian=False)
+    with pytest.raises(RispError, match="does not exist"):
+        find_dataset(str(tmp_path / "missing"), need_jacobian=False)

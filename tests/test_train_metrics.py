@@ -1,0 +1,75 @@
+"""risp-train eval's per-group metrics on hand-built predictions with known errors (issue 8, item 3)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from risp_train.evaluate import STATE_GROUPS, geodesic_angle_deg, group_errors, markdown_table, summarize_groups
+
+
+def _rigid_truth(n=5):
+    rng = np.random.default_rng(0)
+    p = rng.uniform(-0.3, 0.3, (n, 3))
+    e = np.c_[rng.uniform(-math.pi, math.pi, n), rng.uniform(-1.2, 1.2, n), rng.uniform(-math.pi, math.pi, n)]
+    return np.c_[p, e]
+
+
+@pytest.mark.parametrize("env", ["quadrotor", "cube"])
+def test_position_and_attitude_errors_are_known_offsets(env):
+    """Position off by (0.03, 0.04, 0) m → 0.05 m; a pure yaw offset of 10° on a level body → 10°."""
+    true = _rigid_truth()
+    true[:, 4:6] = 0.0  # level: a yaw offset is then a rotation by exactly that angle
+    pred = true.copy()
+    pred[:, 0] += 0.03
+    pred[:, 1] += 0.04
+    pred[:, 3] += math.radians(10.0)
+    err = group_errors(env, pred, true)
+    assert set(err) == {"position", "attitude"}
+    np.testing.assert_allclose(err["position"], 0.05, atol=1e-12)
+    np.testing.assert_allclose(err["attitude"], 10.0, atol=1e-6)
+
+
+def test_geodesic_angle_is_independent_of_the_euler_representation():
+    """(yaw, pitch, roll) and (yaw + π, π − pitch, roll + π) are the same rotation: 0°; a rotation by 30°
+    about the body's x axis (roll + 30°) is 30° whatever the rest of the pose; wrap-around is 0°."""
+    true = _rigid_truth(20)
+    same = true.copy()
+    same[:, 3:6] = np.c_[true[:, 3] + math.pi, math.pi - true[:, 4], true[:, 5] + math.pi]
+    np.testing.assert_allclose(geodesic_angle_deg(same[:, 3:6], true[:, 3:6]), 0.0, atol=1e-5)
+    rolled = true[:, 3:6].copy()
+    rolled[:, 2] += math.radians(30.0)
+    np.testing.assert_allclose(geodesic_angle_deg(rolled, true[:, 3:6]), 30.0, atol=1e-6)
+    wrapped = true[:, 3:6] + np.array([2 * math.pi, 0.0, -2 * math.pi])
+    np.testing.assert_allclose(geodesic_angle_deg(wrapped, true[:, 3:6]), 0.0, atol=1e-5)
+    flipped = true[:, 3:6].copy()
+    flipped[:, 0] += math.pi  # yaw by 180° about world z: 180°
+    np.testing.assert_allclose(geodesic_angle_deg(flipped, true[:, 3:6]), 180.0, atol=1e-4)
+
+
+def test_joint_and_sensor_errors_are_mean_absolute_errors():
+    rng = np.random.default_rng(1)
+    hand = rng.uniform(-0.7, 0.7, (4, 13))
+    offsets = np.where(np.arange(13) % 2 == 0, 0.1, -0.1)
+    np.testing.assert_allclose(group_errors("hand", hand + offsets, hand)["joints"], 0.1, atol=1e-12)
+    rod = rng.uniform(0.3, 1.5, (4, 10))
+    offsets = np.r_[np.full(5, 0.02), np.full(5, -0.04)]
+    np.testing.assert_allclose(group_errors("rod", rod + offsets, rod)["sensors"], 0.03, atol=1e-12)
+
+
+def test_summary_and_table_report_mean_std_count_and_units():
+    true = _rigid_truth(4)
+    pred = true.copy()
+    pred[:2, 2] += 0.1  # two images 0.1 m off, two exact: mean 0.05, std 0.05
+    s = summarize_groups("cube", pred, true)
+    assert s["position"] == {"mean": pytest.approx(0.05), "std": pytest.approx(0.05), "n": 4, "unit": "m"}
+    assert s["attitude"]["unit"] == "deg" and s["attitude"]["mean"] == pytest.approx(0.0, abs=1e-5)
+    result = {"metric": "l1", "shards": "x", "env": "cube", "domain": "target", "n": 4,
+              "results": {"model": {"mean": 0.2, "std": 0.1}, "average": {"mean": 0.5, "std": 0.2}},
+              "groups": {"model": s, "average": s}}
+    table = markdown_table(result)
+    assert "position [m]" in table and "attitude [deg]" in table and "n = 4" in table
+    assert "0.0500 ± 0.0500" in table and "0.2000 ± 0.1000" in table
+    assert set(STATE_GROUPS) == {"quadrotor", "cube", "hand", "rod"}
