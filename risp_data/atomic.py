@@ -28,9 +28,11 @@ def atomic_write(path: "str | os.PathLike", mode: str = "wb", suffix: str = "") 
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(e, OSError) and not e.filename:  # a failed write (disk full) names no file: name ours
+            raise OSError(e.errno, e.strerror or str(e), os.fspath(path)) from e
         raise
 
 

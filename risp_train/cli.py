@@ -38,9 +38,13 @@ def cli():
 @click.option("--checkpoint-every", type=int, default=0, show_default=True, help="Also checkpoint every N steps (0: epoch ends only).")
 @click.option("--val", type=click.Path(), default=None, help="Held-out shard folder evaluated at each epoch end.")
 @click.option("--resume", is_flag=True, help="Continue the run in --out from its last checkpoint.")
+# -- integrity options (issue 13) --
+@click.option("--overwrite", is_flag=True, help="Replace the model/checkpoint a run folder already holds.")
+@click.option("--allow-incomplete", is_flag=True, help="Train on an unfinished shard folder's complete shards.")
+# -- end integrity options --
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def fit(shards, out, reg, gamma, gamma_ramp, preset, epochs, batch_size, lr, weight_decay, width, seed, workers, fmt,
-        checkpoint_every, val, resume, quiet):
+        checkpoint_every, val, resume, overwrite, allow_incomplete, quiet):
     """Train on the shard folder SHARDS (streamed; resolution from its manifest)."""
     from .config import make_config
     from .train import fit as run_fit
@@ -48,7 +52,7 @@ def fit(shards, out, reg, gamma, gamma_ramp, preset, epochs, batch_size, lr, wei
     cfg = make_config(shards, out, preset=preset, reg=reg, gamma=gamma, gamma_ramp=gamma_ramp, epochs=epochs,
                       batch_size=batch_size, lr=lr, weight_decay=weight_decay, width=width, seed=seed,
                       workers=workers, format=fmt, checkpoint_every=checkpoint_every, val=val)
-    path = run_fit(cfg, resume=resume, progress=not quiet)
+    path = run_fit(cfg, resume=resume, progress=not quiet, overwrite=overwrite, allow_incomplete=allow_incomplete)
     import os
 
     if int(os.environ.get("RANK", "0")) == 0:
