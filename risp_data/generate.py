@@ -22,6 +22,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from .atomic import remove_temporaries
 from .errors import RispError
 from .shards.manifest import (
     FORMAT_NAME,
@@ -322,11 +323,7 @@ def _remove_temporaries(folder: str) -> None:
     """Delete the temporaries a killed run left behind: our ``.tmp-*`` files and zarr's ``*.partial`` files
     (never visible to readers, safe to drop)."""
     for sub in ("", "wds", MARKER_DIR):
-        d = os.path.join(folder, sub)
-        if os.path.isdir(d):
-            for name in os.listdir(d):
-                if name.startswith(".tmp-"):
-                    os.unlink(os.path.join(d, name))
+        remove_temporaries(os.path.join(folder, sub))
     for root, _, files in os.walk(os.path.join(folder, ZARR_DIR)):
         for name in files:
             if name.endswith(".partial"):
@@ -577,7 +574,7 @@ def _run_locked(job: RenderJob, variant: str, progress: bool, log: Callable[[str
     done = {r["index"] for r in manifest["shards"]}
     todo = [i for i in range(job.num_shards) if i not in done]
     if done:
-        log(f"resuming {job.out}: {len(done)} of {job.num_shards} shards complete and intact, rendering {len(todo)}")
+        log(f"resuming {job.out}: {len(done)} of {job.num_shards} shards complete, rendering {len(todo)}")
     if not todo:
         return manifest
     lock = threading.Lock()

@@ -33,7 +33,7 @@ from .data import (ShardSet, check_complete, check_environment, iter_batches, ma
 from .model import ModelConfig, ResNet18, build_model, stem_for_resolution
 from .normalization import Normalization, StatsAccumulator
 from .regularizers import gamma_at, risp_loss
-from risp_data.atomic import atomic_write, write_text_atomic
+from risp_data.atomic import atomic_write, remove_temporaries, write_text_atomic
 
 LAST = "last.pt"  # the resumable checkpoint, rewritten at each epoch end (and every N steps)
 MODEL = "model.pt"  # the final checkpoint (same format), written when training completes
@@ -180,6 +180,7 @@ def fit(cfg: TrainConfig, *, resume: bool = False, progress: bool = True,
 
     check_run_folder(cfg.out, resume, overwrite)
     os.makedirs(cfg.out, exist_ok=True)
+    remove_temporaries(cfg.out)  # half-written checkpoints/logs of a killed run (never under their names)
     last_path = os.path.join(cfg.out, LAST)
     csv_path = os.path.join(cfg.out, "losses.csv")
     state = None
