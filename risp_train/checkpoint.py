@@ -71,13 +71,17 @@ def save_checkpoint(path: str, payload: dict[str, Any]) -> None:
 
 
 def _load_error(path: str, e: Exception) -> str:
-    """One line for a checkpoint torch cannot read, without torch's advice to load it unsafely."""
-    import pickle
+    """One line for a checkpoint torch cannot read, without torch's advice to load it unsafely
+    (``weights_only=False`` would execute whatever the file's pickle says)."""
+    import re
 
-    if isinstance(e, pickle.UnpicklingError) or "weights_only" in str(e).lower() or "Weights only load" in str(e):
-        return (f"refused checkpoint {path}: it holds pickled objects other than tensors and plain values "
-                "(risp checkpoints never do; it may be from another program, or malicious)")
-    first = str(e).splitlines()[0] if str(e) else ""
+    text = str(e)
+    found = re.search(r"Unsupported global: GLOBAL (\S+)", text)
+    if found:
+        return (f"refused checkpoint {path}: it holds a pickled {found.group(1)} object; risp checkpoints hold "
+                "only tensors and plain values (another program's file, or a malicious one)")
+    detail = re.search(r"WeightsUnpickler error:\s*(\S[^\n]*)", text)
+    first = detail.group(1) if detail else (text.splitlines()[0] if text else "")
     return f"corrupt or unreadable checkpoint {path}: {type(e).__name__}{': ' + first if first else ''}"
 
 

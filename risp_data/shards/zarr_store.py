@@ -191,6 +191,10 @@ class ZarrDataset:
                 raise RispError(
                     f"corrupt zarr shard file {os.path.join(self.folder, rel)}: {type(e).__name__}: {e}"
                 ) from None
+        if not np.isfinite(out["states"]).all():  # listed but unwritten (NaN fill): never hand it out as data
+            rel = shard_file(self.folder, "states", shard, 2)
+            raise RispError(f"zarr shard file {os.path.join(self.folder, rel)}: sample {g} is unwritten (NaN) "
+                            "although the manifest lists its shard; rerun the render command to repair it")
         m = self.manifest
         meta = {k: m[k] for k in ("env", "domain", "resolution", "spp", "seed", "variant")}
         meta.update(index=g, state_names=self.state_names, psi_names=self.psi_names)
