@@ -28,6 +28,30 @@ def _os_error_line(e: OSError) -> str:
     return f"{where}: {reason}" if where else f"{type(e).__name__}: {reason}"
 
 
+_DATALOADER_DIED = ("a data-loading worker process died unexpectedly (killed, or out of memory); rerun with "
+                    "--resume to continue from the last checkpoint, with fewer --workers if memory is short")
+
+
+def _raised_in(e: BaseException, package_path: str) -> bool:
+    """True when ``e`` was raised inside files under ``package_path`` (e.g. ``torch/utils/data``)."""
+    tb = e.__traceback__
+    while tb is not None:
+        if package_path in tb.tb_frame.f_code.co_filename.replace("\\", "/"):
+            return True
+        tb = tb.tb_next
+    return False
+
+
+def _quiet_worker_signals() -> None:
+    """Stop torch's SIGCHLD handler from raising "DataLoader worker … killed" a second time while the
+    error line is printed (it fires asynchronously, at any bytecode, once per dead worker)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGCHLD, signal.SIG_DFL)
+
+
 def user_error_line(e: BaseException) -> str | None:
     """The one-line message of an error the user can act on, or None for a programming error."""
     from concurrent.futures.process import BrokenProcessPool
@@ -39,13 +63,14 @@ def user_error_line(e: BaseException) -> str | None:
                 "rerun the same command to resume, with fewer --workers or a smaller --res if memory is short")
     if isinstance(e, MemoryError):
         return "out of memory; use a smaller --res, --batch-size or fewer --workers"
+    if isinstance(e, (ConnectionError, EOFError)) and _raised_in(e, "torch/utils/data"):
+        return _DATALOADER_DIED  # the pipe of a worker killed mid-batch
     if isinstance(e, OSError):
         return _os_error_line(e)
     text = str(e)
     if isinstance(e, RuntimeError) and "DataLoader worker" in text and ("exited unexpectedly" in text
                                                                       or "killed by signal" in text):
-        return ("a data-loading worker process died unexpectedly (killed, or out of memory); rerun with "
-                "--resume to continue from the last checkpoint, with fewer --workers if memory is short")
+        return _DATALOADER_DIED
     return None
 
 
@@ -66,6 +91,7 @@ def run_cli(group: click.Group, argv: list[str] | None = None) -> None:
         line = user_error_line(e)
         if line is None:
             raise
+        _quiet_worker_signals()
         click.echo(f"Error: {line}", err=True)
         sys.exit(1)
 
@@ -83,4 +109,5 @@ class RispGroup(click.Group):
             line = user_error_line(e)
             if line is None:
                 raise
+            _quiet_worker_signals()
             raise click.ClickException(line) from None

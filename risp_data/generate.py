@@ -362,6 +362,8 @@ def _drop_damaged_shards(folder: str, manifest: dict[str, Any], log: Callable[[s
     """Remove listed shards whose files are missing or differ from the manifest (size, then sha256) from
     the manifest, so that they are rendered again; True when any was removed."""
     damaged = []
+    if manifest["shards"]:
+        log(f"checking the {len(manifest['shards'])} listed shard(s) of {folder} (sizes, sha256)")
     for rec in sorted(manifest["shards"], key=lambda r: r["index"]):
         why = shard_problem(folder, rec, deep=True)
         if why is not None:

@@ -234,6 +234,7 @@ def fit(cfg: TrainConfig, *, resume: bool = False, progress: bool = True,
                          "complete": complete},
             "history": history, "world_size": world, "workers": cfg.workers, "torch_version": torch.__version__,
             "epoch_sums": [float(v) for v in sums] if batch > 0 else [0.0, 0.0, 0.0],
+            "samples": sample_counts(shards),
         }
 
     if rank == 0:
