@@ -141,6 +141,9 @@ def check_run_folder(out: str, resume: bool, overwrite: bool) -> None:
     elif held and not resume:
         raise RispError(f"{out} already holds a run ({', '.join(held)}); pass --resume to continue it, "
                         "--overwrite to replace it, or choose another --out")
+    elif held == [MODEL]:  # --resume, but nothing to resume from: training anew would replace the model
+        raise RispError(f"{out} holds a finished {MODEL} but no {LAST} to resume from; pass --overwrite to "
+                        "train it again, or choose another --out")
 
 
 def fit(cfg: TrainConfig, *, resume: bool = False, progress: bool = True,

@@ -143,6 +143,9 @@ def test_fit_refuses_a_folder_holding_a_model_unless_overwrite(data, model, tmp_
     line = _one_line_error(runner.invoke(train_cli, ["fit", data["train"], "--out", str(run), *_TINY, "--epochs", "1",
                                                      "--seed", "5"]))
     assert "already holds a run (model.pt)" in line and "--overwrite" in line
+    line = _one_line_error(runner.invoke(train_cli, ["fit", data["train"], "--out", str(run), *_TINY, "--epochs", "1",
+                                                     "--seed", "5", "--resume"]))
+    assert "no last.pt to resume from" in line
     assert hashlib.sha256((run / "model.pt").read_bytes()).hexdigest() == before
     r = runner.invoke(train_cli, ["fit", data["train"], "--out", str(run), *_TINY, "--epochs", "1", "--seed", "5",
                                   "--overwrite"])

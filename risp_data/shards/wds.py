@@ -207,10 +207,11 @@ class ShardCheck:
     lists — a tar whose tail a crash zero-filled reads as a valid, shorter archive otherwise."""
 
     def __init__(self, expected: dict[str, tuple[int, int]], env: str, handler=None):
-        self.expected, self.env, self.handler = dict(expected), env, handler or _raise_with_url
+        self.expected = {os.path.normpath(u): r for u, r in expected.items()}
+        self.env, self.handler = env, handler or _raise_with_url
 
     def _check_sample(self, url: str, raw: dict[str, Any]) -> None:
-        start, stop = self.expected[url]
+        start, stop = self.expected[os.path.normpath(url)]
         key = str(raw.get("__key__", ""))
         index = int(key[1:]) if key[:1] == "s" and key[1:].isdigit() else -1
         if not start <= index < stop:
@@ -230,9 +231,9 @@ class ShardCheck:
         expand = wds.tarfile_to_samples(handler=self.handler)
         for shard in src:
             url = shard["url"]
-            if url not in self.expected:
+            if os.path.normpath(url) not in self.expected:
                 raise RispError(f"webdataset shard {url} is not listed in its folder's manifest")
-            start, stop = self.expected[url]
+            start, stop = self.expected[os.path.normpath(url)]
             n = 0
             for raw in expand(iter([shard])):
                 self._check_sample(url, raw)
