@@ -8,8 +8,10 @@ from __future__ import annotations
 
 import click
 
+from risp_data.cli_util import RispGroup, run_cli
 
-class _LazyGroup(click.Group):
+
+class _LazyGroup(RispGroup):
     """Import sub-command groups only when they are used, so ``risp --help`` stays fast."""
 
     _targets = {
@@ -37,7 +39,7 @@ def cli():
 
 
 def main():
-    cli()
+    run_cli(cli)  # user errors of every sub-command (``risp demo`` included): one ``Error:`` line
 
 
 if __name__ == "__main__":

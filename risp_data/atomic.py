@@ -20,7 +20,7 @@ def atomic_write(path: "str | os.PathLike", mode: str = "wb", suffix: str = "") 
     rename it over ``path``; on any exception (including KeyboardInterrupt) remove it and re-raise."""
     folder = os.path.dirname(os.path.abspath(path))
     os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=suffix, dir=folder)
+    fd, tmp = tempfile.mkstemp(prefix=TEMP_PREFIX, suffix=suffix, dir=folder)
     try:
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the file the usual permissions
         with os.fdopen(fd, mode) as f:
@@ -28,10 +28,24 @@ def atomic_write(path: "str | os.PathLike", mode: str = "wb", suffix: str = "") 
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(e, OSError) and not e.filename:  # a failed write (disk full) names no file: name ours
+            raise OSError(e.errno, e.strerror or str(e), os.fspath(path)) from e
         raise
+
+
+TEMP_PREFIX = ".tmp-"
+
+
+def remove_temporaries(folder: "str | os.PathLike") -> None:
+    """Delete the temporaries (``.tmp-*``) a killed :func:`atomic_write` left in ``folder``: never visible
+    to readers under their final names, safe to drop before a job resumes."""
+    if os.path.isdir(folder):
+        for name in os.listdir(folder):
+            if name.startswith(TEMP_PREFIX):
+                os.unlink(os.path.join(folder, name))
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:

@@ -66,17 +66,10 @@ def render(env, n, out, fmt, resolution, spp, domain, seed, workers, shard_size,
         jacobian_path=jacobian_path,
     )
     t0 = time.perf_counter()
-    before = None
-    if os.path.exists(os.path.join(out, "manifest.json")):
-        from .shards import load_manifest
-
-        try:
-            before = load_manifest(out)["counts"]["complete_samples"]
-        except (RispError, KeyError):
-            before = None
-    manifest = run_job(job, progress=not quiet, log=lambda s: click.echo(s, err=True))
+    stats: dict = {}
+    manifest = run_job(job, progress=not quiet, log=lambda s: click.echo(s, err=True), stats=stats)
     dt = time.perf_counter() - t0
-    done = manifest["counts"]["complete_samples"] - (before or 0)
+    done = stats.get("rendered_samples", 0)  # rendered by this call (not shards merged or found on disk)
     rate = done / dt if dt > 0 else float("nan")
     click.echo(
         f"{out}: {manifest['counts']['complete_samples']}/{manifest['n']} samples in "
@@ -89,12 +82,17 @@ def render(env, n, out, fmt, resolution, spp, domain, seed, workers, shard_size,
 @click.argument("folder", type=click.Path())
 @click.option("--png", default=None, type=click.Path(dir_okay=False), help="Contact sheet path (default: FOLDER/contact_sheet.png).")
 @click.option("--samples", default=4, show_default=True, type=int, help="Rows (samples) in the contact sheet.")
-def inspect(folder, png, samples):
-    """Print the manifest summary of FOLDER and write a PNG contact sheet of images and Jacobians."""
+@click.option("--deep", is_flag=True, help="Also hash every shard file (sha256 against the manifest).")
+def inspect(folder, png, samples, deep):
+    """Print the manifest summary of FOLDER, check every listed shard (sizes, sample counts; sha256 with
+    --deep; exit 1 when one is damaged) and write a PNG contact sheet of images and Jacobians."""
+    from .errors import RispError
     from .inspect import InspectConfig, inspect_folder
 
-    summary, path = inspect_folder(InspectConfig(folder=folder, png=png, samples=samples))
+    summary, path, problems = inspect_folder(InspectConfig(folder=folder, png=png, samples=samples, deep=deep))
     click.echo(summary)
+    if problems:
+        raise RispError(f"{len(problems)} damaged shard(s) in {folder}; repair: risp-data verify --repair {folder}")
     click.echo(f"contact sheet: {path}" if path else "contact sheet: none (no complete shard yet)")
 
 
@@ -106,11 +104,13 @@ def inspect(folder, png, samples):
 @click.option("--tol", default=1e-3, show_default=True, type=float,
               help="Largest accepted relative error per psi (measured <= 2.5e-5 at --eps 1e-2; docs/cli-data.md).")
 @click.option("--checksums/--no-checksums", default=True, show_default=True, help="Also hash every shard file.")
-def verify(folder, samples, eps, tol, checksums):
+@click.option("--repair", is_flag=True, help="First re-render missing or damaged shards (the manifest's job).")
+def verify(folder, samples, eps, tol, checksums, repair):
     """Compare stored Jacobians with central differences of re-renders (same seed); exit 1 beyond --tol."""
     from .verify import VerifyConfig, format_report, verify_folder
 
-    report = verify_folder(VerifyConfig(folder=folder, samples=samples, eps=eps, tol=tol, checksums=checksums))
+    report = verify_folder(VerifyConfig(folder=folder, samples=samples, eps=eps, tol=tol, checksums=checksums,
+                                        repair=repair))
     click.echo(format_report(report))
     report.raise_if_failed()
 

@@ -1,37 +1,113 @@
-"""Helpers shared by the three command-line tools: one error line, non-zero exit."""
+"""Helpers shared by the command-line tools: one error line, non-zero exit.
+
+Every command runs inside :meth:`RispGroup.invoke`, which turns the errors a user can act on into one
+``Error: …`` line (click's ``ClickException``): :class:`RispError`, operating-system errors (disk full,
+permission denied, a path under a file — the message names the file), out-of-memory, and the known
+messages of dead worker processes.  Programming errors keep their traceback.
+"""
 
 from __future__ import annotations
 
+import errno
 import sys
 
 import click
 
 from .errors import RispError
 
+# ------------------------------------------------------------------------------ known errors → one line
+
+
+def _os_error_line(e: OSError) -> str:
+    """``cannot write runs/x/last.pt: No space left on device`` — the file and the system's reason."""
+    reason = e.strerror or str(e) or type(e).__name__
+    if e.errno == errno.ENOSPC:
+        reason += " (free some space and rerun: finished work is kept and resumed)"
+    names = [n for n in (e.filename, e.filename2) if n]
+    where = " -> ".join(str(n) for n in names)
+    return f"{where}: {reason}" if where else f"{type(e).__name__}: {reason}"
+
+
+_DATALOADER_DIED = ("a data-loading worker process died unexpectedly (killed, or out of memory); rerun with "
+                    "--resume to continue from the last checkpoint, with fewer --workers if memory is short")
+
+
+def _raised_in(e: BaseException, package_path: str) -> bool:
+    """True when ``e`` was raised inside files under ``package_path`` (e.g. ``torch/utils/data``)."""
+    tb = e.__traceback__
+    while tb is not None:
+        if package_path in tb.tb_frame.f_code.co_filename.replace("\\", "/"):
+            return True
+        tb = tb.tb_next
+    return False
+
+
+def _quiet_worker_signals() -> None:
+    """Stop torch's SIGCHLD handler from raising "DataLoader worker … killed" a second time while the
+    error line is printed (it fires asynchronously, at any bytecode, once per dead worker)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGCHLD, signal.SIG_DFL)
+
+
+def user_error_line(e: BaseException) -> str | None:
+    """The one-line message of an error the user can act on, or None for a programming error."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    if isinstance(e, RispError):
+        return str(e)
+    if isinstance(e, BrokenProcessPool):
+        return ("a worker process died unexpectedly (killed, or out of memory); completed shards are kept: "
+                "rerun the same command to resume, with fewer --workers or a smaller --res if memory is short")
+    if isinstance(e, MemoryError):
+        return "out of memory; use a smaller --res, --batch-size or fewer --workers"
+    if isinstance(e, (ConnectionError, EOFError)) and _raised_in(e, "torch/utils/data"):
+        return _DATALOADER_DIED  # the pipe of a worker killed mid-batch
+    if isinstance(e, OSError):
+        return _os_error_line(e)
+    text = str(e)
+    if isinstance(e, RuntimeError) and "DataLoader worker" in text and ("exited unexpectedly" in text
+                                                                      or "killed by signal" in text):
+        return _DATALOADER_DIED
+    return None
+
 
 def run_cli(group: click.Group, argv: list[str] | None = None) -> None:
-    """Run a click group; a :class:`RispError` becomes ``error: <message>`` on stderr and exit status 1."""
+    """Run a click group; user errors become ``Error: <message>`` on stderr and exit status 1."""
     try:
         group.main(args=argv, standalone_mode=False)
-    except RispError as e:
-        click.echo(f"error: {e}", err=True)
-        sys.exit(1)
     except click.exceptions.Abort:
-        click.echo("error: aborted", err=True)
+        click.echo("Error: aborted", err=True)
         sys.exit(130)
     except click.ClickException as e:
         e.show()
         sys.exit(e.exit_code)
     except KeyboardInterrupt:
-        click.echo("error: interrupted", err=True)
+        click.echo("Error: interrupted", err=True)
         sys.exit(130)
+    except Exception as e:
+        line = user_error_line(e)
+        if line is None:
+            raise
+        _quiet_worker_signals()
+        click.echo(f"Error: {line}", err=True)
+        sys.exit(1)
 
 
 class RispGroup(click.Group):
-    """A click group whose sub-commands turn :class:`RispError` into one error line (also under CliRunner)."""
+    """A click group whose sub-commands turn user errors (see :func:`user_error_line`) into one error line
+    (also under CliRunner and inside the ``risp`` group)."""
 
     def invoke(self, ctx):
         try:
             return super().invoke(ctx)
-        except RispError as e:
-            raise click.ClickException(str(e)) from None
+        except click.ClickException:
+            raise
+        except Exception as e:
+            line = user_error_line(e)
+            if line is None:
+                raise
+            _quiet_worker_signals()
+            raise click.ClickException(line) from None

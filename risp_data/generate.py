@@ -22,6 +22,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from .atomic import remove_temporaries
 from .errors import RispError
 from .shards.manifest import (
     FORMAT_NAME,
@@ -30,14 +31,16 @@ from .shards.manifest import (
     MARKER_DIR,
     identity_mismatch,
     load_manifest,
+    marker_path,
     package_versions,
     read_marker,
     save_manifest,
+    shard_problem,
     utc_now,
 )
 from .shards.sample import Sample
 from .shards.writer import FORMATS, write_shard
-from .shards.zarr_store import ZARR_DIR, array_shapes, create_store
+from .shards.zarr_store import ZARR_DIR, array_shapes, create_store, mark_complete_shards
 
 EXECUTORS = ("local", "ray")
 LOCK_FILE = ".lock"
@@ -80,10 +83,11 @@ def validate_job(job: RenderJob) -> None:
     get_environment(job.env)  # unknown names list the valid ones
     if job.domain not in DOMAINS:
         raise RispError(f"unknown domain {job.domain!r}; choose one of: {', '.join(DOMAINS)}")
-    for name in ("n", "resolution", "spp", "workers", "shard_size"):
+    for name, option in (("n", "--n"), ("resolution", "--res"), ("spp", "--spp"), ("workers", "--workers"),
+                         ("shard_size", "--shard-size")):
         value = getattr(job, name)
         if not isinstance(value, int) or value <= 0:
-            raise RispError(f"--{name.replace('_', '-')} must be a positive integer, got {value!r}")
+            raise RispError(f"{option} must be a positive integer, got {value!r}")
     if not isinstance(job.seed, int) or job.seed < 0:
         raise RispError(f"--seed must be a non-negative integer, got {job.seed!r}")
     if not job.formats or any(f not in FORMATS for f in job.formats):
@@ -94,6 +98,67 @@ def validate_job(job: RenderJob) -> None:
 
     if job.jacobian_path not in JACOBIAN_PATHS:
         raise RispError(f"--jacobian-path must be one of {', '.join(JACOBIAN_PATHS)}, got {job.jacobian_path!r}")
+    check_render_size(job)
+
+
+# ------------------------------------------------------------------------------------ size limits
+
+MAX_RESOLUTION = 8192
+MITSUBA_MAX_SAMPLES = 2**32  # Mitsuba's sampler counts samples of one render pass in a uint32
+
+
+def memory_estimate(job: RenderJob, k: int) -> int:
+    """Bytes a render job needs at its peak, roughly: per worker, one shard's samples held before writing
+    (image + K Jacobian slices, float32 RGB) plus the renderer's film and K tangent buffers (float32 RGBA and
+    a float64 accumulator, ≈ 3× one image each) — a lower bound used to refuse hopeless jobs up front."""
+    pixels = job.resolution * job.resolution
+    per_sample = (1 + (k if job.jacobian else 0)) * pixels * 3 * 4
+    held = min(job.shard_size, job.n) * per_sample
+    renderer = (2 + (k if job.jacobian else 0)) * pixels * 4 * 4 * 3
+    workers = 1 if job.executor == "ray" else min(job.workers, job.num_shards)
+    return workers * (held + renderer)
+
+
+def available_memory() -> int | None:
+    """Bytes this process may still use: the smallest of MemAvailable, the cgroup limit and RLIMIT_AS."""
+    import resource
+
+    limits = []
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    limits.append(int(line.split()[1]) * 1024)
+    except OSError:
+        pass
+    for path in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
+        try:
+            text = open(path).read().strip()
+        except OSError:
+            continue
+        if text.isdigit() and int(text) < 2**60:
+            limits.append(int(text))
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    if soft != resource.RLIM_INFINITY:
+        limits.append(int(soft))
+    return min(limits) if limits else None
+
+
+def check_render_size(job: RenderJob) -> None:
+    """Refuse, before anything is written, image sizes Mitsuba cannot render or this machine cannot hold."""
+    from .psi import psi_specs
+
+    if job.resolution > MAX_RESOLUTION:
+        raise RispError(f"--res {job.resolution} is larger than the supported {MAX_RESOLUTION} pixels")
+    if job.resolution * job.resolution * job.spp >= MITSUBA_MAX_SAMPLES:
+        raise RispError(f"--res {job.resolution} with --spp {job.spp} needs {job.resolution**2 * job.spp:,} samples "
+                        f"per pass, beyond Mitsuba's limit of 2^32; lower --res or --spp")
+    need = memory_estimate(job, len(psi_specs(job.env)))
+    have = available_memory()
+    if have is not None and need > have:
+        raise RispError(f"--res {job.resolution} needs about {need / 2**30:.1f} GiB of memory "
+                        f"({min(job.workers, job.num_shards)} worker(s), --shard-size {job.shard_size}); "
+                        f"{have / 2**30:.1f} GiB are available: lower --res, --shard-size or --workers")
 
 
 # ------------------------------------------------------------------------------------ one sample
@@ -254,13 +319,57 @@ def _zarr_store_ok(folder: str, manifest: dict[str, Any]) -> bool:
 
 
 def _remove_temporaries(folder: str) -> None:
-    """Delete ``.tmp-*`` files a killed run left behind (never visible to readers, safe to drop)."""
+    """Delete the temporaries a killed run left behind: our ``.tmp-*`` files and zarr's ``*.partial`` files
+    (never visible to readers, safe to drop)."""
     for sub in ("", "wds", MARKER_DIR):
-        d = os.path.join(folder, sub)
-        if os.path.isdir(d):
-            for name in os.listdir(d):
-                if name.startswith(".tmp-"):
-                    os.unlink(os.path.join(d, name))
+        remove_temporaries(os.path.join(folder, sub))
+    for root, _, files in os.walk(os.path.join(folder, ZARR_DIR)):
+        for name in files:
+            if name.endswith(".partial"):
+                os.unlink(os.path.join(root, name))
+
+
+def _shard_files(manifest: dict[str, Any], shard_index: int) -> list[str]:
+    """Relative paths of every file shard ``shard_index`` has in the folder's formats."""
+    from .shards.wds import shard_name
+    from .shards.zarr_store import shard_file
+
+    rels = [shard_name(shard_index)] if "wds" in manifest["formats"] else []
+    if "zarr" in manifest["formats"]:
+        shapes = array_shapes(1, 1, 1, 1, manifest["jacobian"])
+        rels += [shard_file("", name, shard_index, len(shape)) for name, shape in shapes.items()]
+    return rels
+
+
+def _drop_unlisted_shards(folder: str, manifest: dict[str, Any]) -> None:
+    """Delete the files of every shard the manifest does not list (killed or damaged writes), zarr's ``states``
+    first, so plain zarr readers see such samples as unwritten (NaN) rather than half written."""
+    listed = {r["index"] for r in manifest["shards"]}
+    for i in range(manifest["num_shards"]):
+        if i in listed:
+            continue
+        for rel in sorted(_shard_files(manifest, i), key=lambda r: "/states/" not in r):
+            path = os.path.join(folder, rel)
+            if os.path.exists(path):
+                os.unlink(path)
+        marker = marker_path(folder, i)
+        if os.path.exists(marker):
+            os.unlink(marker)
+
+
+def _drop_damaged_shards(folder: str, manifest: dict[str, Any], log: Callable[[str], None]) -> bool:
+    """Remove listed shards whose files are missing or differ from the manifest (size, then sha256) from
+    the manifest, so that they are rendered again; True when any was removed."""
+    damaged = []
+    if manifest["shards"]:
+        log(f"checking the {len(manifest['shards'])} listed shard(s) of {folder} (sizes, sha256)")
+    for rec in sorted(manifest["shards"], key=lambda r: r["index"]):
+        why = shard_problem(folder, rec, deep=True)
+        if why is not None:
+            log(f"shard {rec['index']} is damaged ({why}): rendering it again")
+            damaged.append(rec["index"])
+    manifest["shards"] = [r for r in manifest["shards"] if r["index"] not in damaged]
+    return bool(damaged)
 
 
 @contextlib.contextmanager
@@ -284,6 +393,13 @@ def _is_fresh(folder: str) -> bool:
     return all(name == LOCK_FILE or name.startswith(".tmp-") for name in os.listdir(folder))
 
 
+def _holds_no_samples(folder: str) -> bool:
+    """True when a folder's job never finished a shard (no listed shard, no marker): a job that failed at its
+    start (say, an image size the renderer refused) must not block the folder for a corrected command."""
+    markers = os.path.join(folder, MARKER_DIR)
+    return not load_manifest(folder)["shards"] and not (os.path.isdir(markers) and os.listdir(markers))
+
+
 def check_folder(job: RenderJob, variant: str) -> None:
     """Refuse, without touching anything, a folder that holds another job or foreign files."""
     out = job.out
@@ -293,24 +409,26 @@ def check_folder(job: RenderJob, variant: str) -> None:
         return
     if os.path.exists(os.path.join(out, MANIFEST)):
         diffs = identity_mismatch(load_manifest(out), new_manifest(job, variant))
-        if diffs:
+        if diffs and not _holds_no_samples(out):
             raise RispError(f"output folder {out} holds another job ({'; '.join(diffs)}); use a new folder")
     elif not _is_fresh(out):
         raise RispError(f"output folder {out} is not empty and has no {MANIFEST}; use an empty or new folder")
 
 
-def prepare_folder(job: RenderJob, variant: str) -> dict[str, Any]:
-    """Open (resume) or create the output folder; returns its manifest with marker-only shards merged.
+def prepare_folder(job: RenderJob, variant: str, log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Open (resume) or create the output folder; returns its manifest with marker-only shards merged and
+    damaged shards (a listed file missing, truncated or with another sha256) dropped for re-rendering.
 
     Call with the folder lock held, after :func:`check_folder`.
     """
     out = job.out
     check_folder(job, variant)
-    if os.path.exists(os.path.join(out, MANIFEST)):
-        manifest = load_manifest(out)
-    else:
+    manifest = load_manifest(out) if os.path.exists(os.path.join(out, MANIFEST)) else None
+    if manifest is None or identity_mismatch(manifest, new_manifest(job, variant)):  # new, or an empty job's
         manifest = new_manifest(job, variant)
         save_manifest(out, manifest)
+        if "zarr" in job.formats:
+            create_store(out, manifest)
     _remove_temporaries(out)
     if "zarr" in job.formats and not _zarr_store_ok(out, manifest):
         if manifest["shards"]:
@@ -318,15 +436,19 @@ def prepare_folder(job: RenderJob, variant: str) -> dict[str, Any]:
         create_store(out, manifest)
     # shards whose marker was written but whose manifest update was lost (killed in between)
     done = {r["index"] for r in manifest["shards"]}
-    merged = False
+    changed = False
     for i in range(job.num_shards):
         if i not in done:
             rec = read_marker(out, i)
             if rec is not None and (rec["start"], rec["stop"]) == job.shard_range(i):
                 manifest["shards"].append(rec)
-                merged = True
-    if merged:
+                changed = True
+    changed |= _drop_damaged_shards(out, manifest, log)
+    if changed:
         save_manifest(out, manifest)
+    _drop_unlisted_shards(out, manifest)
+    if "zarr" in job.formats:
+        mark_complete_shards(out, manifest)
     return manifest
 
 
@@ -427,8 +549,12 @@ def _run_ray(job, todo, on_record, bar):
         on_record(rec)
 
 
-def run_job(job: RenderJob, progress: bool = True, log: Callable[[str], None] = print) -> dict[str, Any]:
-    """Render every missing shard of ``job`` into ``job.out`` and return the final manifest."""
+def run_job(job: RenderJob, progress: bool = True, log: Callable[[str], None] = print,
+            stats: dict | None = None) -> dict[str, Any]:
+    """Render every missing or damaged shard of ``job`` into ``job.out`` and return the final manifest.
+
+    ``stats``, when given, receives ``rendered_samples``: the samples rendered by this call.
+    """
     from .mitsuba_setup import init_mitsuba
 
     validate_job(job)
@@ -438,13 +564,14 @@ def run_job(job: RenderJob, progress: bool = True, log: Callable[[str], None] = 
     check_folder(job, variant)  # refuse another job's folder before creating or locking anything
     _check_writable(job.out)
     with folder_lock(job.out):
-        return _run_locked(job, variant, progress, log)
+        return _run_locked(job, variant, progress, log, stats)
 
 
-def _run_locked(job: RenderJob, variant: str, progress: bool, log: Callable[[str], None]) -> dict[str, Any]:
+def _run_locked(job: RenderJob, variant: str, progress: bool, log: Callable[[str], None],
+                stats: dict | None) -> dict[str, Any]:
     from tqdm import tqdm
 
-    manifest = prepare_folder(job, variant)
+    manifest = prepare_folder(job, variant, log)
     done = {r["index"] for r in manifest["shards"]}
     todo = [i for i in range(job.num_shards) if i not in done]
     if done:
@@ -457,6 +584,10 @@ def _run_locked(job: RenderJob, variant: str, progress: bool, log: Callable[[str
         with lock:
             manifest["shards"] = [r for r in manifest["shards"] if r["index"] != rec["index"]] + [rec]
             save_manifest(job.out, manifest)
+            if "zarr" in job.formats:
+                mark_complete_shards(job.out, manifest)
+            if stats is not None:
+                stats["rendered_samples"] = stats.get("rendered_samples", 0) + rec["stop"] - rec["start"]
 
     total = sum(job.shard_range(i)[1] - job.shard_range(i)[0] for i in todo)
     with tqdm(total=total, unit="sample", desc=f"render {job.env}/{job.domain}", disable=not progress) as bar:

@@ -18,6 +18,50 @@ class InspectConfig:
     folder: str
     png: str | None = None  # default: <folder>/contact_sheet.png
     samples: int = 4
+    deep: bool = False  # also hash every shard file (sha256 against the manifest)
+
+
+def tar_sample_count(path: str) -> int:
+    """Samples (distinct keys) a tar yields when read as a stream: a zero-filled tail ends it early."""
+    import tarfile
+
+    keys = set()
+    try:
+        with tarfile.open(path, mode="r:") as tar:
+            for member in tar:
+                keys.add(member.name.split(".", 1)[0])
+    except (tarfile.TarError, OSError):
+        return -1
+    return len(keys)
+
+
+def shard_problems(folder: str, m: dict, deep: bool) -> list[str]:
+    """Every listed shard checked: files present with the listed sizes, each tar holding the listed number of
+    samples, and (``deep``) every file's sha256.  One line per damaged shard."""
+    from .shards.manifest import shard_problem
+    from .shards.wds import WDS_DIR
+
+    problems = []
+    for rec in sorted(m["shards"], key=lambda r: r["index"]):
+        why = shard_problem(folder, rec, deep)
+        if why is None:
+            for rel in rec["files"]:
+                if rel.startswith(WDS_DIR + "/"):
+                    n = tar_sample_count(os.path.join(folder, rel))
+                    if n != rec["stop"] - rec["start"]:
+                        why = f"{os.path.join(folder, rel)} holds {n} samples, the manifest lists {rec['stop'] - rec['start']}"
+                        break
+        if why is not None:
+            problems.append(f"shard {rec['index']}: {why}")
+    return problems
+
+
+def integrity_lines(m: dict, problems: list[str], deep: bool) -> list[str]:
+    checked = "sizes, sample counts" + (", sha256" if deep else "; --deep also hashes every file")
+    n = len(m["shards"])
+    lines = [f"integrity    {n - len(problems)}/{n} listed shards intact ({checked})"]
+    lines += [f"  DAMAGED    {p}" for p in problems]
+    return lines
 
 
 def _folder_bytes(folder: str) -> int:
@@ -90,15 +134,17 @@ def contact_sheet(samples: list[dict], psi_names: list[str], path: str) -> str:
     return path
 
 
-def inspect_folder(cfg: InspectConfig) -> tuple[str, str | None]:
-    """Summary text and the contact sheet path (None when no shard is complete yet)."""
+def inspect_folder(cfg: InspectConfig) -> tuple[str, str | None, list[str]]:
+    """Summary text, the contact sheet path (None when no shard is complete yet or a shard is damaged) and
+    one line per damaged shard (:func:`shard_problems`)."""
     if cfg.samples <= 0:
         raise RispError(f"--samples must be a positive integer, got {cfg.samples}")
     m = load_manifest(cfg.folder)
-    summary = summarize(cfg.folder, m)
+    problems = shard_problems(cfg.folder, m, cfg.deep)
+    summary = "\n".join([summarize(cfg.folder, m), *integrity_lines(m, problems, cfg.deep)])
     indices = complete_indices(m)
-    if not indices:
-        return summary, None
+    if not indices or problems:
+        return summary, None, problems
     chosen = [indices[int(i)] for i in np.linspace(0, len(indices) - 1, min(cfg.samples, len(indices)))]
     chosen = sorted(set(chosen))
     got = read_samples(cfg.folder, chosen)
@@ -107,4 +153,4 @@ def inspect_folder(cfg: InspectConfig) -> tuple[str, str | None]:
         contact_sheet([got[i] for i in chosen], list(m["psi"]["names"]), path)
     except OSError as e:
         raise RispError(f"cannot write contact sheet {path}: {e.strerror or e}") from None
-    return summary, path
+    return summary, path, problems

@@ -43,6 +43,7 @@ class VerifyConfig:
     tol: float = TOL
     checksums: bool = True
     progress: bool = True
+    repair: bool = False  # first re-render every listed shard whose files are missing or damaged
 
 
 @dataclass
@@ -73,6 +74,22 @@ def format_report(r: VerifyReport) -> str:
     return "\n".join(lines)
 
 
+def repair_folder(folder: str, progress: bool = True, log=print) -> int:
+    """Re-render the shards of ``folder`` that are missing, truncated or damaged (size or sha256 differ from
+    the manifest) with the job recorded in its manifest — no hand-editing; returns the samples re-rendered."""
+    from .generate import RenderJob, run_job
+
+    m = load_manifest(folder)
+    known = {f.name for f in dataclasses.fields(RenderJob)}
+    args = {k: v for k, v in m.get("args", {}).items() if k in known}
+    if not args:
+        raise RispError(f"manifest of {folder} does not record its render job (args); cannot repair it")
+    args.update(out=folder, formats=tuple(args.get("formats", m["formats"])))
+    stats: dict = {}
+    run_job(RenderJob(**args), progress=progress, log=log, stats=stats)
+    return int(stats.get("rendered_samples", 0))
+
+
 def verify_folder(cfg: VerifyConfig) -> VerifyReport:
     from tqdm import tqdm
 
@@ -83,6 +100,8 @@ def verify_folder(cfg: VerifyConfig) -> VerifyReport:
         raise RispError(f"--samples must be a positive integer, got {cfg.samples}")
     if not cfg.eps > 0 or not cfg.tol > 0:
         raise RispError(f"--eps and --tol must be positive, got {cfg.eps} and {cfg.tol}")
+    if cfg.repair:
+        repair_folder(cfg.folder, cfg.progress)
     m = load_manifest(cfg.folder)
     if not m["jacobian"]:
         raise RispError(f"{cfg.folder} was rendered with --no-jacobian: there are no Jacobians to verify")

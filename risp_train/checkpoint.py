@@ -54,20 +54,48 @@ def plain(obj: Any) -> Any:
 
 
 def save_checkpoint(path: str, payload: dict[str, Any]) -> None:
-    """Atomically write ``payload`` (plus the format tags) to ``path``."""
+    """Atomically write ``payload`` (plus the format tags) to ``path``; RispError naming the file when the
+    write fails (disk full: torch reports it as a RuntimeError of its zip writer); the old file is kept."""
     payload = plain({"format": FORMAT, "format_version": FORMAT_VERSION, **payload})
-    with atomic_write(path, "wb", suffix=".pt") as f:
-        torch.save(payload, f)
+    try:
+        with atomic_write(path, "wb", suffix=".pt") as f:
+            torch.save(payload, f)
+    except OSError as e:
+        raise RispError(f"cannot write checkpoint {path}: {e.strerror or e}") from None
+    except RuntimeError as e:  # torch's zip writer wraps the OSError of a failed write
+        cause = e.__cause__ or e.__context__
+        if not isinstance(cause, OSError) and "PytorchStreamWriter" not in str(e):
+            raise
+        reason = getattr(cause, "strerror", None) or "the write failed (disk full?)"
+        raise RispError(f"cannot write checkpoint {path}: {reason}") from None
+
+
+def _load_error(path: str, e: Exception) -> str:
+    """One line for a checkpoint torch cannot read, without torch's advice to load it unsafely
+    (``weights_only=False`` would execute whatever the file's pickle says)."""
+    import re
+
+    text = str(e)
+    found = re.search(r"Unsupported global: GLOBAL (\S+)", text)
+    if found:
+        return (f"refused checkpoint {path}: it holds a pickled {found.group(1)} object; risp checkpoints hold "
+                "only tensors and plain values (another program's file, or a malicious one)")
+    detail = re.search(r"WeightsUnpickler error:\s*(\S[^\n]*)", text)
+    first = detail.group(1) if detail else (text.splitlines()[0] if text else "")
+    return f"corrupt or unreadable checkpoint {path}: {type(e).__name__}{': ' + first if first else ''}"
 
 
 def load_checkpoint(path: str) -> dict[str, Any]:
-    """Read a checkpoint with ``weights_only=True``; RispError when missing, corrupt or not ours."""
+    """Read a checkpoint with ``weights_only=True``; RispError when missing, corrupt, not ours, or holding
+    non-finite weights or a degenerate normalization (:func:`check_values`)."""
     if not os.path.isfile(path):
         raise RispError(f"checkpoint not found: {path}")
+    if os.path.getsize(path) == 0:
+        raise RispError(f"corrupt checkpoint {path}: the file is empty (0 bytes)")
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as e:  # zipfile, unpickler and EOF errors on damaged files
-        raise RispError(f"corrupt or unreadable checkpoint {path}: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}") from None
+        raise RispError(_load_error(path, e)) from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         raise RispError(f"{path} is not a risp-train checkpoint")
     if int(ckpt.get("format_version", 0)) > FORMAT_VERSION:
@@ -75,7 +103,30 @@ def load_checkpoint(path: str) -> dict[str, Any]:
     missing = [k for k in REQUIRED if k not in ckpt]
     if missing:
         raise RispError(f"corrupt checkpoint {path}: missing {', '.join(missing)}")
+    check_values(ckpt, path)
     return ckpt
+
+
+def check_values(ckpt: dict[str, Any], path: str) -> None:
+    """Weights and normalization must be usable: every floating tensor of the model finite, every image and
+    target standard deviation finite and > 0 (a zero std divides the inputs by zero: NaN predictions)."""
+    model = ckpt["model"]
+    if not isinstance(model, dict):
+        raise RispError(f"corrupt checkpoint {path}: 'model' is not a state dict")
+    bad = [k for k, t in model.items()
+           if isinstance(t, torch.Tensor) and t.is_floating_point() and not torch.isfinite(t).all()]
+    if bad:
+        raise RispError(f"checkpoint {path} holds non-finite (NaN/inf) weights in {', '.join(bad[:3])}"
+                        f"{' …' if len(bad) > 3 else ''} (training diverged?)")
+    norm = ckpt["normalization"]
+    for key in ("image_std", "target_std", "image_mean", "target_mean"):
+        values = norm.get(key) if isinstance(norm, dict) else None
+        if values is None:
+            raise RispError(f"corrupt checkpoint {path}: normalization lacks {key}")
+        t = torch.as_tensor(values, dtype=torch.float64)
+        if not torch.isfinite(t).all() or (key.endswith("_std") and not (t > 0).all()):
+            raise RispError(f"checkpoint {path}: normalization {key} {t.tolist()} is not finite"
+                            f"{' and > 0' if key.endswith('_std') else ''}")
 
 
 def check_compatible(ckpt: dict[str, Any], path: str, *, env: str, state_names, resolution: int | None = None) -> None:

@@ -45,21 +45,16 @@ def cli():
 @click.option("--checkpoint-every", type=int, default=0, show_default=True, help="Also checkpoint every N steps (0: epoch ends only).")
 @click.option("--val", type=click.Path(), default=None, help="Held-out shard folder evaluated at each epoch end.")
 @click.option("--resume", is_flag=True, help="Continue the run in --out from its last checkpoint.")
+@click.option("--overwrite", is_flag=True, help="Replace the model/checkpoint a run folder already holds.")
+@click.option("--allow-incomplete", is_flag=True, help="Train on an unfinished shard folder's complete shards.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-<<<<<<< HEAD
 def fit(shards, out, reg, gamma, gamma_ramp, preset, epochs, batch_size, lr, weight_decay, width, seed, workers,
-        threads, device, fmt, checkpoint_every, val, resume, quiet):
-    """Train on the shard folder SHARDS (streamed; resolution from its manifest)."""
-    from .config import make_config
-=======
-def fit(shards, out, reg, gamma, gamma_ramp, preset, epochs, batch_size, lr, weight_decay, width, seed, workers, fmt,
-        checkpoint_every, val, resume, quiet):
+        threads, device, fmt, checkpoint_every, val, resume, overwrite, allow_incomplete, quiet):
     """Train on the shard folder SHARDS (streamed; resolution from its manifest).
 
     SHARDS may also be a folder holding data sets (e.g. shards/ after `risp-data render`): the one data set in
     it, or its one train-domain set with Jacobians, is used; otherwise the error lists what it holds."""
     from .config import default_preset, make_config
->>>>>>> predictor
     from .train import fit as run_fit
 
     rank0 = int(os.environ.get("RANK", "0")) == 0
@@ -74,8 +69,9 @@ def fit(shards, out, reg, gamma, gamma_ramp, preset, epochs, batch_size, lr, wei
         click.echo(f"data: {shards}; preset: {preset} ({why}); regularizer: {reg}; run folder: {out}", err=True)
     cfg = make_config(shards, out, preset=preset, reg=reg, gamma=gamma, gamma_ramp=gamma_ramp, epochs=epochs,
                       batch_size=batch_size, lr=lr, weight_decay=weight_decay, width=width, seed=seed,
-                      workers=workers, threads=threads, device=device, format=fmt, checkpoint_every=checkpoint_every, val=val)
-    path = run_fit(cfg, resume=resume, progress=not quiet)
+                      workers=workers, threads=threads, device=device, format=fmt,
+                      checkpoint_every=checkpoint_every, val=val)
+    path = run_fit(cfg, resume=resume, progress=not quiet, overwrite=overwrite, allow_incomplete=allow_incomplete)
     if rank0:
         click.echo(f"model: {path}")
 

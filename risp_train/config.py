@@ -15,6 +15,7 @@ were chosen by the sweep in docs/training.md §Calibrated regularizer (per envir
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, fields, replace
 
 from risp_data.errors import RispError
@@ -98,8 +99,12 @@ def validate(cfg: TrainConfig) -> None:
     for name in ("epochs", "batch_size", "width", "stats_samples"):
         if getattr(cfg, name) < 1:
             raise RispError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(cfg, name)}")
-    if not cfg.lr > 0:
-        raise RispError(f"--lr must be > 0, got {cfg.lr}")
+    if not 0 < cfg.lr < math.inf:
+        raise RispError(f"--lr must be a finite number > 0, got {cfg.lr}")
+    if not 0 <= cfg.weight_decay < math.inf:
+        raise RispError(f"--weight-decay must be a finite number >= 0, got {cfg.weight_decay}")
+    if cfg.gamma is not None and not cfg.gamma < math.inf:
+        raise RispError(f"--gamma must be finite, got {cfg.gamma}")
     if cfg.gamma is not None and not cfg.gamma >= 0:
         raise RispError(f"--gamma must be >= 0, got {cfg.gamma}")
     if not 0 <= cfg.gamma_ramp <= 1:

@@ -112,6 +112,23 @@ def check_environment(shards: ShardSet, env) -> None:
         )
 
 
+def sample_counts(shards: ShardSet) -> dict:
+    """What a run trains on, for its config: samples and shards read vs what the folder's job renders."""
+    m = shards.manifest
+    return {"used": shards.num_samples, "rendered_n": int(m["n"]), "shards": len(shards.counts),
+            "num_shards": int(m["num_shards"])}
+
+
+def check_complete(shards: ShardSet, allow_incomplete: bool) -> None:
+    """An unfinished render folder is an error (training on a fraction of the data by accident) unless the
+    user says ``--allow-incomplete``."""
+    c = sample_counts(shards)
+    if c["used"] < c["rendered_n"] and not allow_incomplete:
+        raise RispError(f"shard folder {shards.folder} is incomplete: {c['used']} of {c['rendered_n']} samples "
+                        f"({c['shards']} of {c['num_shards']} shards); finish it by rerunning its risp-data render "
+                        "command, or pass --allow-incomplete to train on what is there")
+
+
 # ----------------------------------------------------------------------------------------- planning
 
 
@@ -201,6 +218,8 @@ class WdsStream(torch.utils.data.IterableDataset):
     def __iter__(self) -> Iterator[dict]:
         import webdataset as wds
 
+        from risp_data.shards.wds import shard_check_for_urls
+
         urls = list(self.urls)
         if self.shuffle:
             urls = [urls[i] for i in epoch_shard_order(len(urls), self.seed, self.epoch)]
@@ -209,7 +228,8 @@ class WdsStream(torch.utils.data.IterableDataset):
         stages: list[Any] = [wds.SimpleShardList(urls)]
         if self.split:
             stages += [wds.split_by_node, wds.split_by_worker]
-        stages.append(wds.tarfile_to_samples(handler=_raise_with_url))
+        # tars → raw samples, each shard's samples checked against its manifest record (count, range, env)
+        stages.append(shard_check_for_urls(list(self.urls), handler=_raise_with_url).samples)
         if self.shuffle and self.shuffle_buffer > 1:
             words = [self.seed, self.epoch, self.rank, worker, 0xB0F]
             stages.append(lambda src: _shuffle_buffer(src, self.shuffle_buffer, words))

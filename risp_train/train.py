@@ -28,11 +28,12 @@ from risp_data.errors import RispError
 
 from . import checkpoint as ckpt_io
 from .config import RESUME_FIELDS, TrainConfig, resolved_gamma
-from .data import ShardSet, check_environment, iter_batches, make_loader, manifest_hash, open_shards, steps_per_epoch
+from .data import (ShardSet, check_complete, check_environment, iter_batches, make_loader, manifest_hash, open_shards,
+                   sample_counts, steps_per_epoch)
 from .model import ModelConfig, ResNet18, build_model, stem_for_resolution
 from .normalization import Normalization, StatsAccumulator
 from .regularizers import gamma_at, psi_scale, risp_loss
-from risp_data.atomic import atomic_write, write_text_atomic
+from risp_data.atomic import atomic_write, remove_temporaries, write_text_atomic
 from risp_data.threads import set_torch_threads
 
 LAST = "last.pt"  # the resumable checkpoint, rewritten at each epoch end (and every N steps)
@@ -145,31 +146,52 @@ def _write_json(path: str, obj) -> None:
     write_text_atomic(path, json.dumps(obj, indent=1, sort_keys=True) + "\n")
 
 
+def check_run_folder(out: str, resume: bool, overwrite: bool) -> None:
+    """Refuse a run folder that holds a model or checkpoint unless ``--resume`` or ``--overwrite`` says what
+    to do with it; with ``--overwrite`` remove them (after every other check has passed)."""
+    held = [name for name in (MODEL, LAST) if os.path.exists(os.path.join(out, name))]
+    if resume and overwrite:
+        raise RispError("--resume and --overwrite exclude each other")
+    if overwrite:
+        for name in held:
+            os.unlink(os.path.join(out, name))
+    elif held and not resume:
+        raise RispError(f"{out} already holds a run ({', '.join(held)}); pass --resume to continue it, "
+                        "--overwrite to replace it, or choose another --out")
+    elif held == [MODEL]:  # --resume, but nothing to resume from: training anew would replace the model
+        raise RispError(f"{out} holds a finished {MODEL} but no {LAST} to resume from; pass --overwrite to "
+                        "train it again, or choose another --out")
+
+
 def fit(cfg: TrainConfig, *, resume: bool = False, progress: bool = True,
-        stop_after_step: int | None = None) -> str:
+        stop_after_step: int | None = None, overwrite: bool = False, allow_incomplete: bool = False) -> str:
     """Train according to ``cfg``; returns the path of the final checkpoint (``cfg.out/model.pt``).
 
-    The run uses one fixed torch thread count (``cfg.threads``; 0: the CPUs left after the data workers,
-    risp_data.threads) and gives the caller's setting back when it returns.
+    Refuses an incomplete shard folder unless ``allow_incomplete`` and a folder holding a run unless
+    ``resume`` or ``overwrite`` (docs/cli-train.md). The run uses one fixed torch thread count
+    (``cfg.threads``; 0: the CPUs left after the data workers, risp_data.threads) and gives the caller's
+    setting back when it returns.
     """
     dist_info = init_distributed()
     before = torch.get_num_threads()
     threads = set_torch_threads(cfg.threads, workers=cfg.workers,
                                 processes=int(os.environ.get("LOCAL_WORLD_SIZE", str(dist_info.world_size))))
     try:
-        return _fit(cfg, dist_info, threads, resume=resume, progress=progress, stop_after_step=stop_after_step)
+        return _fit(cfg, dist_info, threads, resume=resume, progress=progress, stop_after_step=stop_after_step,
+                    overwrite=overwrite, allow_incomplete=allow_incomplete)
     finally:
         torch.set_num_threads(before)
 
 
 def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, resume: bool, progress: bool,
-         stop_after_step: int | None) -> str:
+         stop_after_step: int | None, overwrite: bool, allow_incomplete: bool) -> str:
     from risp_data.envs import get_environment
 
     rank, world = dist_info.rank, dist_info.world_size
     shards = open_shards(cfg.shards, cfg.format)
     env = get_environment(shards.env)
     check_environment(shards, env)
+    check_complete(shards, allow_incomplete)
     need_j = cfg.reg != "none"
     if need_j and not shards.has_jacobian:
         raise RispError(f"shard folder {cfg.shards} was rendered without Jacobians; --reg {cfg.reg} needs them")
@@ -178,6 +200,9 @@ def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, resume: bool, progr
         if val.env != shards.env:
             raise RispError(f"--val shards {cfg.val} are of environment {val.env!r}, training shards of {shards.env!r}")
         check_environment(val, env)
+        if val.resolution != shards.resolution:
+            raise RispError(f"--val shards {cfg.val} are {val.resolution}×{val.resolution} images, the training "
+                            f"shards {shards.resolution}×{shards.resolution}: render them at --res {shards.resolution}")
     gamma = resolved_gamma(cfg, shards.env)
     psi_std = psi_scale(shards.env)  # σ_ψ: the regularizer measures ψ in standard deviations (regularizers.py)
     mhash = manifest_hash(shards.manifest)
@@ -189,13 +214,13 @@ def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, resume: bool, progr
                         f"and {cfg.workers} worker(s) read from {len(shards.counts)} shard(s) of {shards.folder}; "
                         "lower --batch-size or --workers, or render more samples")
 
+    check_run_folder(cfg.out, resume, overwrite)
     os.makedirs(cfg.out, exist_ok=True)
+    remove_temporaries(cfg.out)  # half-written checkpoints/logs of a killed run (never under their names)
     last_path = os.path.join(cfg.out, LAST)
     csv_path = os.path.join(cfg.out, "losses.csv")
     state = None
     if os.path.exists(last_path):
-        if not resume:
-            raise RispError(f"{cfg.out} already holds a run ({LAST}); pass --resume to continue it or choose another --out")
         state = ckpt_io.load_checkpoint(last_path)
         ckpt_io.check_compatible(state, last_path, env=shards.env, state_names=env.state_names,
                                  resolution=shards.resolution)
@@ -220,17 +245,20 @@ def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, resume: bool, progr
         norm = Normalization.from_dict(state["normalization"])
         epoch0, batch0, step = (int(state["progress"][k]) for k in ("epoch", "batch", "global_step"))
         history = list(state.get("history", []))
+        partial_sums = state.get("epoch_sums")  # the interrupted epoch's loss sums before the checkpoint
         if rank == 0:
             _csv_keep_until(csv_path, step)
     else:
         norm = compute_normalization(shards, env, cfg.stats_samples)
-        epoch0, batch0, step, history = 0, 0, 0, []
+        epoch0, batch0, step, history, partial_sums = 0, 0, 0, [], None
         if rank == 0 and os.path.exists(csv_path):  # rows of a run killed before its first checkpoint
             os.unlink(csv_path)
         if val is not None:  # the untrained network's held-out error, the baseline of the curve
             history.append({"epoch": -1, "step": 0, "val_error": held_out_error(net, val, norm, env, cfg.val_samples)})
     net.train()
     params = list(net.parameters())
+
+    sums = np.zeros(3)  # Σ loss, error, reg over the current epoch's steps (kept in mid-epoch checkpoints)
 
     def payload(epoch: int, batch: int, complete: bool) -> dict:
         return {
@@ -242,15 +270,17 @@ def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, resume: bool, progr
             "progress": {"epoch": epoch, "batch": batch, "global_step": step, "total_steps": total_steps,
                          "complete": complete},
             "history": history, "world_size": world, "workers": cfg.workers, "threads": threads,
-            "device": str(device),
-            "torch_version": torch.__version__,
+            "device": str(device), "torch_version": torch.__version__,
+            "epoch_sums": [float(v) for v in sums] if batch > 0 else [0.0, 0.0, 0.0],
+            "samples": sample_counts(shards),
         }
 
     if rank == 0:
         _write_json(os.path.join(cfg.out, "config.json"),
                     {"config": cfg.to_dict(), "model_config": model_cfg.to_dict(), "gamma": gamma, "env": shards.env,
                      "manifest_hash": mhash, "normalization": norm.to_dict(), "world_size": world,
-                     "threads": threads, "device": str(device), "steps_per_epoch": plan})
+                     "threads": threads, "device": str(device), "steps_per_epoch": plan,
+                     "samples": sample_counts(shards)})
     from tqdm.auto import tqdm
 
     bar = tqdm(total=total_steps, initial=step, disable=(not progress) or rank != 0, unit="step",
@@ -271,7 +301,9 @@ def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, resume: bool, progr
             loader = make_loader(shards, seed=cfg.seed, epoch=epoch, batch_size=cfg.batch_size, workers=cfg.workers,
                                  need_jacobian=need_j, rank=rank, world_size=world,
                                  shuffle_buffer=cfg.shuffle_buffer, state_dim=env.state_dim)
-            sums = np.zeros(3)
+            sums[:] = 0.0
+            if skip and partial_sums is not None:  # resumed mid-epoch: the steps before the checkpoint count too
+                sums[:] = partial_sums
             for b, batch in enumerate(loader):
                 if b >= plan[epoch]:
                     break  # every rank takes exactly plan[epoch] steps
@@ -305,12 +337,13 @@ def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, resume: bool, progr
                     ckpt_io.save_checkpoint(last_path, payload(epoch, b + 1, False))
                 if stop_after_step is not None and step >= stop_after_step:
                     raise TrainingStopped(f"stopped after step {step}")
-            n_done = plan[epoch] - skip
+            n_done = plan[epoch] - (skip if partial_sums is None else 0)
             summary = {"epoch": epoch, "step": step, "train_loss": float(sums[0] / n_done),
                        "train_error": float(sums[1] / n_done), "train_reg": float(sums[2] / n_done), "seconds": round(time.perf_counter() - t_start, 3)}
             if val is not None:
                 summary["val_error"] = held_out_error(net, val, norm, env, cfg.val_samples)
             history.append(summary)
+            sums[:] = 0.0
             if rank == 0:
                 ckpt_io.save_checkpoint(last_path, payload(epoch + 1, 0, epoch + 1 == cfg.epochs))
                 from .plots import plot_losses

@@ -267,7 +267,9 @@ def test_corrupt_or_truncated_shard_on_read(tmp_path, rendered):
         list(iter_wds(str(out)))
     _error_line(CliRunner().invoke(cli, ["verify", str(out)]), "shard-000001.tar")
     os.unlink(out / "data.zarr" / "images" / "c" / "0" / "0" / "0" / "0")
-    _error_line(CliRunner().invoke(cli, ["inspect", str(out)]), "zarr shard file missing")
+    r = CliRunner().invoke(cli, ["inspect", str(out)])  # the summary names each damaged shard, then one error
+    assert r.exit_code == 1 and r.output.strip().splitlines()[-1].startswith("Error: 2 damaged shard(s)"), r.output
+    assert "DAMAGED    shard 0:" in r.output and "images/c/0/0/0/0 is missing" in r.output
     (out / "manifest.json").write_text("{not json")
     _error_line(CliRunner().invoke(cli, ["inspect", str(out)]), "corrupt manifest")
 

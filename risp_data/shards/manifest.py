@@ -180,6 +180,30 @@ def read_marker(folder: str, shard_index: int) -> dict[str, Any] | None:
     return rec
 
 
+def file_problem(folder: str, rel: str, info: dict[str, Any], deep: bool) -> str | None:
+    """Why shard file ``folder/rel`` is not the one its record lists (missing, other size, other sha256 when
+    ``deep``), or None when it is."""
+    path = os.path.join(folder, rel)
+    try:
+        size = os.path.getsize(path)
+    except FileNotFoundError:
+        return f"{path} is missing"
+    if size != info["bytes"]:
+        return f"{path} has {size} bytes, the manifest lists {info['bytes']}"
+    if deep and sha256_file(path) != info["sha256"]:
+        return f"{path}: sha256 differs from the manifest"
+    return None
+
+
+def shard_problem(folder: str, record: dict[str, Any], deep: bool = True) -> str | None:
+    """The first problem of a listed shard's files (see :func:`file_problem`), or None when intact."""
+    for rel, info in sorted(record["files"].items()):
+        why = file_problem(folder, rel, info, deep)
+        if why is not None:
+            return why
+    return None
+
+
 def verify_checksums(folder: str, manifest: dict[str, Any] | None = None) -> int:
     """Hash every file of every complete shard and compare with the manifest; returns the number checked.
 

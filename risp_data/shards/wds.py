@@ -199,12 +199,77 @@ def _raise_with_url(exn: Exception) -> bool:
     raise RispError(f"corrupt or truncated webdataset shard {url or '<unknown>'}: {msg}") from None
 
 
+class ShardCheck:
+    """What each listed tar must hold: ``expected[path] = (start, stop)`` (its global sample indices) and the
+    manifest's environment.  :meth:`samples` is a webdataset pipeline stage that expands shard urls into raw
+    samples (like ``wds.tarfile_to_samples``) and stops with one RispError naming the shard when a shard
+    yields a sample outside its range or of another environment, or fewer/more samples than the manifest
+    lists — a tar whose tail a crash zero-filled reads as a valid, shorter archive otherwise."""
+
+    def __init__(self, expected: dict[str, tuple[int, int]], env: str, handler=None):
+        self.expected = {os.path.normpath(u): r for u, r in expected.items()}
+        self.env, self.handler = env, handler or _raise_with_url
+
+    def _check_sample(self, url: str, raw: dict[str, Any]) -> None:
+        start, stop = self.expected[os.path.normpath(url)]
+        key = str(raw.get("__key__", ""))
+        index = int(key[1:]) if key[:1] == "s" and key[1:].isdigit() else -1
+        if not start <= index < stop:
+            raise RispError(f"webdataset shard {url} holds sample {key!r}, outside its samples [{start}, {stop}) "
+                            "in the manifest (a tar from another folder?)")
+        try:
+            env = json.loads(raw["json"]).get("env")
+        except (KeyError, ValueError, AttributeError):
+            return  # decode_wds_sample names the missing or corrupt member
+        if env != self.env:
+            raise RispError(f"webdataset shard {url} holds {env!r} samples, the folder's manifest says "
+                            f"{self.env!r} (a tar from another folder?)")
+
+    def samples(self, src: Iterator[dict[str, Any]]) -> Iterator[dict[str, Any]]:
+        import webdataset as wds
+
+        expand = wds.tarfile_to_samples(handler=self.handler)
+        for shard in src:
+            url = shard["url"]
+            if os.path.normpath(url) not in self.expected:
+                raise RispError(f"webdataset shard {url} is not listed in its folder's manifest")
+            start, stop = self.expected[os.path.normpath(url)]
+            n = 0
+            for raw in expand(iter([shard])):
+                self._check_sample(url, raw)
+                n += 1
+                yield raw
+            if n != stop - start:
+                raise RispError(f"webdataset shard {url} holds {n} samples, the manifest lists {stop - start} "
+                                "(truncated or damaged: rerun the render command or risp-data verify --repair)")
+
+
+def shard_check(folder: str) -> ShardCheck:
+    """The :class:`ShardCheck` of the complete tars of ``folder`` (paths as :func:`wds_urls` gives them)."""
+    m = load_manifest(folder)
+    expected = {os.path.join(folder, rel): (rec["start"], rec["stop"])
+                for rec in m["shards"] for rel in rec["files"] if rel.startswith(WDS_DIR + "/")}
+    return ShardCheck(expected, m["env"])
+
+
+def shard_check_for_urls(urls: list[str], handler=None) -> ShardCheck:
+    """One :class:`ShardCheck` over tars of one or more folders (``<folder>/wds/shard-NNNNNN.tar``)."""
+    checks = [shard_check(f) for f in sorted({os.path.dirname(os.path.dirname(u)) for u in urls})]
+    envs = {c.env for c in checks}
+    if len(envs) > 1:
+        raise RispError(f"shards of several environments cannot be read together: {', '.join(sorted(envs))}")
+    expected = {u: r for c in checks for u, r in c.expected.items()}
+    return ShardCheck(expected, checks[0].env if checks else "", handler)
+
+
 def iter_wds(folder: str) -> Iterator[dict[str, Any]]:
-    """Decoded samples of all complete shards, in index order, through a plain ``webdataset.WebDataset``."""
+    """Decoded samples of all complete shards, in index order, each shard checked against the manifest
+    (:class:`ShardCheck`)."""
     import webdataset as wds
 
     urls = wds_urls(folder)
     if not urls:
         return iter(())
-    ds = wds.WebDataset(urls, shardshuffle=False, handler=_raise_with_url, empty_check=False)
-    return iter(ds.map(decode_wds_sample, handler=_raise_with_url))
+    pipeline = wds.DataPipeline(wds.SimpleShardList(urls), shard_check(folder).samples,
+                                wds.map(decode_wds_sample, handler=_raise_with_url))
+    return iter(pipeline)

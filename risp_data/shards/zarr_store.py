@@ -32,6 +32,11 @@ _DIMS = {
     "psi": ("sample", "psi"),
 }
 _RUNTIME = {"write_empty_chunks": True}  # a shard file always exists once written, even if all zeros
+# Integrity (docs/formats.md, "Integrity guarantees"): each shard file is written atomically by zarr (temp
+# ``*.partial`` + rename), and a shard's ``states`` file is removed first and written last, so a plain zarr
+# reader never sees a sample whose state row is finite while another of its arrays is unwritten or stale.
+WRITE_ORDER = ("jacobians", "images", "psi", "states")
+COMPLETE_ATTR = "complete_shards"  # root attribute: indices of the shards listed in the manifest
 
 
 def array_shapes(n: int, resolution: int, k: int, s: int, jacobian: bool) -> dict[str, tuple[int, ...]]:
@@ -57,6 +62,7 @@ def create_store(folder: str, manifest: dict[str, Any]) -> None:
         k: manifest[k] for k in ("env", "domain", "resolution", "spp", "variant", "seed", "n", "shard_size")
     }
     root_attrs.update(psi_names=psi_names, state_names=state_names, risp_format=manifest["format"])
+    root_attrs[COMPLETE_ATTR] = []
     root = zarr.open_group(os.path.join(folder, ZARR_DIR), mode="w", attributes=root_attrs)
     shapes = array_shapes(manifest["n"], manifest["resolution"], len(psi_names), len(state_names), manifest["jacobian"])
     for name, shape in shapes.items():
@@ -83,22 +89,34 @@ def write_zarr_shard(folder: str, shard_index: int, start: int, arrays: dict[str
     """Write one whole shard of every array (``arrays`` from :func:`stack_samples`); returns relative paths."""
     import zarr
 
-    written = []
-    for name in _DIMS:
-        data = arrays.get(name)
-        if data is None:
-            continue
-        arr = zarr.open_array(os.path.join(folder, ZARR_DIR, name), mode="r+", config=_RUNTIME)
+    opened = {name: zarr.open_array(os.path.join(folder, ZARR_DIR, name), mode="r+", config=_RUNTIME)
+              for name in WRITE_ORDER if arrays.get(name) is not None}
+    rels = {name: shard_file(folder, name, shard_index, arr.ndim) for name, arr in opened.items()}
+    for name in reversed(WRITE_ORDER):  # states first: a killed run's shard never merges into new data
+        stale = os.path.join(folder, rels[name]) if name in rels else None
+        if stale and os.path.exists(stale):
+            os.unlink(stale)
+    for name, arr in opened.items():
+        data = arrays[name]
         size = arr.shards[0]
         if start != shard_index * size or data.shape[0] != min(size, arr.shape[0] - start):
             raise ValueError(f"samples [{start}, {start + data.shape[0]}) are not zarr shard {shard_index} of {name}")
-        rel = shard_file(folder, name, shard_index, arr.ndim)
-        stale = os.path.join(folder, rel)
-        if os.path.exists(stale):  # a half-written shard from a killed run: never merge into it
-            os.unlink(stale)
-        arr[start : start + data.shape[0]] = data
-        written.append(rel)
-    return written
+        try:
+            arr[start : start + data.shape[0]] = data
+        except OSError as e:  # disk full and the like: name the shard file (zarr's error names none)
+            raise OSError(e.errno, e.strerror or str(e), e.filename or os.path.join(folder, rels[name])) from e
+    return [rels[name] for name in _DIMS if name in rels]
+
+
+def mark_complete_shards(folder: str, manifest: dict[str, Any]) -> None:
+    """Record the manifest's complete shards in the store's root attribute ``complete_shards`` (written by
+    the parent process only, atomically by zarr), where plain zarr readers can see which samples to trust."""
+    import zarr
+
+    group = zarr.open_group(os.path.join(folder, ZARR_DIR), mode="r+")
+    done = sorted(int(r["index"]) for r in manifest["shards"])
+    if list(group.attrs.get(COMPLETE_ATTR, [])) != done:
+        group.attrs[COMPLETE_ATTR] = done
 
 
 class ZarrDataset:
@@ -173,6 +191,10 @@ class ZarrDataset:
                 raise RispError(
                     f"corrupt zarr shard file {os.path.join(self.folder, rel)}: {type(e).__name__}: {e}"
                 ) from None
+        if not np.isfinite(out["states"]).all():  # listed but unwritten (NaN fill): never hand it out as data
+            rel = shard_file(self.folder, "states", shard, 2)
+            raise RispError(f"zarr shard file {os.path.join(self.folder, rel)}: sample {g} is unwritten (NaN) "
+                            "although the manifest lists its shard; rerun the render command to repair it")
         m = self.manifest
         meta = {k: m[k] for k in ("env", "domain", "resolution", "spp", "seed", "variant")}
         meta.update(index=g, state_names=self.state_names, psi_names=self.psi_names)

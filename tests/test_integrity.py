@@ -1,0 +1,560 @@
+"""Integrity end to end (issue 13): every sample accounted for, nothing overwritten, damaged folders repaired,
+user errors as one ``Error:`` line.  Real renders (tiny: 16×16 pixels, 1 spp), real shards, real training.
+
+The kill/resume matrix is in tests/test_kill_matrix.py.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tarfile
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from risp_data.cli import cli as data_cli
+from risp_data.errors import RispError
+from risp_train.cli import cli as train_cli
+
+RES = 16
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ENV = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=ROOT)
+
+
+def _render(out, env="cube", n=16, shard_size=4, res=RES, extra=()):
+    cmd = [sys.executable, "-m", "risp_data", "render", "--env", env, "--n", str(n), "--res", str(res), "--spp", "1",
+           "--shard-size", str(shard_size), "--workers", "1", "--quiet", "--out", str(out), *extra]
+    r = subprocess.run(cmd, capture_output=True, text=True, env=ENV, timeout=600)
+    assert r.returncode == 0, r.stderr
+    return str(out)
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    root = tmp_path_factory.mktemp("integrity")
+    return {
+        "train": _render(root / "train"),
+        "quad": _render(root / "other", env="quadrotor", extra=("--format", "wds")),
+        "val8": _render(root / "val8", n=8, res=8, extra=("--format", "wds", "--no-jacobian")),
+        "root": root,
+    }
+
+
+@pytest.fixture(scope="module")
+def model(data):
+    """A tiny trained model (one epoch) of the training folder."""
+    out = data["root"] / "model-run"
+    r = CliRunner().invoke(train_cli, ["fit", data["train"], "--out", str(out), *_TINY, "--epochs", "1"])
+    assert r.exit_code == 0, r.output
+    return str(out / "model.pt")
+
+
+_TINY = ("--preset", "cpu", "--width", "4", "--batch-size", "4", "--workers", "0", "--quiet")
+
+
+def _copy(src, dst):
+    shutil.copytree(src, dst)
+    return str(dst)
+
+
+def _manifest(folder):
+    with open(os.path.join(folder, "manifest.json")) as f:
+        return json.load(f)
+
+
+def _save_manifest(folder, m):
+    with open(os.path.join(folder, "manifest.json"), "w") as f:
+        json.dump(m, f)
+
+
+def _one_line_error(result):
+    """A CliRunner result that failed with exactly one ``Error:`` line and no traceback."""
+    assert result.exit_code != 0, result.output
+    lines = [line for line in result.output.splitlines() if line.startswith("Error:")]
+    assert len(lines) == 1 and "Traceback" not in result.output, result.output
+    assert not isinstance(result.exception, Exception) or isinstance(result.exception, SystemExit), result.exception
+    return lines[0]
+
+
+def _zero_tail_at_last_sample(tar_path):
+    """What a crash can leave: the tar's last sample overwritten by zeros, file size unchanged."""
+    with tarfile.open(tar_path) as tar:
+        members = tar.getmembers()
+    last_key = members[-1].name.split(".", 1)[0]
+    offset = min(m.offset for m in members if m.name.startswith(last_key + "."))
+    size = os.path.getsize(tar_path)
+    with open(tar_path, "r+b") as f:
+        f.seek(offset)
+        f.write(bytes(size - offset))
+    assert os.path.getsize(tar_path) == size
+
+
+# ------------------------------------------------------------------------------ 1. fewer samples
+
+
+def test_zero_filled_tar_tail_is_refused_by_every_reader(data, model, tmp_path):
+    from risp_data.shards import iter_wds
+
+    bad = _copy(data["train"], tmp_path / "zero-tail")
+    tar = os.path.join(bad, "wds", "shard-000002.tar")
+    _zero_tail_at_last_sample(tar)
+    with pytest.raises(RispError, match=r"shard-000002\.tar holds 3 samples, the manifest lists 4"):
+        list(iter_wds(bad))
+    runner = CliRunner()
+    line = _one_line_error(runner.invoke(train_cli, ["fit", bad, "--out", str(tmp_path / "run"), *_TINY]))
+    assert "shard-000002.tar holds 3 samples" in line
+    line = _one_line_error(runner.invoke(train_cli, ["eval", model, bad, "--quiet", "--out", str(tmp_path / "ev")]))
+    assert "shard-000002.tar holds 3 samples" in line
+    r = runner.invoke(data_cli, ["inspect", bad])
+    assert r.exit_code == 1 and "shard 2:" in r.output and "holds 3 samples" in r.output, r.output
+    r = runner.invoke(data_cli, ["inspect", data["train"], "--deep"])
+    assert r.exit_code == 0 and "4/4 listed shards intact (sizes, sample counts, sha256)" in r.output, r.output
+
+
+def test_inspect_deep_finds_a_flipped_byte_that_sizes_miss(data, tmp_path):
+    bad = _copy(data["train"], tmp_path / "flipped")
+    path = os.path.join(bad, "data.zarr", "images", "c", "1", "0", "0", "0")
+    raw = bytearray(open(path, "rb").read())
+    raw[len(raw) // 2] ^= 0xFF
+    open(path, "wb").write(bytes(raw))
+    runner = CliRunner()
+    assert runner.invoke(data_cli, ["inspect", bad]).exit_code == 0  # same size and count: only hashing sees it
+    r = runner.invoke(data_cli, ["inspect", bad, "--deep"])
+    assert r.exit_code == 1 and "shard 1:" in r.output and "sha256 differs" in r.output, r.output
+
+
+# ---------------------------------------------------------------------------- 2. model overwritten
+
+
+def test_fit_refuses_a_folder_holding_a_model_unless_overwrite(data, model, tmp_path):
+    run = tmp_path / "finished"
+    run.mkdir()
+    shutil.copy(model, run / "model.pt")  # a finished run whose last.pt is gone
+    before = hashlib.sha256((run / "model.pt").read_bytes()).hexdigest()
+    runner = CliRunner()
+    line = _one_line_error(runner.invoke(train_cli, ["fit", data["train"], "--out", str(run), *_TINY, "--epochs", "1",
+                                                     "--seed", "5"]))
+    assert "already holds a run (model.pt)" in line and "--overwrite" in line
+    line = _one_line_error(runner.invoke(train_cli, ["fit", data["train"], "--out", str(run), *_TINY, "--epochs", "1",
+                                                     "--seed", "5", "--resume"]))
+    assert "no last.pt to resume from" in line
+    assert hashlib.sha256((run / "model.pt").read_bytes()).hexdigest() == before
+    r = runner.invoke(train_cli, ["fit", data["train"], "--out", str(run), *_TINY, "--epochs", "1", "--seed", "5",
+                                  "--overwrite"])
+    assert r.exit_code == 0, r.output
+    assert hashlib.sha256((run / "model.pt").read_bytes()).hexdigest() != before
+
+
+# ------------------------------------------------------------------------- 3. damaged render folder
+
+
+def test_render_resume_and_verify_repair_re_render_damaged_shards(data, tmp_path):
+    ref = data["train"]
+    bad = _copy(ref, tmp_path / "damaged")
+    os.unlink(os.path.join(bad, "wds", "shard-000001.tar"))  # deleted
+    with open(os.path.join(bad, "data.zarr", "psi", "c", "3", "0"), "r+b") as f:  # truncated
+        f.truncate(10)
+    tar2 = os.path.join(bad, "wds", "shard-000002.tar")  # same size, other bytes: only sha256 sees it
+    raw = bytearray(open(tar2, "rb").read())
+    raw[700] ^= 0x01
+    open(tar2, "wb").write(bytes(raw))
+    cmd = [sys.executable, "-m", "risp_data", "render", "--env", "cube", "--n", "16", "--res", str(RES), "--spp", "1",
+           "--shard-size", "4", "--workers", "1", "--quiet", "--out", bad]
+    r = subprocess.run(cmd, capture_output=True, text=True, env=ENV, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert "shard 1 is damaged" in r.stderr and "shard 2 is damaged" in r.stderr and "shard 3 is damaged" in r.stderr
+    assert "rendered 12 now" in r.stdout, r.stdout
+    for sub in ("wds", "data.zarr"):
+        for dirpath, _, files in os.walk(os.path.join(ref, sub)):
+            for name in files:
+                a = os.path.join(dirpath, name)
+                b = os.path.join(bad, os.path.relpath(a, ref))
+                assert open(a, "rb").read() == open(b, "rb").read(), b
+    assert _manifest(bad)["shards"] == _manifest(ref)["shards"]
+
+    # the same damage repaired by verify --repair (no hand-editing of the manifest)
+    bad2 = _copy(ref, tmp_path / "damaged2")
+    os.unlink(os.path.join(bad2, "wds", "shard-000000.tar"))
+    r = CliRunner().invoke(data_cli, ["verify", bad2, "--repair", "--samples", "1"])
+    assert "shard 0 is damaged" in r.output, r.output
+    assert open(os.path.join(bad2, "wds", "shard-000000.tar"), "rb").read() == \
+        open(os.path.join(ref, "wds", "shard-000000.tar"), "rb").read()
+
+
+def test_rendered_now_counts_only_this_call_and_partial_temporaries_are_removed(data, tmp_path):
+    folder = _copy(data["train"], tmp_path / "resume")
+    m = _manifest(folder)
+    m["shards"] = m["shards"][:2]  # shards 2 and 3 finished (markers on disk) but their manifest update was lost
+    _save_manifest(folder, m)
+    stale = os.path.join(folder, "data.zarr", "images", "c", "0", "0", "0", "0.3f2a.partial")  # a killed zarr write
+    open(stale, "wb").write(b"half")
+    r = subprocess.run([sys.executable, "-m", "risp_data", "render", "--env", "cube", "--n", "16", "--res", str(RES),
+                        "--spp", "1", "--shard-size", "4", "--workers", "1", "--quiet", "--out", folder],
+                       capture_output=True, text=True, env=ENV, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert "16/16 samples" in r.stdout and "rendered 0 now" in r.stdout, r.stdout
+    assert not os.path.exists(stale)
+
+
+# ------------------------------------------------------------------------------- 4. incomplete folder
+
+
+def test_training_on_an_incomplete_folder_needs_allow_incomplete_and_records_the_count(data, tmp_path):
+    part = _copy(data["train"], tmp_path / "partial")
+    m = _manifest(part)
+    m["shards"] = m["shards"][:2]
+    m["complete"] = False
+    _save_manifest(part, m)
+    runner = CliRunner()
+    line = _one_line_error(runner.invoke(train_cli, ["fit", part, "--out", str(tmp_path / "r1"), *_TINY]))
+    assert "incomplete: 8 of 16 samples" in line and "--allow-incomplete" in line
+    assert not (tmp_path / "r1").exists()
+    r = runner.invoke(train_cli, ["fit", part, "--out", str(tmp_path / "r2"), *_TINY, "--epochs", "1",
+                                  "--allow-incomplete"])
+    assert r.exit_code == 0, r.output
+    cfg = json.load(open(tmp_path / "r2" / "config.json"))
+    assert cfg["samples"]["used"] == 8 and cfg["samples"]["rendered_n"] == 16, cfg["samples"]
+
+
+# ------------------------------------------------------------------ 5. val resolution, spliced shard
+
+
+def test_fit_refuses_val_shards_of_another_resolution(data, tmp_path):
+    line = _one_line_error(CliRunner().invoke(train_cli, ["fit", data["train"], "--out", str(tmp_path / "r"), *_TINY,
+                                                          "--val", data["val8"]]))
+    assert "8×8" in line and "16×16" in line
+    assert not (tmp_path / "r").exists()
+
+
+def test_a_tar_of_another_environment_spliced_into_a_folder_is_refused(data, tmp_path):
+    from risp_data.shards import iter_wds
+    from risp_data.shards.manifest import file_record
+
+    bad = _copy(data["train"], tmp_path / "spliced")
+    rel = "wds/shard-000001.tar"
+    shutil.copy(os.path.join(data["quad"], rel), os.path.join(bad, rel))
+    m = _manifest(bad)  # the splicer also updated the manifest's size and hash
+    m["shards"][1]["files"][rel] = file_record(bad, rel)
+    _save_manifest(bad, m)
+    with pytest.raises(RispError, match="holds 'quadrotor' samples"):
+        list(iter_wds(bad))
+    line = _one_line_error(CliRunner().invoke(train_cli, ["fit", bad, "--out", str(tmp_path / "r"), *_TINY,
+                                                          "--format", "wds"]))
+    assert "shard-000001.tar holds 'quadrotor' samples" in line and "'cube'" in line
+
+
+# ------------------------------------------------------------------------- 6. NaN weights, zero std
+
+
+@pytest.mark.parametrize("damage", ["nan-weight", "zero-std"])
+def test_eval_refuses_nan_weights_and_zero_image_std(data, model, tmp_path, damage):
+    ck = torch.load(model, weights_only=True)
+    if damage == "nan-weight":
+        name = next(k for k, v in ck["model"].items() if v.is_floating_point())
+        ck["model"][name] = ck["model"][name].clone().fill_(float("nan"))
+        expected = "non-finite (NaN/inf) weights"
+    else:
+        ck["normalization"]["image_std"] = [0.0, 0.1, 0.1]
+        expected = "normalization image_std"
+    path = tmp_path / f"{damage}.pt"
+    torch.save(ck, path)
+    line = _one_line_error(CliRunner().invoke(train_cli, ["eval", str(path), data["train"], "--quiet",
+                                                          "--out", str(tmp_path / "ev")]))
+    assert expected in line and str(path) in line
+
+
+# --------------------------------------------------------------- 7. loss history of a resumed epoch
+
+
+def test_resumed_mid_epoch_history_equals_the_uninterrupted_one(data, tmp_path):
+    from risp_train.config import make_config
+    from risp_train.train import TrainingStopped, fit
+
+    def cfg(out):
+        return make_config(data["train"], str(out), preset="cpu", epochs=2, batch_size=2, width=4, workers=0,
+                           shuffle_buffer=4, stats_samples=16, checkpoint_every=3)
+
+    fit(cfg(tmp_path / "ref"), progress=False)
+    with pytest.raises(TrainingStopped):
+        fit(cfg(tmp_path / "cut"), progress=False, stop_after_step=4)  # checkpoint at step 3, mid-epoch 0
+    fit(cfg(tmp_path / "cut"), progress=False, resume=True)
+    ref = json.load(open(tmp_path / "ref" / "history.json"))
+    cut = json.load(open(tmp_path / "cut" / "history.json"))
+    assert len(ref) == len(cut) == 2
+    for a, b in zip(ref, cut):
+        for k in ("train_loss", "train_error", "train_reg"):
+            assert a[k] == pytest.approx(b[k], rel=1e-6, abs=1e-9), (k, a, b)
+
+
+# --------------------------------------------------------------------- 8. plain zarr readers
+
+
+@pytest.mark.parametrize("fail_after", [1, 2, 3])
+def test_plain_zarr_reader_never_sees_a_partly_written_sample(tmp_path, monkeypatch, fail_after):
+    """A writer killed between a shard's arrays: for every sample a plain zarr reader sees either a NaN state
+    row (unwritten) or every array finite, and the store's ``complete_shards`` attribute excludes the shard."""
+    import zarr
+
+    from risp_data.shards.manifest import save_manifest
+    from risp_data.shards.writer import write_shard
+    from risp_data.shards.zarr_store import create_store, mark_complete_shards
+    from tests.test_shards import _manifest as fmt_manifest
+    from tests.test_shards import _sample
+
+    folder = str(tmp_path)
+    m = fmt_manifest(4, 2, formats=("zarr",))
+    save_manifest(folder, m)
+    create_store(folder, m)
+    rng = np.random.default_rng(0)
+    samples = [_sample(i, rng) for i in range(4)]
+    m["shards"].append(write_shard(folder, ("zarr",), 0, samples[:2]))
+    save_manifest(folder, m)
+    mark_complete_shards(folder, m)
+
+    calls = {"n": 0}
+    original = zarr.Array.__setitem__
+
+    def killed_after(self, key, value):
+        if calls["n"] == fail_after:
+            raise KeyboardInterrupt("killed between arrays")
+        calls["n"] += 1
+        return original(self, key, value)
+
+    monkeypatch.setattr(zarr.Array, "__setitem__", killed_after)
+    with pytest.raises(KeyboardInterrupt):
+        write_shard(folder, ("zarr",), 1, samples[2:])
+    monkeypatch.undo()
+
+    root = zarr.open_group(os.path.join(folder, "data.zarr"), mode="r")
+    assert list(root.attrs["complete_shards"]) == [0]
+    arrays = {name: np.asarray(root[name][:]) for name in ("images", "jacobians", "states", "psi")}
+    for i in range(4):
+        if np.isfinite(arrays["states"][i]).all():
+            for name, a in arrays.items():
+                assert np.isfinite(a[i]).all(), (i, name)
+
+
+# ------------------------------------------------------------------ tracebacks → one Error: line
+
+
+def test_os_errors_are_one_error_line_naming_the_file(data, model, tmp_path):
+    a_file = tmp_path / "a-file"
+    a_file.write_text("x")
+    runner = CliRunner()
+    line = _one_line_error(runner.invoke(train_cli, ["fit", data["train"], "--out", str(a_file / "run"), *_TINY]))
+    assert str(a_file) in line
+    line = _one_line_error(runner.invoke(train_cli, ["eval", model, data["train"], "--quiet", "--out",
+                                                     str(a_file / "sub" / "ev")]))
+    assert str(a_file) in line
+    proc = subprocess.run([sys.executable, "-m", "cli", "demo", "--quick", "--out", str(a_file / "demo")],
+                          capture_output=True, text=True, env=ENV, cwd=ROOT, timeout=600)
+    assert proc.returncode == 1 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert proc.stderr.strip().splitlines()[-1].startswith("Error:") and str(a_file) in proc.stderr
+
+
+@pytest.mark.parametrize("value", ["nan", "-1", "inf"])
+def test_bad_weight_decay_is_refused_before_the_run_folder_exists(data, tmp_path, value):
+    out = tmp_path / "run"
+    line = _one_line_error(CliRunner().invoke(train_cli, ["fit", data["train"], "--out", str(out), *_TINY,
+                                                          "--weight-decay", value]))
+    assert "--weight-decay must be a finite number >= 0" in line
+    assert not out.exists()
+
+
+def test_res_beyond_mitsuba_or_memory_is_refused_and_leaves_the_folder_usable(tmp_path):
+    out = tmp_path / "big"
+    base = ["render", "--env", "cube", "--n", "2", "--spp", "1", "--workers", "1", "--quiet", "--out", str(out)]
+    runner = CliRunner()
+    line = _one_line_error(runner.invoke(data_cli, [*base, "--res", "100000"]))
+    assert "--res 100000" in line
+    line = _one_line_error(runner.invoke(data_cli, [*base, "--res", "8192", "--spp", "64"]))
+    assert "--res 8192 with --spp 64" in line and "2^32" in line
+    line = _one_line_error(runner.invoke(data_cli, [*base, "--res", "0"]))
+    assert line == "Error: --res must be a positive integer, got 0"
+    r = runner.invoke(data_cli, [*base, "--res", "8"])  # the corrected command works in the same folder
+    assert r.exit_code == 0, r.output
+
+
+def test_a_failed_first_shard_does_not_block_the_folder(tmp_path, monkeypatch):
+    """A job that wrote its manifest but no shard (e.g. the renderer refused the image size) must not
+    block a corrected command with 'holds another job'."""
+    from risp_data.generate import RenderJob, new_manifest
+    from risp_data.shards.manifest import save_manifest
+
+    out = tmp_path / "f"
+    out.mkdir()
+    save_manifest(str(out), new_manifest(RenderJob(env="cube", n=2, out=str(out), resolution=4096, spp=1,
+                                                   formats=("wds",)), "llvm_ad_rgb"))
+    r = CliRunner().invoke(data_cli, ["render", "--env", "cube", "--n", "2", "--res", "8", "--spp", "1",
+                                      "--workers", "1", "--quiet", "--format", "wds", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    assert _manifest(str(out))["resolution"] == 8
+
+
+def test_memory_estimate_refuses_a_job_larger_than_the_machine(tmp_path):
+    from risp_data.generate import RenderJob, available_memory, memory_estimate
+
+    job = RenderJob(env="cube", n=512, out="unused", resolution=8000, spp=1, workers=2)
+    need = memory_estimate(job, 8)
+    assert need > 2 * 256 * 9 * 8000 * 8000 * 12  # two workers each holding a shard of images + Jacobians
+    have = available_memory()
+    assert have is not None and 0 < have < need
+    out = tmp_path / "huge"
+    line = _one_line_error(CliRunner().invoke(data_cli, ["render", "--env", "cube", "--n", "512", "--res", "8000",
+                                                         "--spp", "1", "--workers", "2", "--quiet", "--out", str(out)]))
+    assert "--res 8000 needs about" in line and "GiB of memory" in line
+    assert not out.exists()
+
+
+def test_corrupt_and_empty_checkpoints_are_one_line_without_torchs_advice(data, tmp_path):
+    import argparse
+
+    pickled = tmp_path / "pickled.pt"
+    torch.save({"format": "risp-train-checkpoint", "x": argparse.Namespace(a=1)}, pickled)
+    empty = tmp_path / "empty.pt"
+    empty.write_bytes(b"")
+    runner = CliRunner()
+    line = _one_line_error(runner.invoke(train_cli, ["eval", str(pickled), data["train"], "--quiet"]))
+    assert "weights_only" not in line and "pickled argparse.Namespace object" in line and str(pickled) in line
+    line = _one_line_error(runner.invoke(train_cli, ["eval", str(empty), data["train"], "--quiet"]))
+    assert "is empty (0 bytes)" in line and str(empty) in line
+
+
+_DISK_FULL_RENDER = r"""
+import errno, sys
+import zarr.storage._local as local
+real = local._put
+def full(path, value, exclusive=False):
+    if "/c/" in str(path):  # what a full disk raises from write(): no file name
+        raise OSError(errno.ENOSPC, "No space left on device")
+    return real(path, value, exclusive)
+local._put = full
+from risp_data.cli import main
+sys.argv = ["risp-data"] + sys.argv[1:]
+main()
+"""
+
+_DISK_FULL_CHECKPOINT = r"""
+import errno, io, os, sys
+import risp_data.atomic as atomic
+real_fdopen = os.fdopen
+class Full:
+    # a binary file on a disk with 2000 bytes left: write() fails like a full disk (ENOSPC, no file name)
+    def __init__(self, f):
+        self.f, self.n = f, 0
+    def write(self, b):
+        self.n += len(b)
+        if self.n > 2000:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return self.f.write(b)
+    def __getattr__(self, name):
+        return getattr(self.f, name)
+    def __enter__(self):
+        return self
+    def __exit__(self, *exc):
+        return self.f.__exit__(*exc)
+def fdopen(fd, mode="r", *a, **k):
+    f = real_fdopen(fd, mode, *a, **k)
+    return Full(f) if "b" in mode and "w" in mode else f
+atomic.os = type(sys)("os_full")  # only risp's atomic writer sees the full disk
+atomic.os.__dict__.update(os.__dict__)
+atomic.os.fdopen = fdopen
+from risp_train.cli import main
+sys.argv = ["risp-train"] + sys.argv[1:]
+main()
+"""
+
+
+def test_disk_full_during_render_and_checkpoint_write_is_one_line(data, tmp_path):
+    out = tmp_path / "full"
+    r = subprocess.run([sys.executable, "-c", _DISK_FULL_RENDER, "render", "--env", "cube", "--n", "4", "--res", "8",
+                        "--spp", "1", "--shard-size", "2", "--workers", "1", "--quiet", "--out", str(out)],
+                       capture_output=True, text=True, env=ENV, timeout=600)
+    assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr[-3000:]
+    last = r.stderr.strip().splitlines()[-1]
+    assert last.startswith("Error:") and "No space left on device" in last and "data.zarr" in last, last
+    assert _manifest(str(out))["shards"] == []  # nothing claimed complete
+    run = tmp_path / "run"
+    r = subprocess.run([sys.executable, "-c", _DISK_FULL_CHECKPOINT, "fit", data["train"], "--out", str(run), *_TINY,
+                        "--epochs", "1"], capture_output=True, text=True, env=ENV, timeout=600)
+    assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr[-3000:]
+    last = r.stderr.strip().splitlines()[-1]
+    assert last.startswith("Error:") and "No space left on device" in last and "last.pt" in last, last
+    assert not [n for n in os.listdir(run) if n.startswith(".tmp-")]  # no half-written temporary left
+
+
+def _children(pid):
+    out = []
+    for task in os.listdir(f"/proc/{pid}/task"):
+        with open(f"/proc/{pid}/task/{task}/children") as f:
+            out += [int(c) for c in f.read().split()]
+    return out
+
+
+def _kill_a_child_when_running(proc, wait_for, timeout=300):
+    import signal
+    import time
+
+    deadline = time.time() + timeout
+    while time.time() < deadline and proc.poll() is None:
+        kids = [c for c in _children(proc.pid) if wait_for(c)]
+        if kids:
+            time.sleep(0.3)  # let it start working
+            try:
+                os.kill(kids[0], signal.SIGKILL)
+                return True
+            except ProcessLookupError:
+                continue  # it had finished: wait for the next one
+        time.sleep(0.05)
+    return False
+
+
+def _cmdline(pid):
+    try:
+        return open(f"/proc/{pid}/cmdline", "rb").read().replace(b"\0", b" ").decode()
+    except OSError:
+        return ""
+
+
+def test_a_killed_render_worker_is_one_line_and_the_job_resumes(tmp_path):
+    out = tmp_path / "pool"
+    cmd = [sys.executable, "-m", "risp_data", "render", "--env", "cube", "--n", "24", "--res", "16", "--spp", "1",
+           "--shard-size", "2", "--workers", "2", "--quiet", "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
+    killed = _kill_a_child_when_running(proc, lambda c: "multiprocessing" in _cmdline(c)
+                                        and "resource_tracker" not in _cmdline(c))
+    _, err = proc.communicate(timeout=600)
+    assert killed, "no pool worker to kill"
+    assert proc.returncode == 1 and "Traceback" not in err, err[-3000:]
+    assert err.strip().splitlines()[-1].startswith("Error: a worker process died unexpectedly"), err[-1000:]
+    r = subprocess.run(cmd, capture_output=True, text=True, env=ENV, timeout=600)
+    assert r.returncode == 0 and "24/24 samples" in r.stdout, r.stderr
+
+
+def test_a_killed_dataloader_worker_is_one_line(data, tmp_path):
+    cmd = [sys.executable, "-m", "risp_train", "fit", data["train"], "--out", str(tmp_path / "run"), "--preset", "cpu",
+           "--width", "4", "--batch-size", "1", "--workers", "1", "--epochs", "50", "--format", "zarr", "--quiet"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
+    killed = 0
+    for _ in range(5):  # a worker killed after its last batch of an epoch goes unnoticed: kill the next one
+        killed += _kill_a_child_when_running(proc, lambda c: not any(w in _cmdline(c) for w in ("forkserver",
+                                                                                               "resource_tracker")))
+        try:
+            proc.wait(timeout=10)
+            break
+        except subprocess.TimeoutExpired:
+            continue
+    if proc.poll() is None:
+        proc.kill()
+    _, err = proc.communicate(timeout=600)
+    assert killed, "no DataLoader worker to kill"
+    assert proc.returncode == 1 and "Traceback" not in err, err[-3000:]
+    assert err.strip().splitlines()[-1].startswith("Error: a data-loading worker process died"), err[-1000:]
