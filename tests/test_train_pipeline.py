@@ -120,7 +120,9 @@ def test_exact_and_surrogate_train_one_epoch(shards, tmp_path):
     for reg in ("exact", "surrogate"):
         path = fit(_cfg(shards, tmp_path / reg, reg=reg, epochs=1, batch_size=16), progress=False)
         ck = torch.load(path, weights_only=True)
-        assert ck["config"]["reg"] == reg and ck["gamma"] == pytest.approx(20.0 / 400)  # paper cube γ, cpu-scaled
+        from risp_train.config import GAMMA_DEFAULTS
+
+        assert ck["config"]["reg"] == reg and ck["gamma"] == pytest.approx(GAMMA_DEFAULTS["cube"])  # calibrated γ
         assert ck["history"][-1]["train_reg"] >= 0
 
 
