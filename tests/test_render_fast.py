@@ -113,3 +113,30 @@ def test_plan_falls_back_where_a_step_would_not_be_exact():
     T[2][0] = np.ones(3)
     plan = plan_jacobian(NAMES, T, KINDS, [0, 1], True)
     assert plan.emitter == () and 2 in plan.single
+
+
+def test_render_job_paths_agree_and_bad_path_is_one_error_line(tmp_path):
+    """``risp-data render --jacobian-path fast|legacy``: the same samples to float32 rounding; an unknown
+    path is refused with one error line before anything is written."""
+    from click.testing import CliRunner
+
+    from risp_data.cli import cli
+    from risp_data.shards import ZarrDataset
+
+    def render(out, path):
+        args = ["render", "--env", "hand", "--domain", "target", "--res", "8", "--spp", "2", "--quiet", "--n", "2",
+                "--shard-size", "2", "--workers", "1", "--format", "zarr", "--jacobian-path", path, "--out", str(out)]
+        return CliRunner().invoke(cli, args)
+
+    assert render(tmp_path / "f", "fast").exit_code == 0
+    assert render(tmp_path / "l", "legacy").exit_code == 0
+    f, l = ZarrDataset(str(tmp_path / "f")), ZarrDataset(str(tmp_path / "l"))
+    for i in range(2):
+        np.testing.assert_array_equal(f[i]["psi"], l[i]["psi"])
+        for j in range(f[i]["jacobian"].shape[0]):
+            Jf, Jl = f[i]["jacobian"][j], l[i]["jacobian"][j]
+            assert np.linalg.norm(Jf - Jl) <= RTOL * np.linalg.norm(Jl)
+    r = render(tmp_path / "x", "slow")
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert r.exit_code == 1 and len(lines) == 1 and "--jacobian-path" in lines[0], r.output
+    assert not (tmp_path / "x").exists()
