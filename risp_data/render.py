@@ -26,7 +26,7 @@ import numpy as np
 from .envs import get_environment
 from .envs.materials import FIXED_MATERIALS  # RGB reflectances of the non-ψ materials
 from .errors import RispError
-from .emitter_split import sample_per_emitter
+from .prb_passes import forward_materials, sample_per_emitter
 from .mitsuba_setup import init_mitsuba
 from .psi import RenderConfig, _check_domain, psi_specs
 
@@ -519,8 +519,9 @@ class Renderer:
                     for k, leaf in enumerate(self._leaves):
                         t = sum(T[j][k] for j in group)
                         dr.set_grad(leaf, self._to_mitsuba(t, self._bindings[k].kind))
-                δL, _, _, _ = integ.sample(mode=dr.ADMode.Forward, sampler=sampler.clone(), ray=ray, δL=None,
-                                           δaovs=None, state_in=L, **kw)
+                # prb's forward mode without its geometric-derivative terms (ψ moves no geometry): same δL,
+                # less to trace and run (risp_data/prb_passes.py)
+                δL = forward_materials(scene, sampler.clone(), ray, L, self.settings.max_depth, self.settings.rr_depth)
                 outputs[(name, group)] = self._splat(pos, δL * weight, spp)
             dr.eval(image, list(outputs.values()))
         H = W = self.resolution

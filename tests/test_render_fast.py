@@ -113,3 +113,63 @@ def test_plan_falls_back_where_a_step_would_not_be_exact():
     T[2][0] = np.ones(3)
     plan = plan_jacobian(NAMES, T, KINDS, [0, 1], True)
     assert plan.emitter == () and 2 in plan.single
+
+
+def test_render_job_paths_agree_and_bad_path_is_one_error_line(tmp_path):
+    """``risp-data render --jacobian-path fast|legacy``: the same samples to float32 rounding; an unknown
+    path is refused with one error line before anything is written."""
+    from click.testing import CliRunner
+
+    from risp_data.cli import cli
+    from risp_data.shards import ZarrDataset
+
+    def render(out, path):
+        args = ["render", "--env", "hand", "--domain", "target", "--res", "8", "--spp", "2", "--quiet", "--n", "2",
+                "--shard-size", "2", "--workers", "1", "--format", "zarr", "--jacobian-path", path, "--out", str(out)]
+        return CliRunner().invoke(cli, args)
+
+    assert render(tmp_path / "f", "fast").exit_code == 0
+    assert render(tmp_path / "l", "legacy").exit_code == 0
+    f, l = ZarrDataset(str(tmp_path / "f")), ZarrDataset(str(tmp_path / "l"))
+    for i in range(2):
+        np.testing.assert_array_equal(f[i]["psi"], l[i]["psi"])
+        for j in range(f[i]["jacobian"].shape[0]):
+            Jf, Jl = f[i]["jacobian"][j], l[i]["jacobian"][j]
+            assert np.linalg.norm(Jf - Jl) <= RTOL * np.linalg.norm(Jl)
+    r = render(tmp_path / "x", "slow")
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert r.exit_code == 1 and len(lines) == 1 and "--jacobian-path" in lines[0], r.output
+    assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("domain", DOMAINS)
+def test_lean_prb_passes_match_prb(domain):
+    """risp_data/prb_passes.py against prb itself on one sample: Σ_e L_e = prb's primal L, and the lean
+    forward pass = prb's forward pass (state_in = that L) for a tangent on every ψ-dependent parameter."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from risp_data.prb_passes import forward_materials, sample_per_emitter
+
+    r = renderer("cube", domain)
+    rng = np.random.default_rng(8)
+    state, config = get_environment("cube").sample_states(rng, 1)[0], sample_rendering("cube", domain, rng)
+    r.set_state(state)
+    r.set_config(config.psi, config.aux, track=True)
+    r.params.update()
+    integ, scene, s = r.integrator, r.scene, r.settings
+    with dr.suspend_grad():
+        sampler, _ = integ.prepare(scene.sensors()[0], r._var(9, np.uint32), SPP * s.spp_factor, [])
+        ray, _, _ = integ.sample_rays(scene, scene.sensors()[0], sampler)
+        kw = dict(scene=scene, ray=ray, depth=mi.UInt32(0), active=mi.Bool(True), δL=None)
+        L, _, _, _ = integ.sample(mode=dr.ADMode.Primal, sampler=sampler.clone(), state_in=None, **kw)
+        Ls = sample_per_emitter(scene, sampler.clone(), ray, list(scene.emitters()), s.max_depth, s.rr_depth)
+        with dr.resume_grad():
+            for leaf in r._leaves:  # a tangent on every ψ-dependent parameter at once
+                dr.set_grad(leaf, 0.5)
+        ref, _, _, _ = integ.sample(mode=dr.ADMode.Forward, sampler=sampler.clone(), state_in=L, δaovs=None, **kw)
+        lean = forward_materials(scene, sampler.clone(), ray, L, s.max_depth, s.rr_depth)
+        L, total, ref, lean = (np.array(x, np.float64) for x in (L, sum(Ls[1:], Ls[0]), ref, lean))
+    assert np.abs(L).max() > 0 and np.abs(ref).max() > 0
+    np.testing.assert_allclose(total, L, rtol=1e-5, atol=1e-6 * np.abs(L).max())
+    np.testing.assert_allclose(lean, ref, rtol=1e-5, atol=1e-6 * np.abs(ref).max())
