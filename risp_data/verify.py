@@ -105,7 +105,10 @@ def verify_folder(cfg: VerifyConfig) -> VerifyReport:
     m = load_manifest(cfg.folder)
     if not m["jacobian"]:
         raise RispError(f"{cfg.folder} was rendered with --no-jacobian: there are no Jacobians to verify")
-    files = verify_checksums(cfg.folder, m) if cfg.checksums else 0
+    try:
+        files = verify_checksums(cfg.folder, m) if cfg.checksums else 0
+    except RispError as e:
+        raise RispError(f"{e}; repair: risp-data verify --repair {cfg.folder}") from None
     indices = complete_indices(m)
     if not indices:
         raise RispError(f"{cfg.folder} has no complete shard yet")
