@@ -7,8 +7,9 @@ seeds.  ε = 1e-2 (m or rad): edges make a same-seed difference piecewise consta
 an edge crosses it), so ε must span many samples; both sides are averaged over 3 seeds at 128 spp and
 compared with a tolerance of 25 % of max(|FD|, |grad|) + 3 FD standard errors.
 
-Measured on Mitsuba 3.9.1 / Dr.Jit 1.5.0 (llvm_ad_rgb): the check FAILS in every environment (e.g. cube:
-grad −99 ± 1 vs FD 16 ± 11).  A standalone reproduction (a cube mesh under a constant environment, with
+Measured on Mitsuba 3.9.1 / Dr.Jit 1.5.0 (llvm_ad_rgb): the check FAILS for the cube and the rod (e.g. cube:
+grad −99 ± 1 vs FD 16 ± 11) and passes for the quadrotor and the hand only because their FD is noisy (thin
+parts, few pixels: FD standard errors of 5–13 against gradients of 10–35).  A standalone reproduction (a cube mesh under a constant environment, with
 and without a floor mesh/rectangle below it) showed that without a floor the projective gradient matches
 FD to a few percent, and with a floor the boundary term of silhouette edges whose background is the floor
 is missing (the top edge's pixel row: FD −0.9, gradient 0) — with ``direct_projective`` and
@@ -36,10 +37,13 @@ def _weights(res):
     return (torch.sin(3 * xx + 1) + torch.cos(2 * yy))[None, :, :, None].expand(1, res, res, 3).float()
 
 
+_MISSING_EDGE = pytest.mark.xfail(strict=True, reason="Mitsuba 3.9.1 projective integrators miss the silhouette "
+                                  "term of edges in front of the floor (module docstring)")
+
+
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="Mitsuba 3.9.1 projective integrators miss the silhouette term of edges in "
-                   "front of the floor (module docstring)")
-@pytest.mark.parametrize("env", ENV_NAMES)
+@pytest.mark.parametrize("env", [pytest.param(e, marks=_MISSING_EDGE) if e in ("cube", "rod") else e
+                                 for e in ENV_NAMES])
 def test_state_gradient_matches_central_differences(env, one_torch_thread):
     environment = get_environment(env)
     rng = np.random.default_rng(1)
