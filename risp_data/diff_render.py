@@ -167,4 +167,14 @@ def frame_seed(seed: int, t: int) -> int:
     return int(np.random.SeedSequence([int(seed), int(t)]).generate_state(1)[0] & 0x7FFFFFFE)
 
 
-__all__ = ["INTEGRATORS", "StateRenderer", "frame_seed"]
+__all__ = ["INTEGRATORS", "StateRenderer", "frame_seed", "set_camera"]
+
+
+def set_camera(renderer: Renderer, camera) -> None:
+    """Replace the scene camera of ``renderer`` (a :class:`risp_data.envs.Camera`: look-at and horizontal fov)."""
+    import mitsuba as mi
+
+    renderer.params["sensor.to_world"] = mi.Transform4f().look_at(origin=list(camera.origin), target=list(camera.target),
+                                                                   up=list(camera.up))
+    renderer.params["sensor.x_fov"] = float(camera.fov)
+    renderer.params.update()

@@ -32,6 +32,7 @@ class Video:
     source: str  # path it came from
     source_frames: int  # frames decoded from the file
     indices: tuple[int, ...]  # which decoded frames ``frames`` holds
+    source_fps: float = 0.0  # frame rate of the decoded frames (0: unknown, a PNG folder without source_fps)
 
 
 def srgb_to_linear(x: np.ndarray) -> np.ndarray:
@@ -162,7 +163,8 @@ def read_video(path: str | os.PathLike, resolution: int | None = None, every: in
     if resolution is not None:
         frames = resize(frames, int(resolution))
     out_fps = (fps if fps is not None else rate) / every if (fps or rate) else 0.0
-    return Video(frames=frames, fps=float(out_fps), source=str(p), source_frames=len(raw), indices=tuple(idx))
+    return Video(frames=frames, fps=float(out_fps), source=str(p), source_frames=len(raw), indices=tuple(idx),
+                 source_fps=float(rate))
 
 
 def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float, crf: int = 12) -> None:
