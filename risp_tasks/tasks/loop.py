@@ -111,7 +111,7 @@ def optimize(problem: Problem, loss: Callable, *, optimizer: str, lr: float, mom
         opt.step()
         with torch.no_grad():
             problem.project()
-        history.append(float(value))
+        history.append(float(value.detach()))
         seconds.append(time.perf_counter() - start)
         bar.set_postfix(loss=f"{history[-1]:.4g}")
     with torch.no_grad():
