@@ -88,7 +88,6 @@ def _motion(sim, params, n, k, fps, rng):
     """(full states (n, X), file actions (n, A) or None)."""
     from risp_data.envs import get_environment
 
-    from .simulate import frame_states  # noqa: F401  (same timeline convention)
 
     env = get_environment(sim.env)
     X = len(sim.state_names)
@@ -149,18 +148,16 @@ def make_reference(cfg: ReferenceConfig) -> dict:
     from risp_data.psi import sample_rendering
     from risp_data.render import Renderer
 
-    from ..sims import get_simulator
     from ..video import write_video
     from .inputs import read_camera, write_actions
-    from .simulate import steps_per_frame
+    from .simulate import timeline
 
     if cfg.frames < 2 or not cfg.fps > 0 or cfg.resolution < 2:
         raise RispError("--frames must be >= 2, --fps > 0 and --resolution >= 2")
     rng = np.random.default_rng(cfg.seed)
     effect, effect_values = _parse_effect(cfg.effect, cfg.env)
-    sim = get_simulator(cfg.env, effects=(effect,) if effect else ())
+    sim, k = timeline(cfg.env, cfg.fps, (effect,) if effect else ())
     params = _params(cfg, sim, rng, effect, effect_values)
-    k = steps_per_frame(sim, cfg.fps)
     full, actions = _motion(sim, params, cfg.frames, k, cfg.fps, rng)
     env_states = sim.to_env_state(full).numpy()
     look = sample_rendering(cfg.env, cfg.domain, rng)

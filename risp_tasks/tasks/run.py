@@ -77,10 +77,11 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
 
     from ..sims import get_simulator
     from ..video import sha256_file
-    from .simulate import steps_per_frame
+    from .simulate import timeline
 
-    env, sim = get_environment(env_name), get_simulator(env_name)
+    env = get_environment(env_name)
     frames, keep, n_source, fps, video_sha = _reference(cfg, predictor.resolution)
+    sim, k = timeline(env_name, fps) if cfg.task != "estimate" else (get_simulator(env_name), 1)
     frames_t = torch.from_numpy(frames)
     with torch.no_grad():
         predicted, predicted_targets = predictor.predict(frames_t)
@@ -93,7 +94,6 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
     camera = read_camera(cfg.camera) if cfg.camera else None
     if cfg.mesh is not None:
         raise RispError("--mesh: custom vehicle meshes are not supported yet (docs/tasks.md)")
-    k = steps_per_frame(sim, fps) if cfg.task != "estimate" else 1
     ctx = Context(cfg=cfg, env=env, sim=sim, predictor=predictor, frames=frames_t, keep=keep, n_source=n_source,
                   fps=fps, k=k, predicted=predicted.double(), predicted_targets=predicted_targets.double(),
                   file_actions=file_actions, truth=truth, rng=np.random.default_rng(cfg.seed))

@@ -22,6 +22,25 @@ def steps_per_frame(sim, fps: float) -> int:
     return k
 
 
+def timeline(env: str, fps: float, effects: tuple[str, ...] = ()):
+    """(simulator, k): k = round(1 / (fps · dt_native)) steps per frame with the step set to 1 / (fps · k), as
+    diagnose does for measured data (docs/diagnose.md §Time step); simulators without a ``dt`` option keep
+    their step and need 1/fps to be a multiple of it."""
+    from ..sims import get_simulator
+
+    sim = get_simulator(env, effects)
+    if not fps > 0:
+        raise RispError(f"the frame rate must be positive, got {fps!r}")
+    k = max(1, int(round(1.0 / (fps * sim.dt))))
+    dt = 1.0 / (fps * k)
+    if abs(dt - sim.dt) > 1e-9 * sim.dt:
+        try:
+            sim = get_simulator(env, effects, dt=dt)
+        except RispError:
+            pass  # keep the native step; steps_per_frame explains the mismatch
+    return sim, steps_per_frame(sim, fps)
+
+
 def action_centre(sim, params: torch.Tensor) -> torch.Tensor:
     """Centre of the normalised actions (A,): hover for the quadrotor, zero otherwise."""
     if sim.env == "quadrotor":
