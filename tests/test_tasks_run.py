@@ -64,6 +64,7 @@ def test_estimate_writes_measured_csv_that_diagnose_reads(quad, tmp_path):
 @pytest.mark.parametrize("task, loss, extra", [
     ("sysid", "oracle", {"lr": 3e-2}),
     ("sysid", "state", {"lr": 3e-2}),
+    ("sysid", "state", {"lr": 3e-2, "every": 2}),  # loss on frames 0, 2, 4 of the simulated timeline
     ("imitate", "state", {}),  # the paper's lr 3e-3 (RMSProp's first steps are ~10× lr)
 ])
 def test_task_lowers_its_loss(quad, tmp_path, task, loss, extra):
@@ -73,6 +74,7 @@ def test_task_lowers_its_loss(quad, tmp_path, task, loss, extra):
         kw.update(actions=_stem(video) + ".actions.csv", init="random", seed=1)
     r = _run(task, video, tmp_path / "out", **kw)
     assert len(r["loss"]) == 6 and r["final_loss"] < r["loss"][0], r["loss"]
+    assert r["video"]["kept"] == list(range(0, 6, extra.get("every", 1)))
     assert os.path.isfile(tmp_path / "out" / "result.json")
     if task == "imitate":
         assert np.asarray(r["estimates"]["actions"]).shape == (6, 4)

@@ -37,25 +37,22 @@ def resolve_model(cfg: TaskConfig) -> tuple[str, str]:
 def _reference(cfg: TaskConfig, resolution: int):
     """(frames (T, r, r, 3), keep, n_source, fps, sha256) — a video, or for ``control`` one goal image."""
     if cfg.task == "control":
-        from ..video import read_video, sha256_file
+        from PIL import Image
+
+        from ..video import resize, sha256_file, srgb_to_linear
 
         path = cfg.video
         if not os.path.isfile(path):
             raise RispError(f"{path}: target image not found")
-        from PIL import Image
-
         try:
             with Image.open(path) as im:
                 img = np.asarray(im.convert("RGB"), np.float32) / 255.0
         except Exception as e:  # noqa: BLE001 - PIL raises several types
             raise RispError(f"{path}: cannot read the target image ({type(e).__name__})") from None
-        from ..video import resize, srgb_to_linear
-
         frames = resize(srgb_to_linear(img)[None], resolution)
-        del read_video
         return frames, [0], 1, float(cfg.fps or 10.0), sha256_file(path)
     ref = read_reference(cfg.video, resolution, cfg.every, cfg.fps, cfg.source_fps)
-    if cfg.fps is not None:  # the timeline is the resampled one
+    if cfg.fps is not None:  # the timeline is the resampled one (an actions file has one row per resampled frame)
         return ref.video.frames, list(range(0, len(ref.video.frames) * cfg.every, cfg.every)), \
             (len(ref.video.frames) - 1) * cfg.every + 1, float(cfg.fps), ref.sha256
     return ref.video.frames, ref.indices, ref.n_source, ref.source_fps, ref.sha256
