@@ -149,3 +149,18 @@ def test_long_quadrotor_imitation_with_camera_json_and_tracking_init(quad, tmp_p
     assert runs["track"]["loss"][0] < 0.5 * runs["default"]["loss"][0]
     assert runs["track"]["final_loss"] < runs["track"]["loss"][0], runs["track"]["loss"]
     assert np.asarray(runs["track"]["estimates"]["actions"]).shape == (144, 4)
+
+
+@pytest.mark.parametrize("task", ["sysid", "imitate"])
+def test_hand_tasks_lower_their_loss(tmp_path_factory, tmp_path, task):
+    """The hand: five stiffnesses / five finger torques, joint angles and rates from the first two frames."""
+    model, video = shared_model(tmp_path_factory, "hand"), shared_video(tmp_path_factory, "hand")
+    kw = dict(model=model, loss="oracle", truth=_stem(video) + ".truth.json", iterations=5, plots=False)
+    if task == "sysid":
+        kw.update(actions=_stem(video) + ".actions.csv", lr=3e-2)
+    r = _run(task, video, tmp_path / "out", **kw)
+    assert r["final_loss"] < r["loss"][0], r["loss"]
+    if task == "sysid":
+        assert len(r["estimates"]["parameters"]) == 5
+    else:
+        assert np.asarray(r["estimates"]["actions"]).shape == (6, 5)
