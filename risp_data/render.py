@@ -430,6 +430,11 @@ class Renderer:
         return img, J
 
     @property
+    def mesh_keys(self) -> dict[str, str]:
+        """{material: scene parameter key of its vertex positions} (risp_data.diff_render writes them)."""
+        return dict(self._mesh_keys)
+
+    @property
     def image_integrator(self) -> str:
         """Name of the integrator :meth:`render_reference` uses."""
         return self.settings.reference or self.settings.integrator

@@ -1,6 +1,9 @@
 """``risp-task``: tasks on measured or estimated trajectories (``risp task …`` is the same group).
 
     risp-task diagnose DATA… --env E --out report/ [--seed 0]
+    risp-task estimate|sysid|imitate VIDEO [--model M] [--loss render|state|oracle|pixelwise] …
+    risp-task control TARGET.png [--model M] [--initial-state S.json] [--horizon 10]
+    risp-task make-video --env E --out video.mp4 [--frames 20] [--fps 10] [--resolution 64] [--seed 0]
 
 Thin layer: click options -> :class:`risp_tasks.diagnose.run.DiagnoseConfig` -> ``diagnose``.
 Documentation: docs/cli-task.md.
@@ -16,7 +19,7 @@ from risp_data.envs import ENV_NAMES
 
 @click.group(cls=RispGroup)
 def cli():
-    """Tasks on measured trajectories: diagnose what the simulator misses (more to come: estimate, sysid)."""
+    """From a video to states, physical parameters and actions (estimate, sysid, imitate, control); diagnose."""
 
 
 @cli.command()
@@ -63,6 +66,115 @@ def diagnose(data, env, out, seed, held_out, horizon, rollout_horizon, max_segme
     for name, p in report["parameters"].items():
         click.echo(f"  {name} = {p['value']:.4g} ± {p['std']:.2g} {p['unit']}")
     click.echo(f"held-out normalised RSS gain: {report['gain']['normalized_rss']:+.1%}; report: {out}/report.md")
+
+
+def _task_options(f):
+    """Options shared by every task (docs/cli-task.md); defaults are the paper's (RMSProp, lr 3e-3, momentum 0.5)."""
+    opts = [
+        click.option("--model", default=None, help="risp-train checkpoint (default: the most recent runs/*/model.pt)"),
+        click.option("--runs", default="runs", show_default=True, help="where to look for the most recent model"),
+        click.option("--env", type=click.Choice(ENV_NAMES), default=None, help="expected environment (default: the model's)"),
+        click.option("--out", default=None, help="result folder (default results/<task>-<video>-seed<seed>)"),
+        click.option("--loss", type=click.Choice(("render", "state", "oracle", "pixelwise")), default="state",
+                     show_default=True, help="render: N(render(sim)) vs N(video); state: sim vs N(video); oracle: vs --truth"),
+        click.option("--init", type=click.Choice(("default", "random", "track")), default="default", show_default=True,
+                     help="initial guess (track: tracking controller along the estimated path, quadrotor imitate)"),
+        click.option("--optimizer", type=click.Choice(("rmsprop", "adam", "sgd")), default="rmsprop", show_default=True),
+        click.option("--lr", type=float, default=3e-3, show_default=True),
+        click.option("--momentum", type=float, default=0.5, show_default=True),
+        click.option("--iterations", type=int, default=None, help="optimisation iterations [default: 100; estimate: 0]"),
+        click.option("--seed", type=int, default=0, show_default=True),
+        click.option("--every", type=int, default=1, show_default=True, help="keep every k-th frame"),
+        click.option("--fps", type=float, default=None, help="resample the video to this frame rate"),
+        click.option("--source-fps", type=float, default=None, help="frame rate of a PNG folder"),
+        click.option("--actions", default=None, help="actions CSV (t + f0..f3 [N] / u0.. ; one row per frame)"),
+        click.option("--truth", default=None, help="ground-truth JSON (oracle loss, error report)"),
+        click.option("--camera", default=None, help="camera JSON (intrinsics, extrinsics) replacing the environment's"),
+        click.option("--mesh", default=None, help="vehicle mesh file (not supported yet)"),
+        click.option("--spp", type=int, default=4, show_default=True, help="samples per pixel of the differentiable renderer"),
+        click.option("--threads", type=int, default=1, show_default=True, help="torch threads"),
+        click.option("--no-plots", is_flag=True, help="skip the PNG plots"),
+        click.option("--quiet", is_flag=True, help="no progress bar"),
+    ]
+    for opt in reversed(opts):
+        f = opt(f)
+    return f
+
+
+def _run(task, video, **kw):
+    from risp_tasks.tasks.config import TaskConfig
+    from risp_tasks.tasks.run import run_task
+
+    iterations = kw.pop("iterations")
+    cfg = TaskConfig(task=task, video=video, iterations=(0 if task == "estimate" else 100) if iterations is None else iterations,
+                     plots=not kw.pop("no_plots"), progress=not kw.pop("quiet"), **kw)
+    result = run_task(cfg, echo=click.echo)
+    loss = result["loss"]
+    click.echo(f"{task} ({result['env']}): loss {loss[0] if loss else result['final_loss']:.4g} -> {result['final_loss']:.4g} "
+               f"in {len(loss)} iterations; results: {result['out']}")
+    for name, value in result["estimates"].get("parameters", {}).items():
+        click.echo(f"  {name} = {value:.4g}")
+    for name, value in result.get("errors", {}).items():
+        if isinstance(value, float):
+            click.echo(f"  {name} = {value:.4g}")
+    return result
+
+
+@cli.command()
+@click.argument("video", type=click.Path())
+@_task_options
+def estimate(video, **kw):
+    """Per-frame states of VIDEO as a measured-data CSV (docs/measured-data.md) that `diagnose` reads."""
+    _run("estimate", video, **kw)
+
+
+@cli.command()
+@click.argument("video", type=click.Path())
+@_task_options
+def sysid(video, **kw):
+    """The physical parameter(s) that reproduce VIDEO (quadrotor mass, cube log10 k_n, hand stiffness, rod log10 E)."""
+    _run("sysid", video, **kw)
+
+
+@cli.command()
+@click.argument("video", type=click.Path())
+@_task_options
+def imitate(video, **kw):
+    """The action sequence that reproduces the motion in VIDEO (quadrotor, hand, rod)."""
+    _run("imitate", video, **kw)
+
+
+@cli.command()
+@click.argument("target", type=click.Path())
+@_task_options
+@click.option("--initial-state", default=None, help="JSON {'state': [...]} or {'env_state': [...]} (default: the simulator's)")
+@click.option("--horizon", type=int, default=10, show_default=True, help="frames to reach the pictured state")
+def control(target, **kw):
+    """Actions that drive the system from its initial state to the state pictured in TARGET (a PNG)."""
+    _run("control", target, **kw)
+
+
+@cli.command("make-video")
+@click.option("--env", type=click.Choice(ENV_NAMES), required=True)
+@click.option("--out", required=True, help="video file (.mp4/.avi) or folder of PNGs; ground truth beside it")
+@click.option("--frames", type=int, default=20, show_default=True)
+@click.option("--fps", type=float, default=10.0, show_default=True)
+@click.option("--resolution", type=int, default=64, show_default=True)
+@click.option("--spp", type=int, default=16, show_default=True, help="samples per pixel (×4 in the target domain)")
+@click.option("--domain", type=click.Choice(("target", "train")), default="target", show_default=True)
+@click.option("--params", default=None, help="JSON object of simulator parameters (default: random in the paper's ranges)")
+@click.option("--effect", default=None, help="hidden effect NAME or NAME:v1,v2,… (e.g. wind:3,0,0)")
+@click.option("--camera", default=None, help="camera JSON replacing the environment's camera")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--quiet", is_flag=True)
+def make_video(env, out, frames, fps, resolution, spp, domain, params, effect, camera, seed, quiet):
+    """Simulate ENV and render a reference video with a random look, plus <out>.truth.json and <out>.actions.csv."""
+    from risp_tasks.tasks.reference import ReferenceConfig, make_reference
+
+    cfg = ReferenceConfig(env=env, out=out, frames=frames, fps=fps, resolution=resolution, spp=spp, domain=domain,
+                          params=params, effect=effect, camera=camera, seed=seed, progress=not quiet)
+    truth = make_reference(cfg)
+    click.echo(f"wrote {out} ({frames} frames, {resolution}×{resolution}, {fps:g} fps), ground truth {truth['truth_path']}")
 
 
 def main():

@@ -1,0 +1,180 @@
+"""Differentiable rendering of simulated states: a torch function ``states (T, S) -> images (T, H, W, 3)``
+with gradients w.r.t. the states through the geometry, silhouettes included (issue 10, item 1).
+
+Chain (all derivatives analytic, no finite differences):
+
+    states (T, S) --env.meshes (torch)--> vertex positions V_t (per material)
+                  --dr.wrap(torch -> drjit)--> I_t = render(scene(V_t); ψ)  (Mitsuba, projective integrator)
+
+∂I/∂V comes from Mitsuba's projective integrators (``prb_projective``; ``direct_projective`` on request):
+path-replay radiance derivatives in the interior of shapes plus the projective boundary term, which
+carries the derivative of visibility (silhouette) edges.  Guiding is switched off (``'guiding': 'none'``):
+with the default guiding one backward pass took 6–9 s at 64×64 on a 2-core machine, without it ≈0.1 s,
+and the silhouette gradient still matched finite differences (tests/test_diff_render.py).
+
+The scene is the one :class:`risp_data.render.Renderer` builds (same meshes, materials, lights, camera,
+ψ bindings); only the integrator differs: the projective counterpart of the domain's path-replay
+integrator with the same maximum path length, so images have the same expectation as the data's.
+Shadow-edge derivatives (a shadow moving with the object) are not checked separately.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from .errors import RispError
+from .psi import RenderConfig, nominal_rendering
+from .render import Renderer
+
+INTEGRATORS: tuple[str, ...] = ("prb_projective", "direct_projective")
+
+
+class StateRenderer:
+    """Render states of one environment in one look; differentiable w.r.t. the states.
+
+    ``config``: the look ψ (and its aux); None gives the domain's nominal look
+    (:func:`risp_data.psi.nominal_rendering`).  Frame t of a call is rendered with the random stream
+    ``frame_seed(seed, t)``, so the same (states, seed) give the same images; the gradient pass uses an
+    independent stream (Mitsuba's ``seed_grad``), which keeps the gradient estimate unbiased.
+    """
+
+    def __init__(self, env: str, resolution: int = 64, spp: int = 8, domain: str = "train",
+                 config: RenderConfig | None = None, integrator: str = "prb_projective", variant: str | None = None):
+        if integrator not in INTEGRATORS:
+            raise RispError(f"unknown differentiable integrator {integrator!r}; choose one of: {', '.join(INTEGRATORS)}")
+        self.renderer = Renderer(env, domain=domain, resolution=resolution, spp=spp, variant=variant)
+        self.env = self.renderer.env
+        self.resolution = self.renderer.resolution
+        self.spp = self.renderer.spp * self.renderer.settings.spp_factor
+        import drjit as dr
+        import mitsuba as mi
+
+        self._mi, self._dr = mi, dr
+        settings = self.renderer.settings
+        props = {"type": integrator, "max_depth": settings.max_depth, "guiding": "none"}
+        if integrator == "prb_projective":
+            props["rr_depth"] = settings.rr_depth
+        self.integrator = mi.load_dict(props)
+        self.set_look(config if config is not None else nominal_rendering(env, domain))
+        self._render_frame = self._make_frame_renderer()
+
+    def set_look(self, config: RenderConfig) -> None:
+        """Write the look ψ (and aux) into the scene; later renders use it."""
+        psi = np.asarray(config.psi, np.float64) if isinstance(config, RenderConfig) else None
+        if psi is None or psi.shape != (len(self.renderer.psi_names),) or not np.all(np.isfinite(psi)):
+            raise RispError(f"the look must be a RenderConfig with {len(self.renderer.psi_names)} finite ψ values")
+        self.renderer.set_config(psi, config.aux, track=False)
+        self.renderer.params.update()
+        self.config = config
+
+    def _make_frame_renderer(self):
+        """A torch autograd function rendering one frame.
+
+        Forward renders the primal; backward writes the frame's vertices into the scene again and runs the
+        integrator's ``render_backward``.  ``dr.wrap`` around ``mi.render`` alone would be wrong for a
+        sequence: its backward runs after all frames were rendered and would differentiate the scene as the
+        *last* frame left it.
+        """
+        mi, dr = self._mi, self._dr
+        params, scene, integrator, spp = self.renderer.params, self.renderer.scene, self.integrator, self.spp
+        keys = self.renderer.mesh_keys
+
+        def write(vertices: dict, grad: bool) -> list:
+            leaves = []
+            for material, v in vertices.items():
+                flat = mi.Float(v.array)  # (V, 3) tensor -> flat Float, as Mitsuba stores positions
+                if grad:
+                    dr.enable_grad(flat)
+                params[keys[material]] = flat
+                leaves.append(flat)
+            params.update()
+            return leaves
+
+        @dr.wrap(source="torch", target="drjit")
+        def primal(vertices: dict, seed: int):
+            with dr.suspend_grad():
+                write(vertices, grad=False)
+                return mi.render(scene, params, integrator=integrator, seed=seed, spp=spp)
+
+        @dr.wrap(source="torch", target="drjit")
+        def vjp(vertices: dict, grad_image, seed: int):
+            leaves = write(vertices, grad=True)
+            integrator.render_backward(scene, params, grad_image, seed=seed + 1, spp=spp)
+            return [dr.grad(leaf) for leaf in leaves]
+
+        materials = list(keys)
+
+        class RenderFrame(torch.autograd.Function):
+            @staticmethod
+            def forward(ctx, seed, *verts):
+                ctx.seed = seed
+                ctx.save_for_backward(*verts)
+                with _quiet(mi):
+                    return primal(dict(zip(materials, verts)), seed)
+
+            @staticmethod
+            def backward(ctx, grad_image):
+                verts = ctx.saved_tensors
+                with _quiet(mi):
+                    grads = vjp(dict(zip(materials, verts)), grad_image.contiguous(), ctx.seed)
+                return (None, *[g.reshape(v.shape) for g, v in zip(grads, verts)])
+
+        def render_frame(vertices: dict, seed: int) -> torch.Tensor:
+            return RenderFrame.apply(seed, *[vertices[m] for m in materials])
+
+        return render_frame
+
+    def vertices(self, state: torch.Tensor) -> dict[str, torch.Tensor]:
+        """{material: (V, 3) float32} world-space vertices of one state, merged per material in the order of
+        :meth:`Renderer._merged_meshes` (the scene's vertex buffers); differentiable w.r.t. ``state``."""
+        out: dict[str, list[torch.Tensor]] = {}
+        for m in self.env.meshes(state):
+            out.setdefault(m.material, []).append(m.vertices)
+        return {k: torch.cat(v, 0).to(torch.float32).contiguous() for k, v in out.items()}
+
+    def __call__(self, states: torch.Tensor, seed: int = 0) -> torch.Tensor:
+        """Images (T, H, W, 3) float32 linear RGB of states (T, S); differentiable w.r.t. ``states``."""
+        S = self.env.state_dim
+        if not torch.is_tensor(states) or states.ndim != 2 or states.shape[1] != S:
+            shape = tuple(states.shape) if torch.is_tensor(states) else type(states).__name__
+            raise RispError(f"states must be a (T, {S}) tensor for {self.env.name}, got {shape}")
+        if not torch.isfinite(states).all():
+            raise RispError("states contain NaN or inf")
+        frames = [self._render_frame(self.vertices(s), frame_seed(seed, t)) for t, s in enumerate(states)]
+        return torch.stack(frames)
+
+
+class _quiet:
+    """Silence Mitsuba's warning that shapes may leave the viewport (``sample_border``) while rendering:
+    the environments keep their objects in view, and the warning would repeat for every frame."""
+
+    def __init__(self, mi):
+        self.logger = mi.Thread.thread().logger()
+
+    def __enter__(self):
+        import mitsuba as mi
+
+        self.level = self.logger.log_level()
+        self.logger.set_log_level(mi.LogLevel.Error)
+
+    def __exit__(self, *exc):
+        self.logger.set_log_level(self.level)
+
+
+def frame_seed(seed: int, t: int) -> int:
+    """Random stream of frame t: distinct for every (seed, t), even numbers (seed_grad uses seed + 1)."""
+    return int(np.random.SeedSequence([int(seed), int(t)]).generate_state(1)[0] & 0x7FFFFFFE)
+
+
+__all__ = ["INTEGRATORS", "StateRenderer", "frame_seed", "set_camera"]
+
+
+def set_camera(renderer: Renderer, camera) -> None:
+    """Replace the scene camera of ``renderer`` (a :class:`risp_data.envs.Camera`: look-at and horizontal fov)."""
+    import mitsuba as mi
+
+    renderer.params["sensor.to_world"] = mi.Transform4f().look_at(origin=list(camera.origin), target=list(camera.target),
+                                                                   up=list(camera.up))
+    renderer.params["sensor.x_fov"] = float(camera.fov)
+    renderer.params.update()

@@ -1,0 +1,60 @@
+"""Task configuration: plain values in a frozen dataclass (saved in every result folder)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+from risp_data.errors import RispError
+
+LOSSES: tuple[str, ...] = ("render", "state", "oracle", "pixelwise")
+INITS: tuple[str, ...] = ("default", "random", "track")
+
+
+@dataclass(frozen=True)
+class TaskConfig:
+    """One task run.  ``loss``: ``render`` — ‖N(render(sim(θ))) − N(reference)‖² (the paper's loss, through
+    network, renderer and simulator); ``state`` — ‖sim states − N(reference)‖², no rendering in the loop;
+    ``oracle`` — against the ground-truth states of ``truth`` (evaluation only); ``pixelwise`` — ∇Sim's
+    ‖render(sim(θ)) − reference images‖² in the train domain's nominal look (a baseline)."""
+
+    task: str
+    video: str  # video file, PNG folder, or (control) a target PNG
+    out: str | None = None  # result folder (default results/<task>-<video stem>-seed<seed>)
+    model: str | None = None  # risp-train checkpoint; None → the most recent runs/*/model.pt
+    runs: str = "runs"
+    env: str | None = None  # must match the model's; None → the model's
+    loss: str = "state"
+    init: str = "default"
+    optimizer: str = "rmsprop"
+    lr: float = 3e-3
+    momentum: float = 0.5
+    iterations: int = 100
+    seed: int = 0
+    every: int = 1
+    fps: float | None = None  # resample the video to this rate
+    source_fps: float | None = None  # frame rate of a PNG folder (files carry their own)
+    actions: str | None = None  # actions CSV (sysid, estimate; imitate's known part)
+    truth: str | None = None  # ground-truth JSON (oracle loss and error reports only)
+    camera: str | None = None  # camera JSON (intrinsics/extrinsics) replacing the environment's camera
+    mesh: str | None = None  # vehicle mesh file (quadrotor) replacing the built-in one
+    initial_state: str | None = None  # control: JSON with the initial simulator state
+    horizon: int = 10  # control: frames to reach the target
+    spp: int = 4  # samples per pixel of the differentiable renderer (render/pixelwise losses)
+    threads: int = 1
+    progress: bool = True
+    plots: bool = True
+
+    def __post_init__(self):
+        if self.loss not in LOSSES:
+            raise RispError(f"unknown loss {self.loss!r}; choose one of: {', '.join(LOSSES)}")
+        if self.init not in INITS:
+            raise RispError(f"unknown init {self.init!r}; choose one of: {', '.join(INITS)}")
+        if self.optimizer not in ("rmsprop", "adam", "sgd"):
+            raise RispError(f"unknown optimizer {self.optimizer!r}; choose one of: rmsprop, adam, sgd")
+        if self.iterations < 0 or not self.lr > 0 or self.every < 1 or self.horizon < 1 or self.spp < 1:
+            raise RispError("iterations must be >= 0, lr > 0, every >= 1, horizon >= 1 and spp >= 1")
+        if self.loss == "oracle" and not self.truth:
+            raise RispError("--loss oracle needs --truth (the reference video's ground-truth JSON)")
+
+    def to_dict(self) -> dict:
+        return asdict(self)

@@ -1,0 +1,118 @@
+"""``risp-task imitate``: the action sequence that reproduces a video's motion (paper Sec. 5.4/5.5).
+
+Actions are one row per source frame (held over the frame's k simulator steps), optimised in normalised
+coordinates u = centre + scale·x (centre: hover for the quadrotor, 0 otherwise; scale: ACTION_SCALE).
+Initialisation (``--init``): ``default`` x = 0; ``random`` x ~ U(−1, 1) (seeded); ``track`` (quadrotor) a
+geometric tracking controller (Lee et al. 2010) flown in the simulator along the network-estimated
+trajectory; the refinement then adjusts the controller's reference path, and the actions are the commands
+the controller issues (paper Sec. 5.5: long horizons are chaotic in open loop).  Physical parameters are the
+simulator's nominal ones; the initial state comes from the first two frames' estimates.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from risp_data.errors import RispError
+
+from .context import Context
+from .loop import Problem
+from .simulate import ACTION_SCALE, action_centre, frame_states, initial_sim_state, to_file_actions
+
+
+TRACK_SCALE = 0.1  # m: the normalised reference-path offsets of ``--init track``
+
+
+def initial_actions(ctx: Context, params: torch.Tensor, n_frames: int) -> torch.Tensor:
+    """x0 (n_frames, A) in normalised coordinates (``default``, ``random``)."""
+    if ctx.cfg.init == "random":
+        return torch.from_numpy(ctx.rng.uniform(-1, 1, (n_frames, ctx.sim.action_dim)))
+    return torch.zeros(n_frames, ctx.sim.action_dim, dtype=torch.float64)
+
+
+def estimated_path(ctx: Context, n_frames: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Reference positions and velocities (n_frames, 3) of the tracking controller: the network-estimated
+    positions, linearly interpolated between kept frames, velocities by central differences."""
+    import numpy as np
+
+    t_keep = np.asarray(ctx.keep, np.float64)
+    pos = ctx.predicted[:, :3].detach().numpy()
+    t = np.arange(n_frames, dtype=np.float64)
+    ref_p = np.stack([np.interp(t, t_keep, pos[:, i]) for i in range(3)], 1)
+    return torch.tensor(ref_p), torch.tensor(np.gradient(ref_p, axis=0) * ctx.fps)
+
+
+def tracked_rollout(ctx: Context, params: torch.Tensor, s0: torch.Tensor, ref_p: torch.Tensor, ref_v: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Closed loop: a geometric tracking controller (Lee et al. 2010) flies the simulator along ref_p, one command
+    per frame.  Returns (environment states (n, S), commands (n, 4)); differentiable w.r.t. ref_p."""
+    from risp_data.envs.quadrotor import ARM_LENGTH
+
+    from ..diagnose.synth import _quad_controller
+
+    sim = ctx.sim
+    mass = float(params[0, sim.param_index("mass")])
+    inertia = params[0, [sim.param_index(n) for n in ("Ixx", "Iyy", "Izz")]]
+    k_m, k_f = float(params[0, sim.param_index("k_m")]), float(params[0, sim.param_index("k_f")])
+    s, states, commands = s0, [s0], []
+    for i in range(len(ref_p)):
+        u = _quad_controller(s, ref_p[i:i + 1], ref_v[i:i + 1], mass, inertia, k_m, ARM_LENGTH) / k_f
+        commands.append(u[0])
+        if i == len(ref_p) - 1:
+            break
+        for j in range(ctx.k):
+            s = sim.step(params, s, u, i * ctx.k + j)
+        states.append(s)
+    return sim.to_env_state(torch.cat(states)), torch.stack(commands)
+
+
+def _track_problem(ctx: Context, params: torch.Tensor, s0: torch.Tensor, n_frames: int) -> Problem:
+    """``--init track``: the tracking controller's reference path is what is refined (offsets δ_t = 0.1 m · x_t
+    added to the estimated path); the controller keeps the long open-loop horizon stable, and the actions are
+    the commands it issues.  (Refining raw commands over 14 s diverged in one step: the open loop is chaotic.)"""
+    if ctx.sim.env != "quadrotor":
+        raise RispError("--init track is for the quadrotor (a tracking controller)")
+    ref_p, ref_v = estimated_path(ctx, n_frames)
+    x = torch.zeros(n_frames, 3, dtype=torch.float64, requires_grad=True)
+
+    def run():
+        return tracked_rollout(ctx, params, s0, ref_p + TRACK_SCALE * x, ref_v)
+
+    with torch.no_grad():
+        initial = to_file_actions(ctx.sim, params, run()[1])
+
+    def estimates():
+        with torch.no_grad():
+            commands = run()[1]
+        return {"actions": to_file_actions(ctx.sim, params, commands).tolist(), "initial_actions": initial.tolist(),
+                "path_offsets_m": (TRACK_SCALE * x.detach()).tolist()}
+
+    return Problem(variables={"path_offsets": x}, states=lambda: run()[0], estimates=estimates,
+                   info={"initial_state": s0[0].tolist(), "parametrisation": "tracking-controller reference path"})
+
+
+def build(ctx: Context, n_frames: int | None = None, s0: torch.Tensor | None = None) -> Problem:
+    sim = ctx.sim
+    if sim.action_dim == 0:
+        raise RispError(f"the {sim.env} has no actions to imitate; imitate works for: quadrotor, hand, rod")
+    n_frames = ctx.n_source if n_frames is None else n_frames
+    params = sim.default_params()
+    if s0 is None:
+        second = ctx.predicted[1] if len(ctx.keep) > 1 else None
+        fps = ctx.fps / (ctx.keep[1] - ctx.keep[0]) if len(ctx.keep) > 1 else ctx.fps
+        s0 = initial_sim_state(sim, ctx.predicted[0], second, fps)
+    if ctx.cfg.init == "track":
+        return _track_problem(ctx, params, s0, n_frames)
+    centre, scale = action_centre(sim, params), ACTION_SCALE[sim.env]
+    x0 = initial_actions(ctx, params, n_frames)
+    x = x0.clone().requires_grad_(True)
+
+    def actions(v):
+        return centre + scale * v
+
+    def estimates():
+        return {"actions": to_file_actions(sim, params, actions(x.detach())).tolist(),
+                "initial_actions": to_file_actions(sim, params, actions(x0)).tolist()}
+
+    return Problem(variables={"actions": x}, states=lambda: frame_states(sim, params, s0, actions(x), n_frames, ctx.k),
+                   estimates=estimates, info={"initial_state": s0[0].tolist()})

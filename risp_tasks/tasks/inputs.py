@@ -1,0 +1,163 @@
+"""Reading a task's inputs: the model (or the most recent run), the reference video, the actions CSV, the
+camera JSON and the ground-truth JSON.  Every problem is one RispError line naming the file."""
+
+from __future__ import annotations
+
+import csv
+import glob
+import json
+import math
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from risp_data.envs import Camera
+from risp_data.errors import RispError
+
+from ..video import Video, read_video, sha256_file
+
+CAMERA_KEYS = {"intrinsics": ("width", "height", "fx"), "extrinsics": ("origin", "target", "up")}
+
+
+def latest_model(runs: str = "runs") -> str:
+    """The most recently written ``model.pt`` under ``runs/`` (one level of run folders)."""
+    found = glob.glob(os.path.join(runs, "*", "model.pt")) + glob.glob(os.path.join(runs, "model.pt"))
+    if not found:
+        raise RispError(f"no trained model under {runs}/ (looked for {runs}/*/model.pt); train one with "
+                        "`risp-train fit SHARDS --out runs/NAME` or pass --model")
+    return max(found, key=os.path.getmtime)
+
+
+def load_model(path: str, env: str | None):
+    """A frozen predictor; RispError when its environment is not ``env``."""
+    from risp_train.predictor import load
+
+    predictor = load(path)
+    if env is not None and predictor.env_name != env:
+        raise RispError(f"{path}: the model was trained for environment {predictor.env_name!r}, not {env!r}")
+    return predictor
+
+
+@dataclass(frozen=True)
+class Reference:
+    """The reference video at the network's resolution and the simulation timeline it lies on."""
+
+    video: Video
+    sha256: str
+    source_fps: float  # frame rate of the decoded file (the simulation runs on this timeline)
+
+    @property
+    def indices(self) -> list[int]:
+        return list(self.video.indices)
+
+    @property
+    def n_source(self) -> int:
+        return self.video.source_frames
+
+
+def read_reference(path: str, resolution: int, every: int, fps: float | None, source_fps: float | None) -> Reference:
+    video = read_video(path, resolution=resolution, every=every, fps=fps, source_fps=source_fps)
+    rate = video.source_fps
+    if not rate > 0:
+        raise RispError(f"{path}: the frame rate is unknown (a PNG folder): give --source-fps")
+    return Reference(video=video, sha256=sha256_file(path), source_fps=rate)
+
+
+def action_columns(env: str) -> tuple[str, ...]:
+    """Columns of an actions CSV after ``t``: quadrotor thrusts f0..f3 [N] (as docs/measured-data.md),
+    hand u0..u4 [N·m], rod u0 [N]; the cube has none."""
+    return {"quadrotor": ("f0", "f1", "f2", "f3"), "hand": tuple(f"u{i}" for i in range(5)), "rod": ("u0",)}.get(env, ())
+
+
+def read_actions(path: str, env: str, n_frames: int) -> np.ndarray:
+    """(n_frames, A) actions in the CSV's units, one row per source video frame."""
+    cols = action_columns(env)
+    if not cols:
+        raise RispError(f"{path}: the {env} has no actions")
+    if not os.path.isfile(path):
+        raise RispError(f"{path}: actions file not found")
+    try:
+        with open(path, newline="") as f:
+            rows = list(csv.reader(f))
+    except (OSError, UnicodeDecodeError) as e:
+        raise RispError(f"{path}: cannot read actions CSV ({type(e).__name__})") from None
+    if not rows:
+        raise RispError(f"{path}: empty actions file")
+    header = [h.strip() for h in rows[0]]
+    missing = [c for c in cols if c not in header]
+    if missing:
+        raise RispError(f"{path}: actions file for {env} needs columns t,{','.join(cols)}; missing {','.join(missing)} "
+                        f"(has {len(header)} columns: {','.join(header)})")
+    idx = [header.index(c) for c in cols]
+    data = []
+    for i, row in enumerate(rows[1:], start=2):
+        if len(row) != len(header):
+            raise RispError(f"{path}: line {i} has {len(row)} fields, header has {len(header)}")
+        try:
+            data.append([float(row[j]) for j in idx])
+        except ValueError:
+            raise RispError(f"{path}: line {i} has a non-numeric action") from None
+    a = np.asarray(data, np.float64).reshape(-1, len(cols))
+    bad = ~np.isfinite(a)
+    if bad.any():
+        r, c = np.argwhere(bad)[0]
+        raise RispError(f"{path}: column {cols[c]} has NaN/inf at data row {r + 1}")
+    if len(a) != n_frames:
+        raise RispError(f"{path}: {len(a)} action rows but the video has {n_frames} frames (one row per frame)")
+    return a
+
+
+def write_actions(path: str, env: str, actions: np.ndarray, fps: float) -> None:
+    from risp_data.atomic import atomic_write
+
+    cols = action_columns(env)
+    with atomic_write(path, "w") as f:
+        w = csv.writer(f)
+        w.writerow(("t",) + cols)
+        for i, row in enumerate(np.asarray(actions)):
+            w.writerow([f"{i / fps:.6f}"] + [f"{v:.9g}" for v in row])
+
+
+def read_json(path: str, what: str) -> dict:
+    if not os.path.isfile(path):
+        raise RispError(f"{path}: {what} file not found")
+    try:
+        with open(path) as f:
+            data = json.load(f)
+    except (OSError, ValueError) as e:
+        raise RispError(f"{path}: not valid JSON ({type(e).__name__}: {str(e).splitlines()[0]})") from None
+    if not isinstance(data, dict):
+        raise RispError(f"{path}: {what} must be a JSON object")
+    return data
+
+
+def read_camera(path: str) -> Camera:
+    """Camera JSON (docs/tasks.md §Camera): pinhole intrinsics (square pixels, principal point at the centre)
+    and look-at extrinsics in the world frame (metres, z up)."""
+    data = read_json(path, "camera")
+    for group, keys in CAMERA_KEYS.items():
+        if not isinstance(data.get(group), dict):
+            raise RispError(f"{path}: camera JSON is missing the key {group!r} (an object with {', '.join(keys)})")
+        missing = [k for k in keys if k not in data[group]]
+        if missing:
+            raise RispError(f"{path}: camera JSON is missing {', '.join(f'{group}.{k}' for k in missing)}")
+    intr, extr = data["intrinsics"], data["extrinsics"]
+    try:
+        width, fx = float(intr["width"]), float(intr["fx"])
+        vecs = {k: [float(v) for v in extr[k]] for k in ("origin", "target", "up")}
+    except (TypeError, ValueError):
+        raise RispError(f"{path}: camera values must be numbers (origin/target/up: 3 numbers each)") from None
+    if not (width > 0 and fx > 0) or any(len(v) != 3 or not np.all(np.isfinite(v)) for v in vecs.values()):
+        raise RispError(f"{path}: camera needs width, fx > 0 and finite 3-vectors origin, target, up")
+    if np.linalg.norm(np.subtract(vecs["target"], vecs["origin"])) == 0:
+        raise RispError(f"{path}: camera origin and target coincide")
+    fov = math.degrees(2 * math.atan(width / (2 * fx)))
+    return Camera(origin=tuple(vecs["origin"]), target=tuple(vecs["target"]), up=tuple(vecs["up"]), fov=fov)
+
+
+def read_truth(path: str) -> dict:
+    data = read_json(path, "ground-truth")
+    if "env_states" not in data:
+        raise RispError(f"{path}: ground-truth JSON is missing the key 'env_states'")
+    return data

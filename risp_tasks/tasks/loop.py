@@ -1,0 +1,119 @@
+"""The one optimisation loop of every task, and the loss modes (docs/tasks.md §Losses).
+
+    L_render(θ)    = mean_t ‖N(R(s_t(θ))) − N(I_t)‖²   the paper's loss (target space of the network)
+    L_state(θ)     = mean_t ‖τ(s_t(θ)) − N(I_t)‖²      no rendering in the loop (the paper's real-world pipeline)
+    L_oracle(θ)    = mean_t ‖τ(s_t(θ)) − τ(s*_t)‖²     ground-truth states (evaluation only)
+    L_pixelwise(θ) = mean_t ‖R(s_t(θ)) − I_t‖²         ∇Sim's image loss (a baseline)
+
+s_t(θ): the simulated environment state at kept frame t; τ: the environment's state → network-target map
+(x, y, z, sin/cos of angles, …); N: the frozen network; R: the differentiable renderer in the train domain's
+nominal look; I_t: the reference frames at the network's resolution.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import torch
+
+from risp_data.errors import RispError
+
+
+class Timer:
+    """Wall seconds per named section, summed over the run."""
+
+    def __init__(self):
+        self.seconds: dict[str, float] = {}
+
+    @contextlib.contextmanager
+    def section(self, name: str):
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - start
+
+
+@dataclass
+class Problem:
+    """What a task optimises: leaf tensors (normalised coordinates) and how they become frame states."""
+
+    variables: dict[str, torch.Tensor]
+    states: Callable[[], torch.Tensor]  # -> (n_source_frames, S) environment states, differentiable
+    estimates: Callable[[], dict]  # current estimates in physical units (JSON-able)
+    project: Callable[[], None] = lambda: None  # keep variables feasible after a step (e.g. clamp to [0, 1])
+    frames: list[int] | None = None  # which source frames the loss compares (None: the reference's kept frames)
+    info: dict = field(default_factory=dict)
+
+
+def make_loss(mode: str, env, keep: list[int], ref_targets: torch.Tensor | None, truth_targets: torch.Tensor | None,
+              ref_images: torch.Tensor | None, predictor=None, renderer=None, timer: Timer | None = None
+              ) -> Callable[[torch.Tensor], torch.Tensor]:
+    """loss(states (n_source, S)) -> scalar for one of the modes above, on the frames ``keep``."""
+    timer = timer or Timer()
+
+    def target_error(pred_targets, goal):
+        return ((pred_targets - goal) ** 2).sum(-1).mean()
+
+    if mode == "state":
+        return lambda s: target_error(env.state_to_target(s[keep]), ref_targets.to(s.dtype))
+    if mode == "oracle":
+        if truth_targets is None:
+            raise RispError("--loss oracle needs ground-truth states (--truth)")
+        return lambda s: target_error(env.state_to_target(s[keep]), truth_targets.to(s.dtype))
+    if mode == "render":
+        def render_loss(s):
+            with timer.section("rendering"):
+                images = renderer(s[keep], seed=0)
+            with timer.section("network"):
+                targets = predictor.predict(images)[1]
+            return target_error(targets.to(s.dtype), ref_targets.to(s.dtype))
+        return render_loss
+    if mode == "pixelwise":
+        def pixel_loss(s):
+            with timer.section("rendering"):
+                images = renderer(s[keep], seed=0)
+            return ((images - ref_images) ** 2).mean().to(s.dtype)
+        return pixel_loss
+    raise RispError(f"unknown loss {mode!r}")
+
+
+def make_optimizer(name: str, params, lr: float, momentum: float) -> torch.optim.Optimizer:
+    if name == "rmsprop":
+        return torch.optim.RMSprop(params, lr=lr, momentum=momentum)
+    if name == "adam":
+        return torch.optim.Adam(params, lr=lr)
+    return torch.optim.SGD(params, lr=lr, momentum=momentum)
+
+
+def optimize(problem: Problem, loss: Callable, *, optimizer: str, lr: float, momentum: float, iterations: int,
+             timer: Timer, progress: bool = True) -> dict:
+    """Minimise ``loss(problem.states())`` over ``problem.variables``; returns the per-iteration history."""
+    from tqdm import tqdm
+
+    leaves = list(problem.variables.values())
+    opt = make_optimizer(optimizer, leaves, lr, momentum) if leaves and iterations else None
+    history, seconds = [], []
+    bar = tqdm(range(iterations), desc="optimizing", unit="it", disable=not progress, leave=False)
+    for _ in bar:
+        start = time.perf_counter()
+        opt.zero_grad()
+        with timer.section("simulation"):
+            states = problem.states()
+        value = loss(states)
+        if not torch.isfinite(value):
+            raise RispError("the loss became NaN/inf (try a smaller --lr)")
+        with timer.section("backward"):
+            value.backward()
+        opt.step()
+        with torch.no_grad():
+            problem.project()
+        history.append(float(value.detach()))
+        seconds.append(time.perf_counter() - start)
+        bar.set_postfix(loss=f"{history[-1]:.4g}")
+    with torch.no_grad():
+        final = float(loss(problem.states()))
+    return {"loss": history, "final_loss": final, "seconds_per_iteration": seconds}

@@ -1,0 +1,193 @@
+"""Reference videos with ground truth (``risp-task make-video``; docs/tasks.md §Reference videos).
+
+Simulate an environment with chosen or random parameters, initial state and actions, render every frame in
+the ``target`` domain with one random look (risp_data.psi.sample_rendering) by the domain's reference
+integrator, and write the video, ``<stem>.truth.json`` (states, parameters, actions, look, seed — read by no
+solver) and, for actuated systems, ``<stem>.actions.csv`` (the known commands, one row per frame).
+
+Motions: quadrotor — a geometric tracking controller follows a random smooth path inside the sampled flight
+volume (its per-frame thrusts are the actions); cube — a toss (random pose, velocity and spin); hand — random
+smooth finger torques; rod — a sinusoidal vertical force on its centre.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+
+from risp_data.atomic import write_text_atomic
+from risp_data.errors import RispError
+
+
+@dataclass(frozen=True)
+class ReferenceConfig:
+    env: str
+    out: str
+    frames: int = 20
+    fps: float = 10.0
+    resolution: int = 64
+    spp: int = 16
+    domain: str = "target"
+    params: str | None = None  # JSON object {name: value}
+    effect: str | None = None  # NAME or NAME:v1,v2,...
+    camera: str | None = None
+    seed: int = 0
+    progress: bool = True
+
+
+def truth_path(out: str) -> str:
+    return os.path.splitext(os.path.normpath(out))[0] + ".truth.json"
+
+
+def actions_path(out: str) -> str:
+    return os.path.splitext(os.path.normpath(out))[0] + ".actions.csv"
+
+
+def _parse_effect(spec: str | None, sim_env: str):
+    if not spec:
+        return None, None
+    name, _, values = spec.partition(":")
+    vals = None
+    if values:
+        try:
+            vals = [float(v) for v in values.split(",")]
+        except ValueError:
+            raise RispError(f"--effect {spec!r}: values must be numbers, e.g. wind:3,0,0") from None
+    return name.strip(), vals
+
+
+def _params(cfg: ReferenceConfig, sim, rng, effect, effect_values) -> torch.Tensor:
+    from .sysid import parameter_ranges
+
+    p = sim.default_params()
+    for name, (lo, hi) in parameter_ranges(sim).items():
+        p[0, sim.param_index(name)] = float(rng.uniform(lo, hi))
+    if cfg.params:
+        try:
+            given = json.loads(cfg.params)
+            assert isinstance(given, dict)
+        except (ValueError, AssertionError):
+            raise RispError(f"--params must be a JSON object of parameter values, got {cfg.params!r}") from None
+        for name, value in given.items():
+            p[0, sim.param_index(name)] = float(value)
+    if effect and effect_values is not None:
+        names = [n for n in sim.param_names if n.startswith(effect + ".")]
+        if len(names) != len(effect_values):
+            raise RispError(f"--effect {effect}: needs {len(names)} values ({', '.join(names)})")
+        for n, v in zip(names, effect_values):
+            p[0, sim.param_index(n)] = v
+    return p
+
+
+def _motion(sim, params, n, k, fps, rng):
+    """(full states (n, X), file actions (n, A) or None)."""
+    from risp_data.envs import get_environment
+
+
+    env = get_environment(sim.env)
+    X = len(sim.state_names)
+    if sim.env == "quadrotor":
+        from risp_data.envs.quadrotor import ARM_LENGTH
+
+        from ..diagnose.synth import _quad_controller
+
+        low, high = np.asarray(env.state_low[:3]), np.asarray(env.state_high[:3])
+        centre, half = (low + high) / 2, (high - low) / 2
+        t = np.arange(n) / fps
+        amp = half * rng.uniform(0.4, 0.8, 3)
+        freq = rng.uniform(0.15, 0.35, 3)
+        phase = rng.uniform(0, 2 * math.pi, 3)
+        ref_p = torch.tensor(centre + amp * np.sin(2 * math.pi * freq * t[:, None] + phase))
+        ref_v = torch.tensor(amp * 2 * math.pi * freq * np.cos(2 * math.pi * freq * t[:, None] + phase))
+        s = torch.zeros(1, X, dtype=torch.float64)
+        s[0, :3], s[0, 3], s[0, 7:10] = ref_p[0], 1.0, ref_v[0]
+        mass = float(params[0, sim.param_index("mass")])
+        inertia = params[0, [sim.param_index(n_) for n_ in ("Ixx", "Iyy", "Izz")]]
+        k_m, k_f = float(params[0, sim.param_index("k_m")]), float(params[0, sim.param_index("k_f")])
+        states, thrusts = [s], []
+        with torch.no_grad():
+            for i in range(n):
+                f = _quad_controller(s, ref_p[i:i + 1], ref_v[i:i + 1], mass, inertia, k_m, ARM_LENGTH)
+                thrusts.append(f[0])
+                if i == n - 1:
+                    break
+                for j in range(k):
+                    s = sim.step(params, s, f / k_f, i * k + j)
+                states.append(s)
+        return torch.cat(states), torch.stack(thrusts).numpy()
+    if sim.env == "cube":
+        from risp_data.envs.rotations import euler_to_quat
+
+        s = torch.zeros(1, X, dtype=torch.float64)
+        ypr = rng.uniform(-math.pi, math.pi, 3) * np.array([1, 0.5, 1])
+        s[0, 0:2] = torch.tensor(rng.uniform(-0.15, 0.15, 2))
+        s[0, 2] = float(rng.uniform(0.2, 0.35))
+        s[0, 3:7] = euler_to_quat(*torch.tensor(ypr).unbind())
+        s[0, 7:9] = torch.tensor(rng.uniform(-0.8, 0.8, 2))
+        s[0, 10:13] = torch.tensor(rng.uniform(-6, 6, 3))
+        with torch.no_grad():
+            return sim.rollout(params, s, None, (n - 1) * k)[0, ::k], None
+    A = sim.action_dim
+    t = np.arange(n) / fps
+    amp = rng.uniform(*{"hand": (0.1, 0.4), "rod": (20.0, 60.0)}[sim.env], (1, A))
+    u = amp * np.sin(2 * math.pi * rng.uniform(0.3, 1.0, (1, A)) * t[:, None] + rng.uniform(0, 2 * math.pi, (1, A)))
+    s = sim.default_state(1, torch.float64)
+    with torch.no_grad():
+        per_step = torch.tensor(u).repeat_interleave(k, 0)[None, :max((n - 1) * k, 1)]
+        return sim.rollout(params, s, per_step, (n - 1) * k)[0, ::k], u
+
+
+def make_reference(cfg: ReferenceConfig) -> dict:
+    from tqdm import tqdm
+
+    from risp_data.psi import sample_rendering
+    from risp_data.render import Renderer
+
+    from ..video import write_video
+    from .inputs import read_camera, write_actions
+    from .simulate import timeline
+
+    if cfg.frames < 2 or not cfg.fps > 0 or cfg.resolution < 2:
+        raise RispError("--frames must be >= 2, --fps > 0 and --resolution >= 2")
+    rng = np.random.default_rng(cfg.seed)
+    effect, effect_values = _parse_effect(cfg.effect, cfg.env)
+    sim, k = timeline(cfg.env, cfg.fps, (effect,) if effect else ())
+    params = _params(cfg, sim, rng, effect, effect_values)
+    full, actions = _motion(sim, params, cfg.frames, k, cfg.fps, rng)
+    env_states = sim.to_env_state(full).numpy()
+    look = sample_rendering(cfg.env, cfg.domain, rng)
+    renderer = Renderer(cfg.env, cfg.domain, cfg.resolution, cfg.spp)
+    if cfg.camera:
+        from risp_data.diff_render import set_camera
+
+        set_camera(renderer, read_camera(cfg.camera))
+    frame_seeds = rng.integers(0, 2**31 - 1, cfg.frames)
+    images = np.stack([renderer.render_reference(s, look, int(sd)) for s, sd in
+                       tqdm(list(zip(env_states, frame_seeds)), desc="rendering", disable=not cfg.progress, leave=False)])
+    write_video(cfg.out, images, cfg.fps)
+    truth = {"format": "risp-reference-truth", "format_version": 1, "env": cfg.env, "seed": cfg.seed,
+             "config": asdict(cfg), "fps": cfg.fps, "frames": cfg.frames, "sim_steps_per_frame": k, "dt": sim.dt,
+             "params": dict(zip(sim.param_names, params[0].tolist())), "effects": list(sim.effects),
+             "env_state_names": list(get_env_state_names(cfg.env)), "env_states": env_states.tolist(),
+             "sim_state_names": list(sim.state_names) if len(sim.state_names) <= 64 else None,
+             "sim_states": full.numpy().tolist() if len(sim.state_names) <= 64 else None,
+             "actions": None if actions is None else np.asarray(actions).tolist(),
+             "look": {"domain": cfg.domain, "psi": look.psi.tolist(), "aux": look.aux},
+             "frame_seeds": frame_seeds.tolist()}
+    if actions is not None:
+        write_actions(actions_path(cfg.out), cfg.env, actions, cfg.fps)
+        truth["actions_path"] = actions_path(cfg.out)
+    write_text_atomic(truth_path(cfg.out), json.dumps(truth, indent=1))
+    truth["truth_path"] = truth_path(cfg.out)
+    return truth
+
+
+def get_env_state_names(env: str):
+    from risp_data.envs import get_environment
+
+    return get_environment(env).state_names

@@ -1,0 +1,131 @@
+"""The result folder of a task run (docs/tasks.md §Result folder), written under a temporary name and renamed
+when complete, so a folder named like a result is always a complete one."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from risp_data.errors import RispError
+
+
+def check_free(out: str) -> None:
+    if os.path.exists(out):
+        raise RispError(f"{out}: result folder exists; choose another --out or remove it")
+
+
+def versions() -> dict:
+    import drjit
+    import mitsuba
+    import torch
+
+    out = {"python": platform.python_version(), "torch": torch.__version__, "mitsuba": mitsuba.__version__,
+           "drjit": drjit.__version__, "numpy": np.__version__}
+    try:
+        root = Path(__file__).resolve().parents[2]
+        out["risp_commit"] = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True,
+                                            text=True, timeout=5).stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        out["risp_commit"] = None
+    return out
+
+
+class ResultFolder:
+    """Write files into a temporary sibling folder; ``commit()`` renames it to ``out``."""
+
+    def __init__(self, out: str):
+        check_free(out)
+        parent = os.path.dirname(os.path.abspath(out))
+        os.makedirs(parent, exist_ok=True)
+        self.out = out
+        self.tmp = tempfile.mkdtemp(prefix=".tmp-", dir=parent)
+
+    def path(self, name: str) -> str:
+        return os.path.join(self.tmp, name)
+
+    def write_json(self, name: str, data: dict) -> None:
+        with open(self.path(name), "w") as f:
+            json.dump(data, f, indent=1, default=_plain)
+
+    def commit(self) -> str:
+        check_free(self.out)
+        os.rename(self.tmp, self.out)
+        return self.out
+
+    def discard(self) -> None:
+        shutil.rmtree(self.tmp, ignore_errors=True)
+
+
+def _plain(x):
+    if hasattr(x, "tolist"):
+        return x.tolist()
+    raise TypeError(type(x).__name__)
+
+
+def plot_loss(path: str, history: list[float], title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3.2))
+    if history:
+        ax.semilogy(np.arange(1, len(history) + 1), np.maximum(history, 1e-12))
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("loss")
+    ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_trajectories(path: str, names, t, curves: dict[str, np.ndarray]) -> None:
+    """One panel per state component; ``curves``: label -> (T, S) (NaN rows are skipped)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = len(names)
+    cols = min(3, n)
+    rows = (n + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 2.2 * rows), squeeze=False)
+    for i, name in enumerate(names):
+        ax = axes[i // cols][i % cols]
+        for label, (tt, y) in curves.items():
+            ax.plot(tt, y[:, i], ".-" if len(tt) < 30 else "-", label=label, lw=1, ms=3)
+        ax.set_title(name, fontsize=8)
+        ax.tick_params(labelsize=7)
+    for j in range(n, rows * cols):
+        axes[j // cols][j % cols].axis("off")
+    axes[0][0].legend(fontsize=6)
+    axes[-1][0].set_xlabel("time [s]", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def save_strip(path: str, rows: dict[str, np.ndarray]) -> None:
+    """PNG: one row per label (reference / initial / optimized), frames side by side, sRGB."""
+    from PIL import Image, ImageDraw
+
+    from ..video import to_uint8
+
+    label_w = 70
+    imgs = {k: to_uint8(v) for k, v in rows.items()}
+    h, w = next(iter(imgs.values())).shape[1:3]
+    n = max(len(v) for v in imgs.values())
+    canvas = Image.new("RGB", (label_w + n * (w + 2), len(imgs) * (h + 2)), (255, 255, 255))
+    draw = ImageDraw.Draw(canvas)
+    for r, (label, frames) in enumerate(imgs.items()):
+        draw.text((2, r * (h + 2) + h // 2 - 5), label, fill=(0, 0, 0))
+        for c, img in enumerate(frames):
+            canvas.paste(Image.fromarray(img), (label_w + c * (w + 2), r * (h + 2)))
+    canvas.save(path)

@@ -1,0 +1,237 @@
+"""Run one task: load → reference → problem → shared loop → result folder (docs/tasks.md)."""
+
+from __future__ import annotations
+
+import importlib
+import os
+import time
+
+import numpy as np
+import torch
+
+from risp_data.errors import RispError
+
+from . import TASKS
+from .config import TaskConfig
+from .context import Context
+from .inputs import latest_model, load_model, read_actions, read_camera, read_reference, read_truth
+from .loop import Timer, make_loss, optimize
+from .results import ResultFolder, check_free, plot_loss, plot_trajectories, save_strip, versions
+
+STRIP_FRAMES = 6
+
+
+def default_out(cfg: TaskConfig) -> str:
+    stem = os.path.splitext(os.path.basename(os.path.normpath(cfg.video)))[0]
+    return os.path.join("results", f"{cfg.task}-{stem}-seed{cfg.seed}")
+
+
+def resolve_model(cfg: TaskConfig) -> tuple[str, str]:
+    """(checkpoint path, the line saying which one is used)."""
+    if cfg.model is not None:
+        return cfg.model, f"model: {cfg.model}"
+    path = latest_model(cfg.runs)
+    return path, f"model: {path} (the most recent under {cfg.runs}/)"
+
+
+def _reference(cfg: TaskConfig, resolution: int):
+    """(frames (T, r, r, 3), keep, n_source, fps, sha256) — a video, or for ``control`` one goal image."""
+    if cfg.task == "control":
+        from PIL import Image
+
+        from ..video import resize, sha256_file, srgb_to_linear
+
+        path = cfg.video
+        if not os.path.isfile(path):
+            raise RispError(f"{path}: target image not found")
+        try:
+            with Image.open(path) as im:
+                img = np.asarray(im.convert("RGB"), np.float32) / 255.0
+        except Exception as e:  # noqa: BLE001 - PIL raises several types
+            raise RispError(f"{path}: cannot read the target image ({type(e).__name__})") from None
+        frames = resize(srgb_to_linear(img)[None], resolution)
+        return frames, [0], 1, float(cfg.fps or 10.0), sha256_file(path)
+    ref = read_reference(cfg.video, resolution, cfg.every, cfg.fps, cfg.source_fps)
+    if cfg.fps is not None:  # the timeline is the resampled one (an actions file has one row per resampled frame)
+        return ref.video.frames, list(range(0, len(ref.video.frames) * cfg.every, cfg.every)), \
+            (len(ref.video.frames) - 1) * cfg.every + 1, float(cfg.fps), ref.sha256
+    return ref.video.frames, ref.indices, ref.n_source, ref.source_fps, ref.sha256
+
+
+def run_task(cfg: TaskConfig, echo=print) -> dict:
+    """Run ``cfg.task``; returns the result dict (also written to ``<out>/result.json``)."""
+    if cfg.task not in TASKS:
+        raise RispError(f"unknown task {cfg.task!r}; choose one of: {', '.join(TASKS)}")
+    out = cfg.out or default_out(cfg)
+    check_free(out)
+    torch.set_num_threads(max(1, cfg.threads))
+    started = time.perf_counter()
+    model_path, model_line = resolve_model(cfg)
+    echo(model_line)
+    predictor = load_model(model_path, cfg.env)
+    env_name = predictor.env_name
+    from risp_data.envs import get_environment
+
+    from ..sims import get_simulator
+    from ..video import sha256_file
+    from .simulate import timeline
+
+    env = get_environment(env_name)
+    frames, keep, n_source, fps, video_sha = _reference(cfg, predictor.resolution)
+    sim, k = timeline(env_name, fps) if cfg.task != "estimate" else (get_simulator(env_name), 1)
+    frames_t = torch.from_numpy(frames)
+    with torch.no_grad():
+        predicted, predicted_targets = predictor.predict(frames_t)
+    file_actions = None
+    if cfg.actions is not None:
+        if sim.action_dim == 0:
+            raise RispError(f"{cfg.actions}: the {env_name} has no actions")
+        file_actions = read_actions(cfg.actions, env_name, n_source)
+    truth = read_truth(cfg.truth) if cfg.truth else None
+    camera = read_camera(cfg.camera) if cfg.camera else None
+    if cfg.mesh is not None:
+        raise RispError("--mesh: custom vehicle meshes are not supported yet (docs/tasks.md)")
+    ctx = Context(cfg=cfg, env=env, sim=sim, predictor=predictor, frames=frames_t, keep=keep, n_source=n_source,
+                  fps=fps, k=k, predicted=predicted.double(), predicted_targets=predicted_targets.double(),
+                  file_actions=file_actions, truth=truth, rng=np.random.default_rng(cfg.seed))
+    problem = importlib.import_module(f"{__package__}.{cfg.task}").build(ctx)
+    loss_frames = problem.frames if problem.frames is not None else keep
+
+    renderer = None
+    if cfg.loss in ("render", "pixelwise") or cfg.plots:
+        from risp_data.diff_render import StateRenderer, set_camera
+
+        renderer = StateRenderer(env_name, resolution=predictor.resolution, spp=cfg.spp)
+        if camera is not None:
+            set_camera(renderer.renderer, camera)
+    truth_targets = None
+    if truth is not None:
+        truth_states = torch.tensor(truth["env_states"], dtype=torch.float64)
+        if cfg.task != "control":
+            if len(truth_states) < n_source:
+                raise RispError(f"{cfg.truth}: {len(truth_states)} ground-truth states, the video has {n_source} frames")
+            truth_states = truth_states[keep]
+        truth_targets = env.state_to_target(truth_states)
+    timer = Timer()
+    loss = make_loss(cfg.loss, env, loss_frames, predicted_targets.double(), truth_targets, frames_t,
+                     predictor=predictor, renderer=renderer, timer=timer)
+    with torch.no_grad():
+        initial_states = problem.states().detach().clone()
+        initial_estimates = problem.estimates()
+    history = optimize(problem, loss, optimizer=cfg.optimizer, lr=cfg.lr, momentum=cfg.momentum,
+                       iterations=cfg.iterations, timer=timer, progress=cfg.progress)
+    with torch.no_grad():
+        final_states = problem.states().detach().clone()
+
+    result = {
+        "task": cfg.task, "env": env_name, "config": cfg.to_dict(), "seed": cfg.seed,
+        "model": {"path": model_path, "sha256": sha256_file(model_path)},
+        "video": {"path": cfg.video, "sha256": video_sha, "frames": n_source, "kept": keep, "fps": fps},
+        "estimates": problem.estimates(), "initial": initial_estimates,
+        "loss": history["loss"], "final_loss": history["final_loss"],
+        "timings": {"total_s": time.perf_counter() - started,
+                    "seconds_per_iteration": history["seconds_per_iteration"], "sections_s": timer.seconds},
+        "versions": versions(), "info": problem.info,
+    }
+    result["errors"] = _errors(cfg, env, sim, truth, keep, loss_frames, initial_states, final_states, predicted,
+                               initial_estimates, result["estimates"])
+    folder = ResultFolder(out)
+    try:
+        folder.write_json("result.json", result)
+        if cfg.task == "estimate":
+            _write_estimate_csv(folder.path("trajectory.csv"), ctx, final_states)
+        if cfg.task in ("imitate", "control"):
+            from .inputs import write_actions
+
+            write_actions(folder.path("actions.csv"), env_name, np.asarray(result["estimates"]["actions"]), fps)
+        if cfg.plots:
+            _plots(folder, cfg, env, ctx, loss_frames, initial_states, final_states, truth, history, renderer)
+        result["out"] = folder.commit()
+    except BaseException:
+        folder.discard()
+        raise
+    return result
+
+
+def _errors(cfg, env, sim, truth, keep, loss_frames, initial_states, final_states, predicted, initial, final) -> dict:
+    """Errors against the ground truth (when given): state RMSE per frame, parameter errors."""
+    if truth is None:
+        return {}
+    from .simulate import wrap_angles
+
+    angular = [n in ("yaw", "pitch", "roll") for n in env.state_names]
+    true = torch.tensor(truth["env_states"], dtype=torch.float64)
+    true = true[keep] if cfg.task != "control" else true
+    out = {}
+    if cfg.task != "control":
+        def rmse(states):
+            return float(wrap_angles(states[loss_frames] - true, angular).pow(2).mean().sqrt())
+
+        out = {"state_rmse_initial": rmse(initial_states), "state_rmse_final": rmse(final_states),
+               "state_rmse_network": float(wrap_angles(predicted.double() - true, angular).pow(2).mean().sqrt())}
+    if cfg.task == "sysid" and "params" in truth:
+        p_true = truth["params"]
+        out["parameter_error_initial"] = {n: abs(v - p_true[n]) for n, v in initial["parameters"].items() if n in p_true}
+        out["parameter_error_final"] = {n: abs(v - p_true[n]) for n, v in final["parameters"].items() if n in p_true}
+    return out
+
+
+def _write_estimate_csv(path: str, ctx: Context, states: torch.Tensor) -> None:
+    """docs/measured-data.md columns for the quadrotor, cube and hand (the rod: t, z0 … z9)."""
+    from risp_data.envs.rotations import euler_to_quat
+
+    from ..measured import write_trajectory_csv
+
+    s = states.detach().numpy()
+    t = np.asarray(ctx.keep, np.float64) / ctx.fps
+    cols: dict[str, np.ndarray] = {"t": t}
+    sim, env = ctx.sim, ctx.env
+    sidecar = {"env": env.name}
+    if env.name in ("quadrotor", "cube"):
+        q = euler_to_quat(*torch.from_numpy(s[:, 3:6]).unbind(-1)).numpy()
+        q = q * np.where(np.cumsum(np.r_[1, np.sign((q[1:] * q[:-1]).sum(1))] < 0) % 2 == 1, -1, 1)[:, None]
+        cols.update({n: s[:, i] for i, n in enumerate(("x", "y", "z"))})
+        cols.update({n: q[:, i] for i, n in enumerate(("qw", "qx", "qy", "qz"))})
+        if env.name == "quadrotor":
+            sidecar.update({"mass": float(sim.default_params()[0, sim.param_index("mass")]), "gravity": 9.81})
+            if ctx.file_actions is not None:
+                cols.update({f"f{i}": ctx.file_actions[ctx.keep, i] for i in range(4)})
+        else:
+            sidecar.update({"side": sim.side, "mass": sim.mass, "gravity": 9.81})
+    elif env.name == "hand":
+        rates = np.gradient(s, t, axis=0) if len(t) > 1 else np.zeros_like(s)
+        names = sim.state_names
+        cols.update({n: s[:, i] for i, n in enumerate(names[:s.shape[1]])})
+        cols.update({n: rates[:, i] for i, n in enumerate(names[s.shape[1]:])})
+        if ctx.file_actions is not None:
+            cols.update({f"u{i}": ctx.file_actions[ctx.keep, i] for i in range(ctx.file_actions.shape[1])})
+    else:
+        cols.update({n: s[:, i] for i, n in enumerate(env.state_names)})
+    write_trajectory_csv(path, cols, sidecar)
+
+
+def _plots(folder, cfg, env, ctx, loss_frames, initial_states, final_states, truth, history, renderer) -> None:
+    plot_loss(folder.path("loss.png"), history["loss"], f"{cfg.task} ({env.name}), loss {cfg.loss}")
+    t_keep = np.asarray(ctx.keep, np.float64) / ctx.fps
+    if cfg.task == "control":
+        t_sim = np.arange(len(final_states)) / ctx.fps
+    elif cfg.task == "estimate":
+        t_sim = t_keep
+    else:
+        t_sim = np.arange(len(final_states)) / ctx.fps
+    curves = {"network N(video)": (t_keep if cfg.task != "control" else t_sim[-1:], ctx.predicted.numpy()),
+              "initial": (t_sim, initial_states.numpy()), "optimized": (t_sim, final_states.numpy())}
+    if truth is not None:
+        true = np.asarray(truth["env_states"], np.float64)
+        curves["truth"] = (np.arange(len(true)) / ctx.fps if cfg.task != "control" else t_sim[-1:], true)
+    plot_trajectories(folder.path("trajectory.png"), env.state_names, None, curves)
+    if renderer is None:
+        return
+    pick = np.unique(np.linspace(0, len(loss_frames) - 1, min(STRIP_FRAMES, len(loss_frames))).round().astype(int))
+    frames = [loss_frames[i] for i in pick]
+    ref_rows = ctx.frames.numpy()[pick] if cfg.task != "control" else ctx.frames.numpy()
+    with torch.no_grad():
+        rows = {"reference": ref_rows,
+                "initial": renderer(initial_states[frames].float(), seed=1).numpy(),
+                "optimized": renderer(final_states[frames].float(), seed=1).numpy()}
+    save_strip(folder.path("frames.png"), rows)

@@ -1,0 +1,110 @@
+"""The simulation timeline of a task: video frames at ``fps``, k = round(1 / (fps · dt)) simulator steps per
+frame, actions held constant over a frame (one action row per source frame)."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from risp_data.errors import RispError
+
+#: Normalised action coordinates: u = centre + scale · x.  RMSProp moves x by about lr per iteration, so
+#: x must be O(1) across the useful command range (quadrotor: commands around hover, u_h ≈ 147).
+ACTION_SCALE = {"quadrotor": 60.0, "hand": 0.5, "rod": 40.0}
+
+
+def steps_per_frame(sim, fps: float) -> int:
+    k = int(round(1.0 / (fps * sim.dt)))
+    if k < 1 or abs(k * sim.dt * fps - 1) > 0.02:
+        raise RispError(f"a {fps:g} fps video does not fit the {sim.env} simulator's step {sim.dt:g} s "
+                        f"(1/fps must be a multiple of dt); resample with --fps")
+    return k
+
+
+def timeline(env: str, fps: float, effects: tuple[str, ...] = ()):
+    """(simulator, k): k = round(1 / (fps · dt_native)) steps per frame with the step set to 1 / (fps · k), as
+    diagnose does for measured data (docs/diagnose.md §Time step); simulators without a ``dt`` option keep
+    their step and need 1/fps to be a multiple of it."""
+    from ..sims import get_simulator
+
+    sim = get_simulator(env, effects)
+    if not fps > 0:
+        raise RispError(f"the frame rate must be positive, got {fps!r}")
+    k = max(1, int(round(1.0 / (fps * sim.dt))))
+    dt = 1.0 / (fps * k)
+    if abs(dt - sim.dt) > 1e-9 * sim.dt:
+        try:
+            sim = get_simulator(env, effects, dt=dt)
+        except RispError:
+            pass  # keep the native step; steps_per_frame explains the mismatch
+    return sim, steps_per_frame(sim, fps)
+
+
+def action_centre(sim, params: torch.Tensor) -> torch.Tensor:
+    """Centre of the normalised actions (A,): hover for the quadrotor, zero otherwise."""
+    if sim.env == "quadrotor":
+        from ..sims.quadrotor import hover_command
+
+        mass, k_f = params[0, sim.param_index("mass")], params[0, sim.param_index("k_f")]
+        return hover_command(mass, k_f).expand(sim.action_dim).clone()
+    return torch.zeros(sim.action_dim, dtype=params.dtype)
+
+
+def to_sim_actions(sim, params: torch.Tensor, file_actions: torch.Tensor) -> torch.Tensor:
+    """Actions file units (quadrotor thrusts [N]) -> simulator commands (quadrotor u = f / k_f)."""
+    if sim.env == "quadrotor":
+        return file_actions / params[0, sim.param_index("k_f")]
+    return file_actions
+
+
+def to_file_actions(sim, params: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+    if sim.env == "quadrotor":
+        return actions * params[0, sim.param_index("k_f")]
+    return actions
+
+
+def initial_sim_state(sim, first: torch.Tensor, second: torch.Tensor | None, fps: float) -> torch.Tensor:
+    """A full simulator state (1, X) from the environment states of the first two frames: pose from the first,
+    linear velocity from their difference (rigid bodies), joint rates likewise (hand); the rod starts from its
+    rest state (its videos start at rest)."""
+    dtype = torch.float64
+    first = first.to(dtype)
+    if sim.env in ("quadrotor", "cube"):
+        from risp_data.envs.rotations import euler_to_quat
+
+        s = torch.zeros(1, len(sim.state_names), dtype=dtype)
+        s[0, :3] = first[:3]
+        s[0, 3:7] = euler_to_quat(first[3], first[4], first[5])
+        if second is not None:
+            s[0, 7:10] = (second.to(dtype)[:3] - first[:3]) * fps
+        if len(sim.state_names) > 13:  # motor-lag thrust states start at hover
+            s[0, 13:17] = sim.default_params()[0, sim.param_index("mass")] * 9.81 / 4
+        return s
+    if sim.env == "hand":
+        s = sim.default_state(1, dtype)
+        n = first.shape[-1]
+        s[0, :n] = first
+        if second is not None:
+            s[0, n:2 * n] = (second.to(dtype) - first) * fps
+        return s
+    return sim.default_state(1, dtype)
+
+
+def frame_states(sim, params: torch.Tensor, s0: torch.Tensor, actions: torch.Tensor | None, n_frames: int,
+                 k: int) -> torch.Tensor:
+    """Environment states (n_frames, S) at the video frames; ``actions`` (n_frames, A) per frame in simulator
+    units (held for the k steps after each frame) or None."""
+    steps = (n_frames - 1) * k
+    per_step = None
+    if actions is not None:
+        per_step = actions.repeat_interleave(k, 0)[None, :max(steps, 1)]
+    states = sim.rollout(params, s0, per_step, steps)[0, ::k]
+    return sim.to_env_state(states)
+
+
+def wrap_angles(delta: torch.Tensor, angular: list[bool]) -> torch.Tensor:
+    """Δ with the angular components wrapped to (−π, π]."""
+    mask = torch.tensor(angular, dtype=torch.bool)
+    wrapped = torch.remainder(delta + math.pi, 2 * math.pi) - math.pi
+    return torch.where(mask, wrapped, delta)

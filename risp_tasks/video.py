@@ -1,0 +1,228 @@
+"""Video input and output (PyAV / FFmpeg): ``.mp4``, ``.avi``, ``.mov``, ``.mkv`` or a folder of PNGs.
+
+Colour: files hold 8-bit sRGB; the network and the renderer work in linear RGB.  Reading applies the sRGB
+EOTF (IEC 61966-2-1) and writing its inverse after clipping to [0, 1] (no other tone mapping), so a
+rendered image written and read back differs only by 8-bit quantisation and codec loss.
+
+Resizing to the network's resolution: a centre crop to a square, then area averaging in *linear* RGB
+(torch ``interpolate(mode="area")`` for shrinking, bilinear for growing).  Temporal sampling: ``fps``
+picks, for output time k / fps, the nearest input frame; then ``every`` keeps every k-th of those.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from risp_data.atomic import atomic_write
+from risp_data.errors import RispError
+
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv")
+CODECS = {".mp4": "libx264", ".mkv": "libx264", ".mov": "libx264", ".avi": "mpeg4"}
+
+
+@dataclass(frozen=True)
+class Video:
+    frames: np.ndarray  # (T, H, W, 3) float32 linear RGB
+    fps: float  # frames per second of ``frames`` (after temporal sampling)
+    source: str  # path it came from
+    source_frames: int  # frames decoded from the file
+    indices: tuple[int, ...]  # which decoded frames ``frames`` holds
+    source_fps: float = 0.0  # frame rate of the decoded frames (0: unknown, a PNG folder without source_fps)
+
+
+def srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    x = np.asarray(x, np.float32)
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def linear_to_srgb(x: np.ndarray) -> np.ndarray:
+    x = np.clip(np.asarray(x, np.float32), 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055).astype(np.float32)
+
+
+def to_uint8(linear: np.ndarray) -> np.ndarray:
+    return np.round(linear_to_srgb(linear) * 255).astype(np.uint8)
+
+
+def sha256_file(path: str | os.PathLike) -> str:
+    """sha256 of a file, or of a folder's PNGs (names and contents, sorted)."""
+    h = hashlib.sha256()
+    p = Path(path)
+    files = sorted(p.glob("*.png")) if p.is_dir() else [p]
+    for f in files:
+        if p.is_dir():
+            h.update(f.name.encode())
+        with open(f, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+    return h.hexdigest()
+
+
+def _av():
+    try:
+        import av
+    except ImportError:
+        raise RispError("reading and writing videos needs PyAV: pip install av") from None
+    return av
+
+
+def _decode_file(path: Path) -> tuple[list[np.ndarray], float]:
+    av = _av()
+    try:
+        with av.open(str(path)) as container:
+            streams = container.streams.video
+            if not streams:
+                raise RispError(f"{path}: not a video (no video stream)")
+            stream = streams[0]
+            rate = stream.average_rate or stream.base_rate or stream.guessed_rate
+            frames = [f.to_ndarray(format="rgb24") for f in container.decode(stream)]
+    except RispError:
+        raise
+    except Exception as e:  # noqa: BLE001 - PyAV raises many error types (InvalidDataError, …)
+        raise RispError(f"{path}: cannot decode as a video ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
+    return frames, float(rate) if rate else 0.0
+
+
+def _decode_pngs(folder: Path) -> list[np.ndarray]:
+    from PIL import Image
+
+    files = sorted(folder.glob("*.png"))
+    if not files:
+        raise RispError(f"{folder}: folder holds no .png frames")
+    out = []
+    for f in files:
+        try:
+            with Image.open(f) as im:
+                out.append(np.asarray(im.convert("RGB")))
+        except Exception as e:  # noqa: BLE001 - PIL raises several types
+            raise RispError(f"{f}: cannot read PNG frame ({type(e).__name__})") from None
+    if len({a.shape for a in out}) > 1:
+        raise RispError(f"{folder}: PNG frames differ in size")
+    return out
+
+
+def resize(frames: np.ndarray, resolution: int) -> np.ndarray:
+    """(T, H, W, 3) linear RGB -> (T, r, r, 3): centre crop to a square, then area/bilinear resampling."""
+    import torch
+    import torch.nn.functional as F
+
+    T, H, W, _ = frames.shape
+    side = min(H, W)
+    top, left = (H - side) // 2, (W - side) // 2
+    x = torch.from_numpy(np.ascontiguousarray(frames[:, top:top + side, left:left + side])).permute(0, 3, 1, 2)
+    if side == resolution:
+        out = x
+    elif side > resolution:
+        out = F.interpolate(x, size=(resolution, resolution), mode="area")
+    else:
+        out = F.interpolate(x, size=(resolution, resolution), mode="bilinear", align_corners=False)
+    return out.permute(0, 2, 3, 1).contiguous().numpy().astype(np.float32)
+
+
+def sample_indices(n: int, source_fps: float, fps: float | None, every: int) -> list[int]:
+    """Frame indices after resampling to ``fps`` (nearest frame) and keeping every ``every``-th."""
+    if every < 1:
+        raise RispError(f"--every must be a positive integer, got {every}")
+    idx = list(range(n))
+    if fps is not None:
+        if not fps > 0:
+            raise RispError(f"--fps must be positive, got {fps}")
+        if not source_fps > 0:
+            raise RispError("--fps needs the video's own frame rate, which this source does not carry (a PNG folder: give --source-fps)")
+        duration = n / source_fps
+        idx = sorted({min(n - 1, int(round(k * source_fps / fps))) for k in range(int(np.floor(duration * fps + 1e-9)))})
+    return idx[::every]
+
+
+def read_video(path: str | os.PathLike, resolution: int | None = None, every: int = 1, fps: float | None = None,
+               source_fps: float | None = None) -> Video:
+    """Decode ``path`` (video file or PNG folder) to linear RGB frames, resampled in time and size.
+
+    ``source_fps`` gives the frame rate of a PNG folder (files carry their own)."""
+    p = Path(path)
+    if not p.exists():
+        raise RispError(f"{p}: no such file or folder")
+    if p.is_dir():
+        raw, rate = _decode_pngs(p), float(source_fps or 0.0)
+    else:
+        if p.stat().st_size == 0:
+            raise RispError(f"{p}: empty file (0 bytes)")
+        raw, rate = _decode_file(p)
+        rate = float(source_fps or rate)
+    if not raw:
+        raise RispError(f"{p}: the video has no frames")
+    idx = sample_indices(len(raw), rate, fps, every)
+    if not idx:
+        raise RispError(f"{p}: no frames left after --fps {fps} / --every {every}")
+    frames = srgb_to_linear(np.stack([raw[i] for i in idx]).astype(np.float32) / 255.0)
+    if resolution is not None:
+        frames = resize(frames, int(resolution))
+    out_fps = (fps if fps is not None else rate) / every if (fps or rate) else 0.0
+    return Video(frames=frames, fps=float(out_fps), source=str(p), source_frames=len(raw), indices=tuple(idx),
+                 source_fps=float(rate))
+
+
+def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float, crf: int = 12) -> None:
+    """Write linear-RGB frames (T, H, W, 3) as a video (by suffix: H.264 in .mp4/.mkv/.mov, MPEG-4 Part 2
+    in .avi) or, for a path without a video suffix, a folder of PNGs ``frame_00000.png`` …; atomically."""
+    frames = np.asarray(frames)
+    if frames.ndim != 4 or frames.shape[-1] != 3 or len(frames) == 0:
+        raise RispError(f"frames must have shape (T>0, H, W, 3), got {frames.shape}")
+    if not np.isfinite(frames).all():
+        raise RispError("frames contain NaN or inf")
+    data = to_uint8(frames)
+    p = Path(path)
+    if p.suffix.lower() not in VIDEO_SUFFIXES:
+        _write_pngs(p, data)
+        return
+    av = _av()
+    H, W = data.shape[1:3]
+    if p.suffix.lower() in (".mp4", ".mkv", ".mov") and (H % 2 or W % 2):
+        raise RispError(f"{p}: H.264 needs even frame sizes, got {W}×{H}")
+    from fractions import Fraction
+
+    with atomic_write(p, "wb", suffix=p.suffix) as f:
+        with av.open(f, mode="w", format={".mp4": "mp4", ".mkv": "matroska", ".mov": "mov", ".avi": "avi"}[p.suffix.lower()]) as out:
+            stream = out.add_stream(CODECS[p.suffix.lower()], rate=Fraction(fps).limit_denominator(1000))
+            stream.width, stream.height = W, H
+            stream.pix_fmt = "yuv444p" if CODECS[p.suffix.lower()] == "libx264" else "yuv420p"
+            if CODECS[p.suffix.lower()] == "libx264":
+                stream.options = {"crf": str(crf), "preset": "medium"}
+            else:
+                stream.bit_rate = 8_000_000
+            for img in data:
+                for packet in stream.encode(av.VideoFrame.from_ndarray(img, format="rgb24")):
+                    out.mux(packet)
+            for packet in stream.encode():
+                out.mux(packet)
+
+
+def _write_pngs(folder: Path, data: np.ndarray) -> None:
+    import tempfile
+
+    from PIL import Image
+
+    if folder.exists() and any(folder.iterdir()):
+        raise RispError(f"{folder}: folder exists and is not empty")
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=".tmp-", dir=folder.parent))
+    try:
+        for i, img in enumerate(data):
+            Image.fromarray(img).save(tmp / f"frame_{i:05d}.png")
+        if folder.exists():
+            folder.rmdir()
+        os.replace(tmp, folder)
+    except BaseException:
+        import shutil
+
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+__all__ = ["Video", "read_video", "write_video", "resize", "sample_indices", "srgb_to_linear", "linear_to_srgb",
+           "sha256_file", "to_uint8"]

@@ -1,0 +1,182 @@
+"""Differentiable rendering of states (risp_data.diff_render): gradients w.r.t. the state.
+
+Finite-difference check (per environment): the directional derivative of L = Σ w ⊙ I(s) (w a smooth
+weight image) along a random unit direction d, from the projective integrator, against the central
+difference (L(s + εd) − L(s − εd)) / 2ε computed in float64 from float32 images rendered with the *same*
+seeds.  ε = 1e-2 (m or rad): edges make a same-seed difference piecewise constant in ε (a sample flips when
+an edge crosses it), so ε must span many samples; both sides are averaged over 3 seeds at 128 spp and
+compared with a tolerance of 25 % of max(|FD|, |grad|) + 3 FD standard errors.
+
+Measured on Mitsuba 3.9.1 / Dr.Jit 1.5.0 (llvm_ad_rgb): the check FAILS for the cube and the rod (e.g. cube:
+grad −99 ± 1 vs FD 16 ± 11) and passes for the quadrotor and the hand only because their FD is noisy (thin
+parts, few pixels: FD standard errors of 5–13 against gradients of 10–35).  A standalone reproduction (a cube mesh under a constant environment, with
+and without a floor mesh/rectangle below it) showed that without a floor the projective gradient matches
+FD to a few percent for an axis-aligned box, and with a floor the boundary term of silhouette edges whose background is the floor
+is missing (the top edge's pixel row: FD −0.9, gradient 0) — with ``direct_projective`` and
+``prb_projective`` alike.  A rotated box without a floor also disagrees along one axis (x: 220 vs 158), so the
+floor is not the only trigger (test_projective_gradient_in_a_minimal_scene).  The test is kept as a strict xfail so that a Mitsuba that fixes this makes it
+pass (and fail as XPASS, prompting removal of the marker).  docs/tasks.md §Render-mode gradients.
+"""
+
+import numpy as np
+import pytest
+import torch
+
+from risp_data.envs import ENV_NAMES, get_environment
+
+pytest.importorskip("mitsuba")
+
+
+def _renderer(env, res=32, spp=128):
+    from risp_data.diff_render import StateRenderer
+
+    return StateRenderer(env, resolution=res, spp=spp)
+
+
+def _weights(res):
+    yy, xx = torch.meshgrid(torch.linspace(0, 1, res), torch.linspace(0, 1, res), indexing="ij")
+    return (torch.sin(3 * xx + 1) + torch.cos(2 * yy))[None, :, :, None].expand(1, res, res, 3).float()
+
+
+_MISSING_EDGE = pytest.mark.xfail(strict=True, reason="Mitsuba 3.9.1 projective integrators miss the silhouette "
+                                  "term of edges in front of the floor (module docstring)")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("env", [pytest.param(e, marks=_MISSING_EDGE) if e in ("cube", "rod") else e
+                                 for e in ENV_NAMES])
+def test_state_gradient_matches_central_differences(env, one_torch_thread):
+    environment = get_environment(env)
+    rng = np.random.default_rng(1)
+    s0 = torch.tensor(environment.sample_states(rng, 1)[0])
+    d = torch.tensor(rng.standard_normal(environment.state_dim))
+    d /= d.norm()
+    r, w, eps = _renderer(env), _weights(32), 1e-2
+    grads, fds = [], []
+    for seed in range(3):
+        s = s0.clone().requires_grad_(True)
+        (r(s[None], seed=seed) * w).sum().backward()
+        grads.append(float(s.grad @ d))
+        with torch.no_grad():
+            plus = (r((s0 + eps * d)[None], seed=seed) * w).sum().double()
+            minus = (r((s0 - eps * d)[None], seed=seed) * w).sum().double()
+        fds.append(float((plus - minus) / (2 * eps)))
+    g, fd = np.mean(grads), np.mean(fds)
+    tol = 0.25 * max(abs(fd), abs(g)) + 3 * np.std(fds) / np.sqrt(len(fds))
+    assert abs(g - fd) <= tol, f"{env}: grad {g:.3f} vs FD {fd:.3f} (tol {tol:.3f})"
+
+
+def test_sequence_gradient_uses_each_frames_geometry(one_torch_thread):
+    """Frames are rendered one after another into one scene; the backward pass of frame t must see frame t's
+    geometry (a plain dr.wrap around mi.render would differentiate the last frame's scene for all)."""
+    r = _renderer("cube", res=24, spp=16)
+    states = torch.tensor([[0.0, 0.0, 0.3, 0.3, 0.2, 0.1], [0.15, 0.1, 0.5, -1.0, 0.4, 0.3]], dtype=torch.float64)
+    w = torch.rand(2, 24, 24, 3, generator=torch.Generator().manual_seed(0))
+    both = states.clone().requires_grad_(True)
+    (r(both, seed=5) * w).sum().backward()
+    from risp_data.diff_render import frame_seed
+
+    for t in range(2):  # the same frame alone, rendered with the stream it had in the sequence
+        single = states[t:t + 1].clone().requires_grad_(True)
+        frame = r._render_frame(r.vertices(single[0]), frame_seed(5, t))
+        (frame * w[t]).sum().backward()
+        assert torch.allclose(both.grad[t], single.grad[0], rtol=1e-4, atol=1e-4), t
+    assert not torch.allclose(both.grad[0], both.grad[1], rtol=0.1)
+
+
+def test_images_match_the_data_renderer_in_expectation(one_torch_thread):
+    """Same scene and look as risp_data.render.Renderer: mean images agree within Monte-Carlo noise."""
+    from risp_data.psi import nominal_rendering
+    from risp_data.render import Renderer
+
+    env = "quadrotor"
+    state = get_environment(env).sample_states(np.random.default_rng(3), 1)[0]
+    img = _renderer(env, res=24, spp=64)(torch.tensor(state)[None], seed=1)[0].numpy()
+    ref, _ = Renderer(env, "train", 24, 64).render(state, nominal_rendering(env), seed=2, jacobian=False)
+    assert abs(img.mean() - ref.mean()) < 0.02 * ref.mean()
+    assert np.abs(img - ref).mean() < 0.1 * ref.mean()
+
+
+def test_bad_states_are_refused():
+    from risp_data.errors import RispError
+
+    r = _renderer("cube", res=8, spp=1)
+    with pytest.raises(RispError, match=r"\(T, 6\)"):
+        r(torch.zeros(3, 5))
+    with pytest.raises(RispError, match="NaN"):
+        r(torch.full((1, 6), float("nan")))
+
+
+def _minimal_scene_gradient(with_floor: bool, axis: int = 1, spp: int = 256, seeds: int = 3):
+    """Directional derivative of Σ w ⊙ I w.r.t. translating a cube mesh, projective gradient vs same-seed
+    central differences, in a minimal Mitsuba scene (constant environment, optional floor mesh below)."""
+    import mitsuba as mi
+
+    from risp_data.mitsuba_setup import init_mitsuba
+
+    init_mitsuba()
+    import drjit as dr
+
+    box = get_environment("cube").meshes(torch.tensor([0.0, 0, 0, 0.3, 0.2, 0.1], dtype=torch.float64))[0]
+    V = (box.vertices.numpy() * 3).astype(np.float32)
+    F = box.faces.numpy().astype(np.uint32)
+
+    def mesh(name, v, f):
+        m = mi.Mesh(name, len(v), len(f), has_vertex_normals=False, has_vertex_texcoords=False)
+        p = mi.traverse(m)
+        p["vertex_positions"] = mi.Float(v.ravel())
+        p["faces"] = mi.UInt32(f.ravel())
+        p.update()
+        return m
+
+    scene = {"type": "scene", "integrator": {"type": "direct_projective", "guiding": "none"},
+             "sensor": {"type": "perspective", "fov": 40,
+                        "to_world": mi.ScalarTransform4f().look_at(origin=[0, -3, 1], target=[0, 0, 0], up=[0, 0, 1]),
+                        "film": {"type": "hdrfilm", "width": 32, "height": 32, "rfilter": {"type": "box"}},
+                        "sampler": {"type": "independent", "sample_count": spp}},
+             "env": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
+             "obj": mesh("obj", V, F)}
+    if with_floor:
+        fv = np.array([[-10, -10, -0.6], [10, -10, -0.6], [10, 10, -0.6], [-10, 10, -0.6]], np.float32)
+        scene["floor"] = mesh("floor", fv, np.array([[0, 1, 2], [0, 2, 3]], np.uint32))
+    scene = mi.load_dict(scene)
+    params, key = mi.traverse(scene), "obj.vertex_positions"
+    V0 = mi.Float(params[key])
+    w = mi.TensorXf(np.repeat(_weights(32)[0, :, :, :1].numpy(), 3, -1))
+
+    def moved(t):
+        v = dr.unravel(mi.Point3f, V0)
+        setattr(v, "xyz"[axis], getattr(v, "xyz"[axis]) + t)
+        params[key] = dr.ravel(v)
+        params.update()
+
+    grads, fds = [], []
+    for seed in range(seeds):
+        t = mi.Float(0.0)
+        dr.enable_grad(t)
+        moved(t)
+        dr.backward(dr.sum(mi.render(scene, params, seed=2 * seed, seed_grad=2 * seed + 1) * w, axis=None))
+        grads.append(float(dr.grad(t)[0]))
+        vals = []
+        for eps in (0.02, -0.02):
+            moved(mi.Float(eps))
+            vals.append(float(dr.sum(mi.render(scene, params, seed=seed) * w, axis=None).array[0]))
+        fds.append((vals[0] - vals[1]) / 0.04)
+    return np.mean(grads), np.mean(fds), np.std(fds) / np.sqrt(seeds)
+
+
+_MITSUBA = pytest.mark.xfail(strict=True, reason="Mitsuba 3.9.1 projective gradient disagrees with FD here "
+                             "(module docstring)")
+
+
+@pytest.mark.parametrize("with_floor, axis", [
+    (False, 1), (False, 2), pytest.param(False, 0, marks=_MITSUBA),
+    pytest.param(True, 0, marks=_MITSUBA), pytest.param(True, 1, marks=_MITSUBA), pytest.param(True, 2, marks=_MITSUBA)])
+def test_projective_gradient_in_a_minimal_scene(with_floor, axis, one_torch_thread):
+    """A rotated box (the cube environment's mesh ×3) under a constant environment, translated along one axis,
+    optionally above a floor mesh.  Measured (grad vs FD ± s.e.): no floor — x 220 vs 158 ± 5, y 75.7 vs
+    74.0 ± 3.4, z −133 vs −125 ± 1.7; with the floor — x 167 vs 107, y 84 vs 6, z 154 vs −53.  So the FD method
+    agrees where the gradient is right (y, z without a floor) and the disagreement is Mitsuba's, not only
+    due to the floor."""
+    g, fd, se = _minimal_scene_gradient(with_floor, axis=axis)
+    assert abs(g - fd) <= 0.15 * max(abs(fd), abs(g)) + 3 * se, (g, fd, se)

@@ -1,0 +1,133 @@
+"""Bad input to the task commands (issue 10 §Bad input): one clear line naming the file and the problem,
+non-zero exit, and no result folder (not even a half-written one)."""
+
+import json
+import os
+import pytest
+from click.testing import CliRunner
+
+from tasks_helpers import shared_model, shared_video
+
+pytest.importorskip("av")
+pytestmark = pytest.mark.timeout(600)
+
+
+@pytest.fixture(scope="module")
+def quad(tmp_path_factory):
+    return shared_model(tmp_path_factory, "quadrotor"), shared_video(tmp_path_factory, "quadrotor")
+
+
+def _invoke(args, tmp_path):
+    from risp_tasks.cli import cli
+
+    res = CliRunner().invoke(cli, args + ["--out", str(tmp_path / "res"), "--quiet", "--iterations", "1", "--no-plots"])
+    lines = [ln for ln in res.output.splitlines() if ln.strip() and not ln.startswith("model: ")]
+    assert res.exit_code != 0, res.output
+    assert len(lines) == 1 and lines[0].startswith("Error: "), res.output
+    assert not (tmp_path / "res").exists()
+    assert not [p for p in os.listdir(tmp_path) if p.startswith(".tmp-")]
+    return lines[0]
+
+
+def _actions(video):
+    return os.path.splitext(video)[0] + ".actions.csv"
+
+
+def test_missing_video(quad, tmp_path):
+    line = _invoke(["sysid", str(tmp_path / "nope.mp4"), "--model", quad[0]], tmp_path)
+    assert "nope.mp4" in line and "no such file" in line
+
+
+def test_non_video_and_zero_byte_files(quad, tmp_path):
+    (tmp_path / "notes.mp4").write_text("these are notes, not a video\n" * 50)
+    line = _invoke(["estimate", str(tmp_path / "notes.mp4"), "--model", quad[0]], tmp_path)
+    assert "notes.mp4" in line and "cannot decode" in line
+    (tmp_path / "zero.mp4").write_bytes(b"")
+    line = _invoke(["estimate", str(tmp_path / "zero.mp4"), "--model", quad[0]], tmp_path)
+    assert "zero.mp4" in line and "empty" in line
+    (tmp_path / "frames").mkdir()
+    line = _invoke(["estimate", str(tmp_path / "frames"), "--model", quad[0]], tmp_path)
+    assert "frames" in line and "no .png frames" in line
+
+
+def test_actions_disagree_with_video_length(quad, tmp_path):
+    model, video = quad
+    rows = open(_actions(video)).read().splitlines()
+    (tmp_path / "short.csv").write_text("\n".join(rows[:-2]) + "\n")
+    line = _invoke(["sysid", video, "--model", model, "--actions", str(tmp_path / "short.csv")], tmp_path)
+    assert "short.csv" in line and "4 action rows but the video has 6 frames" in line
+
+
+def test_actions_wrong_width_and_nan(quad, tmp_path):
+    model, video = quad
+    (tmp_path / "narrow.csv").write_text("t,f0,f1\n" + "".join(f"{i/10},1,1\n" for i in range(6)))
+    line = _invoke(["sysid", video, "--model", model, "--actions", str(tmp_path / "narrow.csv")], tmp_path)
+    assert "narrow.csv" in line and "missing f2,f3" in line
+    rows = open(_actions(video)).read().splitlines()
+    rows[3] = rows[3].rsplit(",", 1)[0] + ",nan"
+    (tmp_path / "nan.csv").write_text("\n".join(rows) + "\n")
+    line = _invoke(["sysid", video, "--model", model, "--actions", str(tmp_path / "nan.csv")], tmp_path)
+    assert "nan.csv" in line and "NaN" in line and "f3" in line
+
+
+def test_model_for_another_environment(quad, tmp_path):
+    model, video = quad
+    line = _invoke(["imitate", video, "--model", model, "--env", "hand"], tmp_path)
+    assert "model.pt" in line and "'quadrotor', not 'hand'" in line
+
+
+def test_corrupt_model_file(quad, tmp_path):
+    (tmp_path / "model.pt").write_bytes(b"\x00garbage")
+    line = _invoke(["imitate", quad[1], "--model", str(tmp_path / "model.pt")], tmp_path)
+    assert "model.pt" in line
+
+
+def test_no_trained_model_under_runs(quad, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    line = _invoke(["imitate", quad[1]], tmp_path)
+    assert "no trained model under runs/" in line
+
+
+def test_camera_json_with_missing_keys(quad, tmp_path):
+    model, video = quad
+    (tmp_path / "cam.json").write_text(json.dumps({"intrinsics": {"width": 64, "height": 64},
+                                                   "extrinsics": {"origin": [0, -2, 2], "target": [0, 0, 1]}}))
+    line = _invoke(["imitate", video, "--model", model, "--camera", str(tmp_path / "cam.json")], tmp_path)
+    assert "cam.json" in line and "intrinsics.fx" in line
+    (tmp_path / "cam2.json").write_text("{not json")
+    line = _invoke(["imitate", video, "--model", model, "--camera", str(tmp_path / "cam2.json")], tmp_path)
+    assert "cam2.json" in line and "not valid JSON" in line
+
+
+def test_cube_has_no_actions_to_imitate(tmp_path_factory, tmp_path):
+    model = shared_model(tmp_path_factory, "cube")
+    video = shared_video(tmp_path_factory, "cube")
+    line = _invoke(["imitate", video, "--model", model], tmp_path)
+    assert "cube has no actions" in line
+
+
+def test_existing_result_folder_is_not_overwritten(quad, tmp_path):
+    model, video = quad
+    (tmp_path / "res").mkdir()
+    (tmp_path / "res" / "keep.txt").write_text("mine")
+    from risp_tasks.cli import cli
+
+    res = CliRunner().invoke(cli, ["estimate", video, "--model", model, "--out", str(tmp_path / "res"), "--quiet"])
+    assert res.exit_code != 0 and "exists" in res.output
+    assert (tmp_path / "res" / "keep.txt").read_text() == "mine"
+
+
+def test_failure_mid_run_leaves_no_result_folder(quad, tmp_path, monkeypatch):
+    """An exception while writing the results removes the temporary folder."""
+    import risp_tasks.tasks.run as run
+
+    def boom(*a, **k):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(run, "plot_loss", boom)
+    from risp_tasks.tasks.config import TaskConfig
+
+    with pytest.raises(RuntimeError):
+        run.run_task(TaskConfig(task="estimate", video=quad[1], model=quad[0], out=str(tmp_path / "r"), progress=False),
+                     echo=lambda s: None)
+    assert os.listdir(tmp_path) == []

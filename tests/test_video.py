@@ -1,0 +1,71 @@
+"""Video I/O (risp_tasks.video): write/read round trips, resizing, temporal sampling, bad files."""
+
+import numpy as np
+import pytest
+
+from risp_data.errors import RispError
+
+pytest.importorskip("av")
+from risp_tasks.video import linear_to_srgb, read_video, sample_indices, srgb_to_linear, write_video  # noqa: E402
+
+
+def _frames(T=12, H=48, W=64):
+    y, x = np.mgrid[0:H, 0:W] / max(H, W)
+    return np.stack([np.clip((0.1 + 0.7 * x * y * (t + 1) / T)[..., None] * np.array([1.0, 0.7, 0.4]), 0, 1)
+                     for t in range(T)]).astype(np.float32)
+
+
+@pytest.mark.parametrize("name, tol", [("v.mp4", 0.03), ("v.avi", 0.06), ("pngs", 0.005)])
+def test_round_trip_within_codec_tolerance(tmp_path, name, tol):
+    frames = _frames()
+    write_video(tmp_path / name, frames, fps=10)
+    video = read_video(tmp_path / name, source_fps=10)
+    assert video.frames.shape == frames.shape and video.fps == 10
+    err = np.abs(linear_to_srgb(video.frames) - linear_to_srgb(frames))  # compare in the stored (sRGB) space
+    assert err.max() < tol and err.mean() < tol / 4, (err.max(), err.mean())
+    # the frames are distinguishable: each decoded frame is closest to its own original
+    d = np.abs(video.frames[:, None] - frames[None]).mean((2, 3, 4))
+    assert (d.argmin(1) == np.arange(len(frames))).all()
+
+
+def test_resize_every_and_fps(tmp_path):
+    write_video(tmp_path / "v.mp4", _frames(T=20), fps=20)
+    v = read_video(tmp_path / "v.mp4", resolution=16, every=3)
+    assert v.frames.shape == (7, 16, 16, 3) and v.indices == tuple(range(0, 20, 3)) and v.fps == pytest.approx(20 / 3)
+    v = read_video(tmp_path / "v.mp4", fps=5)
+    assert v.indices == (0, 4, 8, 12, 16) and v.fps == 5
+    # area resize of a constant image keeps its value
+    write_video(tmp_path / "c.mp4", np.full((2, 32, 48, 3), 0.25, np.float32), fps=10)
+    assert np.allclose(read_video(tmp_path / "c.mp4", resolution=8).frames, 0.25, atol=0.01)
+
+
+def test_srgb_curves_are_inverse():
+    x = np.linspace(0, 1, 101, dtype=np.float32)
+    assert np.allclose(srgb_to_linear(linear_to_srgb(x)), x, atol=1e-5)
+    assert sample_indices(10, 10.0, None, 4) == [0, 4, 8]
+
+
+def _make(path, data):
+    path.write_bytes(data)
+    return path
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda p: p / "missing.mp4", "no such file"),
+    (lambda p: _make(p / "empty.mp4", b""), "empty file"),
+    (lambda p: _make(p / "text.mp4", b"not a video at all\n" * 20), "cannot decode"),
+    (lambda p: (p / "d").mkdir() or p / "d", "no .png frames"),
+])
+def test_bad_video_files(tmp_path, make, message):
+    path = make(tmp_path)
+    with pytest.raises(RispError, match=message) as e:
+        read_video(path)
+    assert str(path) in str(e.value) and "\n" not in str(e.value)
+
+
+def test_truncated_video_is_refused_or_short(tmp_path):
+    write_video(tmp_path / "v.mp4", _frames(T=30), fps=10)
+    data = (tmp_path / "v.mp4").read_bytes()
+    (tmp_path / "cut.mp4").write_bytes(data[: len(data) // 3])
+    with pytest.raises(RispError, match="cut.mp4"):
+        read_video(tmp_path / "cut.mp4")
