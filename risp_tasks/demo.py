@@ -1,15 +1,17 @@
-"""``risp demo``: the main job on a small built-in default — render → train → task — in one folder.
+"""``risp demo``: the main job on a small built-in default — render → train → tasks — in one folder.
 
 One job, one seed, one self-describing output folder (``demo/`` by default):
 
-    preview/<env>-<domain>/  a few samples of every environment in both domains, with contact sheets
-    shards/cube-train/       a small cube training set with Jacobian stacks
-    shards/cube-heldout/     held-out training-domain shards (unseen ψ) for evaluation
-    shards/cube-target/      target-domain shards (another look: lights, materials, floor, integrator)
-    runs/cube/               a RISP network trained with the stochastic regularizer, loss curve, evaluations
-    diagnose/                ``risp-task diagnose`` on real cube tosses: report.md, report.json, plots
-    demo.json                the seed, the sizes and every command that was run
-    README.md                what is where, with the headline numbers
+    preview/<env>-<domain>/      a few samples of every environment in both domains, with contact sheets
+    shards/quadrotor-train/      a small quadrotor training set with Jacobian stacks
+    shards/quadrotor-val/        unseen training-domain looks, for the validation curve and evaluation
+    shards/quadrotor-target/     the target domain (another look: lights, materials, floor, integrator)
+    runs/quadrotor/              a RISP network (cpu preset, the default regularizer), loss curve, evaluations
+    video/                       a target-domain reference video, its actions and its hidden ground truth
+    sysid/                       ``risp-task sysid`` on that video: the identified mass and its error
+    diagnose/                    ``risp-task diagnose`` on real cube tosses: report.md, report.json, plots
+    demo.json                    the seed, the sizes and every command that was run
+    README.md                    what is where, with the headline numbers
 
 Every step is the public command-line tool, called in-process, so the demo doubles as a usage example.
 """
@@ -27,24 +29,29 @@ from risp_data.envs import ENV_NAMES
 from risp_data.errors import RispError
 
 BUNDLED_TOSSES = Path(__file__).parent / "data" / "cube_tosses"
+MASS_RANGE = (2.8, 3.2)  # the quadrotor mass range of the paper's system identification (risp-task sysid)
 
 
 @dataclass(frozen=True)
 class DemoConfig:
     out: str
     seed: int
-    preview_n: int = 4  # samples per environment and domain in the preview shards
+    env: str = "quadrotor"  # marked rotors: position and attitude are both readable at 64×64
+    preview_n: int = 2  # samples per environment and domain in the preview shards
     preview_res: int = 48
-    train_n: int = 192  # cube training samples (with Jacobians)
-    heldout_n: int = 48
-    res: int = 32  # training resolution
-    spp: int = 8
-    epochs: int = 6
-    reg: str = "stochastic"
-    n_tosses: int = 12  # real cube tosses given to diagnose
+    train_n: int = 400  # training samples (with Jacobians)
+    eval_n: int = 100  # samples of each evaluation set (unseen train-domain looks, target domain)
+    res: int = 64  # training resolution
+    spp: int = 16
+    epochs: int = 20  # the cpu preset's
+    workers: int = 2  # render processes
+    video_frames: int = 20  # reference video: frames at 10 fps
+    n_tosses: int = 4  # real cube tosses given to diagnose
+    diagnose_options: tuple[str, ...] = ()  # extra `risp-task diagnose` options
 
 
-QUICK = dict(preview_n=2, preview_res=16, train_n=32, heldout_n=16, res=16, spp=2, epochs=1, n_tosses=4)
+QUICK = dict(preview_n=1, preview_res=16, train_n=32, eval_n=16, res=16, spp=2, epochs=1, workers=1,
+             video_frames=6, n_tosses=2, diagnose_options=("--max-iters", "4", "--pairs-top", "0"))
 
 
 def _run(group: click.Group, args: list[str], log: list[dict]) -> None:
@@ -60,7 +67,8 @@ def _run(group: click.Group, args: list[str], log: list[dict]) -> None:
 
 
 def run_demo(cfg: DemoConfig) -> Path:
-    """Render previews of all environments, train on cube, evaluate, diagnose real tosses. Returns the folder."""
+    """Render previews of all environments; train on one; evaluate; identify a parameter from a target-domain
+    video; diagnose real cube tosses. Returns the folder."""
     from risp_data.cli import cli as data_cli
     from risp_train.cli import cli as train_cli
     from risp_tasks.cli import cli as task_cli
@@ -69,46 +77,63 @@ def run_demo(cfg: DemoConfig) -> Path:
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     log: list[dict] = []
-    seed = str(cfg.seed)
+    seed, env = str(cfg.seed), cfg.env
 
     # 1. Render: every environment in both domains, and its contact sheet.
-    for env in ENV_NAMES:
+    for name in ENV_NAMES:
         for domain in ("train", "target"):
-            folder = out / "preview" / f"{env}-{domain}"
-            _run(data_cli, ["render", "--env", env, "--domain", domain, "--n", str(cfg.preview_n),
-                            "--res", str(cfg.preview_res), "--spp", str(cfg.spp), "--seed", seed,
+            folder = out / "preview" / f"{name}-{domain}"
+            _run(data_cli, ["render", "--env", name, "--domain", domain, "--n", str(cfg.preview_n),
+                            "--res", str(cfg.preview_res), "--spp", str(cfg.spp), "--seed", seed, "--quiet",
                             "--format", "wds", "--shard-size", str(cfg.preview_n), "--out", str(folder)], log)
             _run(data_cli, ["inspect", str(folder), "--samples", str(min(cfg.preview_n, 3))], log)
 
-    # 2. A small cube training set (with Jacobians), held-out and target-domain evaluation sets.
+    # 2. A training set (with Jacobians), unseen training-domain looks, and the target domain.
     shards = out / "shards"
-    common = ["--env", "cube", "--res", str(cfg.res), "--spp", str(cfg.spp), "--format", "wds"]
+    common = ["--env", env, "--res", str(cfg.res), "--spp", str(cfg.spp), "--format", "wds",
+              "--workers", str(cfg.workers)]
     _run(data_cli, ["render", *common, "--n", str(cfg.train_n), "--seed", seed,
-                    "--shard-size", str(max(8, cfg.train_n // 4)), "--out", str(shards / "cube-train")], log)
-    _run(data_cli, ["render", *common, "--n", str(cfg.heldout_n), "--seed", str(cfg.seed + 1), "--no-jacobian",
-                    "--shard-size", str(cfg.heldout_n), "--out", str(shards / "cube-heldout")], log)
-    _run(data_cli, ["render", *common, "--n", str(cfg.heldout_n), "--seed", str(cfg.seed + 2), "--no-jacobian",
-                    "--domain", "target", "--shard-size", str(cfg.heldout_n), "--out", str(shards / "cube-target")],
-         log)
+                    "--shard-size", str(max(8, cfg.train_n // 8)), "--out", str(shards / f"{env}-train")], log)
+    for i, (name, domain) in enumerate((("val", "train"), ("target", "target")), start=1):
+        _run(data_cli, ["render", *common, "--n", str(cfg.eval_n), "--seed", str(cfg.seed + i), "--no-jacobian",
+                        "--domain", domain, "--shard-size", str(max(8, cfg.eval_n // 2)),
+                        "--out", str(shards / f"{env}-{name}")], log)
 
-    # 3. Train RISP (CPU preset, stochastic regularizer) and evaluate against the baselines.
-    run = out / "runs" / "cube"
-    _run(train_cli, ["fit", str(shards / "cube-train"), "--out", str(run), "--reg", cfg.reg, "--preset", "cpu",
+    # 3. Train RISP (cpu preset, the default regularizer) and evaluate per state group against the baselines.
+    run = out / "runs" / env
+    _run(train_cli, ["fit", str(shards / f"{env}-train"), "--out", str(run), "--preset", "cpu",
                      "--epochs", str(cfg.epochs), "--seed", seed, "--workers", "1",
-                     "--val", str(shards / "cube-heldout"), *(["--resume"] if (run / "last.pt").exists() else [])], log)
-    for name in ("cube-heldout", "cube-target"):
-        _run(train_cli, ["eval", str(run / "model.pt"), str(shards / name), "--seed", seed,
+                     "--val", str(shards / f"{env}-val"), *(["--resume"] if (run / "last.pt").exists() else [])], log)
+    for name in ("val", "target"):
+        _run(train_cli, ["eval", str(run / "model.pt"), str(shards / f"{env}-{name}"), "--seed", seed,
                          "--out", str(run / f"eval-{name}")], log)
 
-    # 4. A task: diagnose what the base cube model misses in real, motion-captured tosses.
+    # 4. A task on a video: a target-domain reference video with a hidden mass, identified through N.
+    video = out / "video" / f"{env}.mp4"
+    if not video.exists():
+        video.parent.mkdir(parents=True, exist_ok=True)
+        _run(task_cli, ["make-video", "--env", env, "--out", str(video), "--frames", str(cfg.video_frames),
+                        "--fps", "10", "--resolution", str(cfg.res), "--seed", str(cfg.seed + 3)], log)
+    sysid = out / "sysid"
+    if not (sysid / "result.json").exists():
+        _run(task_cli, ["sysid", str(video), "--model", str(run / "model.pt"), "--actions",
+                        str(video.with_suffix(".actions.csv")), "--truth", str(video.with_suffix(".truth.json")),
+                        "--seed", seed, "--out", str(sysid)], log)
+
+    # 5. Diagnose what the base cube model misses in real, motion-captured tosses.
     tosses = sorted(BUNDLED_TOSSES.glob("toss_*.csv"))[: cfg.n_tosses]
     if not tosses:
         raise RispError(f"bundled cube tosses missing from {BUNDLED_TOSSES}")
-    _run(task_cli, ["diagnose", *map(str, tosses), "--env", "cube", "--seed", seed,
+    _run(task_cli, ["diagnose", *map(str, tosses), "--env", "cube", "--seed", seed, *cfg.diagnose_options,
                     "--out", str(out / "diagnose")], log)
 
     _write_summary(out, cfg, log)
     return out
+
+
+def random_guess_error(truth: float, low: float, high: float) -> float:
+    """E|U − truth| for a guess U uniform on [low, high]: ((truth − low)² + (high − truth)²) / (2 (high − low))."""
+    return ((truth - low) ** 2 + (high - truth) ** 2) / (2.0 * (high - low))
 
 
 def _read_json(path: Path) -> dict | None:
@@ -119,32 +144,54 @@ def _read_json(path: Path) -> dict | None:
 
 
 def _write_summary(out: Path, cfg: DemoConfig, log: list[dict]) -> None:
-    (out / "demo.json").write_text(json.dumps({"config": asdict(cfg), "seed": cfg.seed, "commands": log}, indent=2))
+    total = sum(c["seconds"] for c in log)
+    (out / "demo.json").write_text(json.dumps({"config": asdict(cfg), "seed": cfg.seed, "commands": log,
+                                               "seconds": round(total, 1)}, indent=2))
+    env = cfg.env
     lines = [
         "# risp demo",
         "",
-        f"Seed {cfg.seed}. Every command that was run, with its wall time, is in `demo.json`.",
+        f"Seed {cfg.seed}; {total / 60:.1f} minutes. Every command that was run, with its wall time, is in `demo.json`.",
         "",
         "## What is where",
         "- `preview/<env>-<domain>/contact_sheet.png`: rendered images and their Jacobian images ∂I/∂ψ_j",
-        "- `shards/cube-train/`: the training shards (webdataset tar + manifest.json)",
-        "- `runs/cube/`: checkpoint, `losses.csv`, loss-curve PNG `losses.png`, evaluations (`eval-*.md`)",
+        f"- `shards/{env}-train/`: the training shards (webdataset tar + manifest.json)",
+        f"- `runs/{env}/`: checkpoint, `losses.csv`, loss curve `losses.png`, evaluations (`eval-*.md`, scatter PNGs)",
+        f"- `video/`: the target-domain reference video, its actions and its ground truth (`{env}.truth.json`)",
+        "- `sysid/`: `result.json`, loss curve, trajectory and frame-strip PNGs of the system identification",
         "- `diagnose/`: `report.md`, `report.json` and plots of the real cube-toss diagnosis",
         "",
     ]
-    evals = {name: _read_json(out / "runs" / "cube" / f"eval-{name}.json") for name in ("cube-heldout", "cube-target")}
+    evals = {name: _read_json(out / "runs" / env / f"eval-{name}.json") for name in ("val", "target")}
     if any(evals.values()):
-        lines += ["## State estimation (cube)", "",
-                  "Mean per-image L1 error over the whole state and over the position (x, y, z) alone. A uniformly",
-                  "coloured cube looks the same under 24 rotations, so its yaw/pitch/roll cannot be read from an",
-                  "image and dominate the whole-state error; the position columns show what the network learned.",
-                  "", "| shards | method | whole state | position (m) |", "|---|---|---:|---:|"]
+        lines += [f"## State estimation ({env}, {cfg.train_n} training images)", "",
+                  "Mean error per image ± std over the evaluation set: position as a distance, attitude as the",
+                  "geodesic rotation angle. `val`: unseen looks of the training domain; `target`: another domain",
+                  "(lights, materials, floor, integrator) the network never saw.", "",
+                  "| images | method | position [m] | attitude [°] |", "|---|---|---:|---:|"]
         for name, ev in evals.items():
-            for method, res in (ev or {}).get("results", {}).items():
-                names = ev.get("state_names", [])
-                pos = [res["per_dim_mae"][names.index(c)] for c in ("x", "y", "z") if c in names]
-                pos_txt = f"{sum(pos) / len(pos):.3f}" if pos else "–"
-                lines.append(f"| {name} | {method} | {res['mean']:.3f} | {pos_txt} |")
+            by_method = (ev or {}).get("groups") or {}
+            for method in sorted(by_method, key=lambda m: (m != "model", m)):
+                groups = by_method[method]
+                cells = []
+                for group in ("position", "attitude"):
+                    g = groups.get(group)
+                    cells.append(f"{g['mean']:.3f} ± {g['std']:.3f}" if group == "position" and g else
+                                 f"{g['mean']:.1f} ± {g['std']:.1f}" if g else "–")
+                lines.append(f"| {name} | {method} | {cells[0]} | {cells[1]} |")
+        lines.append("")
+    res = _read_json(out / "sysid" / "result.json")
+    truth = _read_json(out / "video" / f"{env}.truth.json")
+    if res and truth:
+        errors = (res.get("errors") or {}).get("parameter_error_final") or {}
+        estimates = (res.get("estimates") or {}).get("parameters") or {}
+        lines += ["## System identification from a target-domain video", ""]
+        for pname, err in errors.items():
+            true = truth["params"][pname]
+            lines.append(f"- {pname}: true {true:.3f}, identified {estimates.get(pname, float('nan')):.3f}, "
+                         f"error **{err:.3f}**; a random guess from {list(MASS_RANGE)} errs by "
+                         f"{random_guess_error(true, *MASS_RANGE):.3f} on average "
+                         f"(loss `{res.get('config', {}).get('loss')}`, {len(res.get('loss', []))} iterations)")
         lines.append("")
     rep = _read_json(out / "diagnose" / "report.json")
     if rep:
@@ -166,7 +213,7 @@ def _write_summary(out: Path, cfg: DemoConfig, log: list[dict]) -> None:
 @click.option("--seed", default=0, show_default=True, type=int, help="Seed of every step (recorded in demo.json).")
 @click.option("--quick", is_flag=True, help="An even smaller run (seconds, used by the tests).")
 def demo(out: str, seed: int, quick: bool) -> None:
-    """Render → train → task on a small built-in default (minutes on a 2-core CPU)."""
+    """Render → train → tasks on a small built-in default (minutes on a 2-core CPU)."""
     cfg = DemoConfig(out=out, seed=seed, **(QUICK if quick else {}))
     t0 = time.perf_counter()
     try:

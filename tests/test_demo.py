@@ -20,7 +20,8 @@ def test_quick_demo_runs_end_to_end(tmp_path):
 
     meta = json.loads((out / "demo.json").read_text())
     assert meta["seed"] == 3
-    assert len(meta["commands"]) >= 4 * 2 * 2 + 6  # render+inspect per env and domain, train set, fit, evals, diagnose
+    # render+inspect per env and domain; train/val/target sets, fit, two evals, make-video, sysid, diagnose
+    assert len(meta["commands"]) >= 4 * 2 * 2 + 9
 
     for env in ("quadrotor", "cube", "hand", "rod"):
         for domain in ("train", "target"):
@@ -29,12 +30,20 @@ def test_quick_demo_runs_end_to_end(tmp_path):
             assert manifest["env"] == env and manifest["domain"] == domain
             assert (folder / "contact_sheet.png").stat().st_size > 1000
 
-    run = out / "runs" / "cube"
+    run = out / "runs" / "quadrotor"
     assert (run / "model.pt").exists() and (run / "losses.png").exists()
-    for name in ("cube-heldout", "cube-target"):
+    for name in ("val", "target"):
         ev = json.loads((run / f"eval-{name}.json").read_text())
         assert set(ev["results"]) >= {"model", "average", "random"}
-        assert all(r["mean"] > 0 for r in ev["results"].values())
+        for method in ("model", "average", "random"):
+            assert {"position", "attitude"} <= set(ev["groups"][method])
+            assert ev["groups"][method]["position"]["mean"] > 0
+
+    truth = json.loads((out / "video" / "quadrotor.truth.json").read_text())
+    sysid = json.loads((out / "sysid" / "result.json").read_text())
+    err = sysid["errors"]["parameter_error_final"]["mass"]
+    assert err == pytest.approx(abs(sysid["estimates"]["parameters"]["mass"] - truth["params"]["mass"]))
+    assert "System identification" in (out / "README.md").read_text()
 
     report = json.loads((out / "diagnose" / "report.json").read_text())
     for key in ("cause", "parameters", "ranking", "base_error", "extended_error", "gain"):
@@ -67,3 +76,13 @@ def test_demo_refuses_a_file_as_output_folder(tmp_path):
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode != 0 and "is a file" in proc.stderr
     assert target.read_text() == "keep me"  # nothing already written is touched
+
+
+def test_random_guess_error_is_the_mean_absolute_error_of_a_uniform_guess():
+    import numpy as np
+
+    from risp_tasks.demo import random_guess_error
+
+    draws = np.random.default_rng(0).uniform(2.8, 3.2, 200_000)
+    for truth in (2.8, 2.95, 3.1):
+        assert random_guess_error(truth, 2.8, 3.2) == pytest.approx(np.abs(draws - truth).mean(), rel=1e-2)
