@@ -10,7 +10,9 @@ per environment, min / median / max over the samples of
 
     python benchmarks/object_coverage.py [--n 200] [--res 64] [--envs quadrotor,cube,hand,rod]
 
-Geometry only (no shading); takes seconds.  Prints a markdown table and, with --json, writes the numbers.
+Geometry only (no shading); takes seconds.  Prints a markdown table and, with --json, writes the numbers;
+with --png, also renders the first 6 sampled states of each environment in both domains (64×64, 16 spp,
+the target domain by its reference integrator) into one contact sheet (docs/img/objects_64px.png).
 """
 
 from __future__ import annotations
@@ -67,12 +69,39 @@ def coverage(env_name: str, n: int, res: int, seed: int = 0) -> dict:
     return {"env": env_name, "n": n, "res": res, "seed": seed, **stats}
 
 
+def contact_sheet(envs: list[str], res: int, png: str, cols: int = 6) -> None:
+    """Rows (env, domain), columns: sampled states rendered with sampled rendering parameters."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from risp_data.psi import sample_rendering
+
+    rows = [(e, d) for e in envs for d in ("train", "target")]
+    fig, axes = plt.subplots(len(rows), cols, figsize=(1.6 * cols, 1.7 * len(rows)), squeeze=False)
+    for row, (env_name, domain) in enumerate(rows):
+        r = Renderer(env_name, domain, resolution=res, spp=16)
+        rng = np.random.default_rng(row)
+        states = get_environment(env_name).sample_states(rng, cols)
+        for k in range(cols):
+            img = r.render_reference(states[k], sample_rendering(env_name, domain, rng), seed=k)
+            axes[row, k].imshow(np.clip(img, 0, 1) ** (1 / 2.2))
+            axes[row, k].set_xticks([])
+            axes[row, k].set_yticks([])
+        axes[row, 0].set_ylabel(f"{env_name}\n{domain}", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(png, dpi=90)
+    plt.close(fig)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=200)
     ap.add_argument("--res", type=int, default=64)
     ap.add_argument("--envs", default=",".join(ENV_NAMES))
     ap.add_argument("--json", default=None)
+    ap.add_argument("--png", default=None, help="also write a contact sheet of renders in both domains")
     args = ap.parse_args()
     rows = [coverage(e, args.n, args.res) for e in args.envs.split(",")]
     print(f"Object coverage at {args.res}×{args.res}, {args.n} sampled states each (min / median / max)\n")
@@ -83,6 +112,8 @@ def main() -> None:
     if args.json:
         with open(args.json, "w") as f:
             json.dump(rows, f, indent=1)
+    if args.png:
+        contact_sheet(args.envs.split(","), args.res, args.png)
 
 
 if __name__ == "__main__":
