@@ -34,20 +34,22 @@ def cli():
 @click.option("--width", type=int, default=None, help="ResNet-18 first-stage channels [preset].")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of weights, data order and the stochastic regularizer.")
 @click.option("--workers", type=int, default=2, show_default=True, help="DataLoader worker processes per rank.")
+@click.option("--threads", type=int, default=0, show_default=True, help="torch threads per rank (0: the CPUs left after --workers; 1 on a shared 2-core machine).")
+@click.option("--device", default="auto", show_default=True, help="auto (CUDA when torch sees a GPU), cpu, cuda or cuda:N.")
 @click.option("--format", "fmt", default="auto", show_default=True, help="Read wds or zarr shards (auto: wds if present).")
 @click.option("--checkpoint-every", type=int, default=0, show_default=True, help="Also checkpoint every N steps (0: epoch ends only).")
 @click.option("--val", type=click.Path(), default=None, help="Held-out shard folder evaluated at each epoch end.")
 @click.option("--resume", is_flag=True, help="Continue the run in --out from its last checkpoint.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def fit(shards, out, reg, gamma, gamma_ramp, preset, epochs, batch_size, lr, weight_decay, width, seed, workers, fmt,
-        checkpoint_every, val, resume, quiet):
+def fit(shards, out, reg, gamma, gamma_ramp, preset, epochs, batch_size, lr, weight_decay, width, seed, workers,
+        threads, device, fmt, checkpoint_every, val, resume, quiet):
     """Train on the shard folder SHARDS (streamed; resolution from its manifest)."""
     from .config import make_config
     from .train import fit as run_fit
 
     cfg = make_config(shards, out, preset=preset, reg=reg, gamma=gamma, gamma_ramp=gamma_ramp, epochs=epochs,
                       batch_size=batch_size, lr=lr, weight_decay=weight_decay, width=width, seed=seed,
-                      workers=workers, format=fmt, checkpoint_every=checkpoint_every, val=val)
+                      workers=workers, threads=threads, device=device, format=fmt, checkpoint_every=checkpoint_every, val=val)
     path = run_fit(cfg, resume=resume, progress=not quiet)
     import os
 
@@ -64,10 +66,15 @@ def fit(shards, out, reg, gamma, gamma_ramp, preset, epochs, batch_size, lr, wei
 @click.option("--limit", type=int, default=None, help="Evaluate at most this many images.")
 @click.option("--format", "fmt", default="auto", show_default=True, help="wds or zarr (auto: wds if present).")
 @click.option("--out", default=None, help="Path prefix of the .json and .md results [MODEL_DIR/eval-SHARDS_NAME].")
+@click.option("--threads", type=int, default=0, show_default=True, help="torch threads (0: one per available CPU).")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def eval_cmd(model, shards, metric, seed, batch_size, limit, fmt, out, quiet):
+def eval_cmd(model, shards, metric, seed, batch_size, limit, fmt, out, threads, quiet):
     """State-estimation error of MODEL on SHARDS, with the average and random baselines."""
+    from risp_data.threads import set_torch_threads
+
     from .evaluate import EvalConfig, evaluate, markdown_table
+
+    set_torch_threads(threads)
 
     res = evaluate(EvalConfig(model=model, shards=shards, metric=metric, seed=seed, batch_size=batch_size,
                               limit=limit, format=fmt, out=out), progress=not quiet)

@@ -40,6 +40,8 @@ class TrainConfig:
     weight_decay: float = 1e-6
     seed: int = 0
     workers: int = 2  # DataLoader worker processes (per rank)
+    threads: int = 0  # torch intra-op threads per rank (0: CPUs left after the workers; risp_data.threads)
+    device: str = "auto"  # auto (CUDA when torch sees a GPU) | cpu | cuda | cuda:N
     width: int = 64  # ResNet-18 first-stage channels
     blocks: tuple[int, int, int, int] = (2, 2, 2, 2)
     stem: str = "auto"  # auto | imagenet | small
@@ -92,8 +94,8 @@ def validate(cfg: TrainConfig) -> None:
         raise RispError(f"--gamma must be >= 0, got {cfg.gamma}")
     if not 0 <= cfg.gamma_ramp <= 1:
         raise RispError(f"--gamma-ramp must be in [0, 1], got {cfg.gamma_ramp}")
-    if cfg.workers < 0 or cfg.checkpoint_every < 0:
-        raise RispError("--workers and --checkpoint-every must be >= 0")
+    if cfg.workers < 0 or cfg.checkpoint_every < 0 or cfg.threads < 0:
+        raise RispError("--workers, --threads and --checkpoint-every must be >= 0")
     if cfg.stem not in ("auto", "imagenet", "small"):
         raise RispError(f"unknown stem {cfg.stem!r}; choose auto, imagenet or small")
 

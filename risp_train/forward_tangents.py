@@ -23,7 +23,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .model import BasicBlock, ResNet18
+from .model import BasicBlock, ResNet18, as_nchw
 from .norms import InstanceNorm
 
 Pair = tuple[torch.Tensor, torch.Tensor]  # primal (B, C, H, W), tangents (K, B, C, H, W)
@@ -90,7 +90,7 @@ def _module(m: nn.Module, x: torch.Tensor, xd: torch.Tensor) -> Pair:
 def forward_with_tangents(net: ResNet18, x: torch.Tensor, tangents: torch.Tensor) -> Pair:
     """(ŷ (B, T), M (B, K, T)): N(x) and (∂N/∂x)(x)·X_j for x (B, C, H, W), tangents X (B, K, C, H, W)."""
     xd = tangents.transpose(0, 1)  # (K, B, C, H, W): tangent index first, so the batch of K·B is contiguous
-    h, hd = _module(net.stages, *_module(net.stem, x, xd.contiguous()))
+    h, hd = _module(net.stages, *_module(net.stem, as_nchw(x), as_nchw(xd)))  # NCHW: see model.as_nchw
     if h.shape[-1] * h.shape[-2] == 1:
         raise ValueError("input too small: the last stage is 1×1, where instance norm is identically zero")
     pooled, pooled_d = h.mean(dim=(-2, -1)), hd.mean(dim=(-2, -1))  # (B, 8w), (K, B, 8w)

@@ -103,11 +103,23 @@ class ResNet18(nn.Module):
         self.head = nn.Linear(cin, config.out_dim)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        h = self.stages(self.stem(x))  # (B, 8w, h, w)
+        h = self.stages(self.stem(as_nchw(x)))  # (B, 8w, h, w)
         if h.shape[-1] * h.shape[-2] == 1:
             raise ValueError(f"input {tuple(x.shape[-2:])} is too small for stem {self.config.stem!r}: "
                              "the last stage is 1×1, where instance norm is identically zero")
         return self.head(h.mean(dim=(-2, -1)))  # global average pool → (B, 8w) → (B, T)
+
+
+def as_nchw(x: torch.Tensor) -> torch.Tensor:
+    """``x`` in the plain NCHW memory layout, whatever strides it arrived with.
+
+    Why: an image batch permuted from (B, H, W, 3) is channels-last in memory, and PyTorch then runs every
+    convolution through oneDNN's NHWC kernels.  oneDNN's 1×1 stride-2 backward-weights kernel with fewer
+    input channels than its register block (8 on AVX2, 16 on AVX-512) writes past its workspace
+    (uxlfoundation/oneDNN#6035): a ResNet of width < 8 — or < 16 on AVX-512 — hung training for good,
+    crashed it, or silently corrupted its gradients.  The NCHW path does not have the bug.
+    """
+    return x.contiguous(memory_format=torch.contiguous_format)
 
 
 def build_model(config: ModelConfig, seed: int) -> ResNet18:

@@ -43,7 +43,8 @@ class Normalization:
     def images(self, image: torch.Tensor) -> torch.Tensor:
         """Raw (B, H, W, 3) → normalized network input x (B, 3, H, W)."""
         m, s = self._img_stats(image)
-        return (torch.log1p(image.clamp_min(0)).permute(0, 3, 1, 2) - m) / s
+        # contiguous NCHW, not the channels-last strides of the permute: see risp_train.model.as_nchw
+        return ((torch.log1p(image.clamp_min(0)).permute(0, 3, 1, 2) - m) / s).contiguous()
 
     def tangents(self, image: torch.Tensor, jacobian: torch.Tensor) -> torch.Tensor:
         """Chain rule: raw J (B, K, H, W, 3) at raw image (B, H, W, 3) → ∂x/∂ψ (B, K, 3, H, W)."""
@@ -51,7 +52,7 @@ class Normalization:
         # d log1p(max(I,0)) / dI = [I > 0] / (1 + I)
         dlog = torch.where(image > 0, 1.0 / (1.0 + image.clamp_min(0)), torch.zeros_like(image))
         dx = (dlog.unsqueeze(1) * jacobian).permute(0, 1, 4, 2, 3)  # (B, K, 3, H, W)
-        return dx / s
+        return (dx / s).contiguous()
 
     # -- targets ----------------------------------------------------------------------------------------
     def _tgt_stats(self, ref: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -33,6 +33,7 @@ from .model import ModelConfig, ResNet18, build_model, stem_for_resolution
 from .normalization import Normalization, StatsAccumulator
 from .regularizers import gamma_at, risp_loss
 from risp_data.atomic import atomic_write, write_text_atomic
+from risp_data.threads import set_torch_threads
 
 LAST = "last.pt"  # the resumable checkpoint, rewritten at each epoch end (and every N steps)
 MODEL = "model.pt"  # the final checkpoint (same format), written when training completes
@@ -90,13 +91,28 @@ def compute_normalization(shards: ShardSet, env, n: int) -> Normalization:
     return acc.result()
 
 
-def batch_tensors(batch: dict, norm: Normalization, env, need_tangents: bool):
-    """x (B,3,H,W), normalized targets (B,T) and tangents ∂x/∂ψ (B,K,3,H,W) or None, float32."""
-    images = batch["image"]
+def batch_tensors(batch: dict, norm: Normalization, env, need_tangents: bool, device: torch.device | None = None):
+    """x (B,3,H,W), normalized targets (B,T) and tangents ∂x/∂ψ (B,K,3,H,W) or None, float32, on ``device``."""
+    images = batch["image"].to(device)
     x = norm.images(images)
-    y = norm.targets(env.state_to_target(batch["state"]).to(torch.float32))
-    tangents = norm.tangents(images, batch["jacobian"]) if need_tangents else None
+    y = norm.targets(env.state_to_target(batch["state"].to(device)).to(torch.float32))
+    tangents = norm.tangents(images, batch["jacobian"].to(device)) if need_tangents else None
     return x, y, tangents
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` → the CUDA GPU when torch sees one, else the CPU; otherwise the named device, checked."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except (RuntimeError, ValueError):
+        raise RispError(f"unknown --device {name!r}; use auto, cpu, cuda or cuda:N") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise RispError(f"--device {name}: torch sees no CUDA GPU (torch {torch.__version__}); use --device cpu")
+    if device.type not in ("cpu", "cuda"):
+        raise RispError(f"--device {name}: only cpu and cuda are supported")
+    return device
 
 
 @torch.no_grad()
@@ -104,8 +120,9 @@ def held_out_error(net: ResNet18, shards: ShardSet, norm: Normalization, env, li
     """Mean normalized-target L1 error ℓ over the first ``limit`` samples of ``shards``."""
     net.eval()
     total, n = 0.0, 0
+    device = next(net.parameters()).device
     for batch in iter_batches(shards, 32, state_dim=env.state_dim, limit=limit):
-        x, y, _ = batch_tensors(batch, norm, env, False)
+        x, y, _ = batch_tensors(batch, norm, env, False, device)
         total += float((net(x) - y).abs().mean(dim=1).sum())
         n += y.shape[0]
     net.train()
@@ -130,10 +147,25 @@ def _write_json(path: str, obj) -> None:
 
 def fit(cfg: TrainConfig, *, resume: bool = False, progress: bool = True,
         stop_after_step: int | None = None) -> str:
-    """Train according to ``cfg``; returns the path of the final checkpoint (``cfg.out/model.pt``)."""
+    """Train according to ``cfg``; returns the path of the final checkpoint (``cfg.out/model.pt``).
+
+    The run uses one fixed torch thread count (``cfg.threads``; 0: the CPUs left after the data workers,
+    risp_data.threads) and gives the caller's setting back when it returns.
+    """
+    dist_info = init_distributed()
+    before = torch.get_num_threads()
+    threads = set_torch_threads(cfg.threads, workers=cfg.workers,
+                                processes=int(os.environ.get("LOCAL_WORLD_SIZE", str(dist_info.world_size))))
+    try:
+        return _fit(cfg, dist_info, threads, resume=resume, progress=progress, stop_after_step=stop_after_step)
+    finally:
+        torch.set_num_threads(before)
+
+
+def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, resume: bool, progress: bool,
+         stop_after_step: int | None) -> str:
     from risp_data.envs import get_environment
 
-    dist_info = init_distributed()
     rank, world = dist_info.rank, dist_info.world_size
     shards = open_shards(cfg.shards, cfg.format)
     env = get_environment(shards.env)
@@ -176,7 +208,8 @@ def fit(cfg: TrainConfig, *, resume: bool = False, progress: bool = True,
 
     model_cfg = ModelConfig(out_dim=env.target_dim, width=cfg.width, blocks=cfg.blocks,
                             stem=stem_for_resolution(shards.resolution) if cfg.stem == "auto" else cfg.stem)
-    net = build_model(model_cfg, cfg.seed)
+    device = resolve_device(cfg.device)
+    net = build_model(model_cfg, cfg.seed).to(device)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=total_steps)
     if state is not None:
@@ -207,18 +240,20 @@ def fit(cfg: TrainConfig, *, resume: bool = False, progress: bool = True,
             "model": net.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
             "progress": {"epoch": epoch, "batch": batch, "global_step": step, "total_steps": total_steps,
                          "complete": complete},
-            "history": history, "world_size": world, "workers": cfg.workers, "torch_version": torch.__version__,
+            "history": history, "world_size": world, "workers": cfg.workers, "threads": threads,
+            "device": str(device),
+            "torch_version": torch.__version__,
         }
 
     if rank == 0:
         _write_json(os.path.join(cfg.out, "config.json"),
                     {"config": cfg.to_dict(), "model_config": model_cfg.to_dict(), "gamma": gamma, "env": shards.env,
                      "manifest_hash": mhash, "normalization": norm.to_dict(), "world_size": world,
-                     "steps_per_epoch": plan})
+                     "threads": threads, "device": str(device), "steps_per_epoch": plan})
     from tqdm.auto import tqdm
 
     bar = tqdm(total=total_steps, initial=step, disable=(not progress) or rank != 0, unit="step",
-               desc=f"fit {shards.env} reg={cfg.reg}")
+               desc=f"fit {shards.env} reg={cfg.reg} {device.type} threads={threads}")
     log = None
     if rank == 0:
         new = not os.path.exists(csv_path)
@@ -243,7 +278,7 @@ def fit(cfg: TrainConfig, *, resume: bool = False, progress: bool = True,
                     continue  # already trained on before the resume
                 # ---- one optimizer step ------------------------------------------------------------
                 g_t = gamma_at(step, total_steps, gamma, cfg.gamma_ramp)
-                x, y, tangents = batch_tensors(batch, norm, env, need_j)
+                x, y, tangents = batch_tensors(batch, norm, env, need_j, device)
                 terms = risp_loss(net, x, y, cfg.reg, g_t, tangents, step_generator(cfg.seed, rank, step))
                 if not torch.isfinite(terms.total):
                     raise RispError(f"loss is not finite at step {step} (epoch {epoch}); lower --lr or --gamma")

@@ -225,3 +225,28 @@ def test_resume_after_sigkill(shards, tmp_path):
     wb = torch.load(out / "model.pt", weights_only=True)["model"]
     for k in wa:
         torch.testing.assert_close(wa[k], wb[k], rtol=0, atol=0, msg=k)
+
+
+def test_fit_sets_its_thread_count_and_gives_it_back(shards, tmp_path):
+    caller = torch.get_num_threads()
+    torch.set_num_threads(2)  # the caller's setting differs from the run's
+    seen = []
+    import risp_train.train as train_mod
+
+    real = train_mod._fit
+
+    def spy(cfg, dist_info, threads, **kw):
+        seen.append((threads, torch.get_num_threads()))
+        return real(cfg, dist_info, threads, **kw)
+
+    train_mod._fit = spy
+    try:
+        path = fit(_cfg(shards, tmp_path / "t", epochs=1, threads=1), progress=False)
+    finally:
+        train_mod._fit = real
+        after = torch.get_num_threads()
+        torch.set_num_threads(caller)
+    assert seen == [(1, 1)]  # the run used the requested count…
+    assert after == 2  # …and the caller's setting is back
+    assert torch.load(path, weights_only=True)["threads"] == 1
+    assert json.load(open(tmp_path / "t" / "config.json"))["threads"] == 1

@@ -1,0 +1,40 @@
+"""Thread counts for CPU-heavy work, set by each command itself (docs/PERFORMANCE.md, "Threads").
+
+Why: on a shared 2-core machine torch's default (one intra-op thread per core) oversubscribes the cores
+as soon as DataLoader workers or other jobs run beside it; OpenMP's spinning threads then wait for each
+other and a training step took 1.6 s instead of 0.16 s with one thread (docs/PERFORMANCE.md). The default
+is therefore a fixed function of the CPUs this process may use, never of the momentary load, so that a
+run's arithmetic (and its bitwise resume) does not depend on what else the machine was doing.
+"""
+
+from __future__ import annotations
+
+import os
+
+
+def available_cpus() -> int:
+    """CPUs this process may run on (its affinity mask; ``os.cpu_count()`` where that is unknown)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def default_torch_threads(workers: int = 0, processes: int = 1) -> int:
+    """Intra-op threads for each of ``processes`` compute processes that share the machine with
+    ``workers`` single-threaded helper processes each (data loaders): the CPUs left over, at least 1."""
+    return max(1, (available_cpus() - max(0, workers) * max(1, processes)) // max(1, processes))
+
+
+def set_torch_threads(threads: int | None, *, workers: int = 0, processes: int = 1) -> int:
+    """Set torch's intra-op thread count to ``threads`` (``None`` or 0: the default above); return it."""
+    import torch
+
+    if threads is not None and threads < 0:
+        from .errors import RispError
+
+        raise RispError(f"--threads must be >= 0 (0: automatic), got {threads}")
+    n = threads or default_torch_threads(workers, processes)
+    if torch.get_num_threads() != n:
+        torch.set_num_threads(n)
+    return n
