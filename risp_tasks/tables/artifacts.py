@@ -70,7 +70,7 @@ class Artifacts:
         shards = self.train_shards(env)
         reg = "none" if which == "none" else cfg.reg
         tcfg = make_config(shards, "", preset=cfg.train_preset, reg=reg, epochs=cfg.epochs, width=cfg.width,
-                           seed=cfg.seed, workers=cfg.workers)
+                           batch_size=cfg.batch_size, seed=cfg.seed, workers=cfg.workers)
         ident = {k: v for k, v in tcfg.to_dict().items() if k not in ("shards", "out", "workers", "threads", "device")}
         key = checksum({**ident, "data": manifest_hash(open_shards(shards).manifest)})
         out = os.path.join(self.root, "runs", f"{env}-{reg}-{key}")

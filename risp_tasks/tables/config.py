@@ -37,6 +37,7 @@ class TableConfig:
     lr: float = 1e-2  # RMSProp step of the per-image state optimisation (estimation: pixelwise, perceptual)
     epochs: int | None = None  # training epochs (None: the risp-train preset's)
     width: int | None = None  # network width (None: the risp-train preset's)
+    batch_size: int | None = None  # training batch (None: the risp-train preset's)
     reg: str = "surrogate"  # the regularizer of `ours` (the paper's surrogate, Eq. 12); `ours-no-grad`: none
     train_preset: str = "cpu"  # risp-train preset of both networks
     perceptual_weights: str | None = None  # local feature-extractor weights (methods.FeatureExtractor)
