@@ -75,6 +75,16 @@ def test_imitation_runs_on_an_actuated_system(cache, tmp_path):
         assert "na" not in entry and math.isfinite(entry["mean"]) and entry["mean"] >= 0, (m, entry)
 
 
+def test_control_reaches_for_the_pictured_state(cache, tmp_path):
+    cfg = make_config("control", quick=True, out=str(tmp_path), envs=("rod",), methods=("average", "ours", "oracle"),
+                      **TINY)
+    report = run_table(cfg, cache=cache, echo=lambda *_: None)
+    for m, entry in report["cells"]["rod"].items():
+        assert "na" not in entry and math.isfinite(entry["mean"]) and entry["mean"] >= 0, (m, entry)
+    cell = json.load(open(cell_path(report["folder"], Cell("rod", "oracle", 0))))
+    assert len(cell["reached"]) == len(cell["goal"]) == 10  # the rod's ten sensor heights
+
+
 class Killed(Exception):
     pass
 

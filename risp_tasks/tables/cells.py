@@ -9,7 +9,7 @@ A result is ``{"value": float, ...}`` (lower is better) or ``{"na": reason}`` �
 * sysid — mean absolute error of the identified parameter(s) (quadrotor mass [kg], cube log10 k_n, hand
   joint stiffnesses (mean of 5), rod log10 E) on repeat k's target-domain reference video (risp_tasks.tasks).
 * imitation — RMSE between the reference and the reproduced states (risp_tasks.tasks ``state_rmse_final``).
-* control — pending (see :func:`control`).
+* control — per-state L1 error between the reached and the pictured state (:func:`control`).
 """
 
 from __future__ import annotations
@@ -104,7 +104,8 @@ def estimation(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> 
 # ------------------------------------------------------------------------------------------ tasks
 
 
-def _task_run(cfg, art: Artifacts, task: str, env_name: str, method: str, repeat: int) -> dict:
+def _task_run(cfg, art: Artifacts, task: str, env_name: str, method: str, repeat: int, video: str | None = None,
+              truth: str | None = None, **task_kw) -> dict:
     """One risp_tasks.tasks run of ``method`` on repeat k's reference video; the result dict."""
     from risp_tasks.tasks.config import TaskConfig
     from risp_tasks.tasks.run import run_task
@@ -118,9 +119,10 @@ def _task_run(cfg, art: Artifacts, task: str, env_name: str, method: str, repeat
     init = "default" if m.name == "average" else "random"  # optimisers start at the seeded random guess
     iterations = 0 if m.loss is None else cfg.iterations
     with tempfile.TemporaryDirectory(dir=art.root) as tmp:
-        tcfg = TaskConfig(task=task, video=ref["video"], out=os.path.join(tmp, "result"), model=model, loss=loss,
-                          init=init, iterations=iterations, seed=cfg.seed + repeat, actions=ref["actions"],
-                          truth=ref["truth"], spp=cfg.spp, plots=False, progress=False)
+        tcfg = TaskConfig(task=task, video=video or ref["video"], out=os.path.join(tmp, "result"), model=model,
+                          loss=loss, init=init, iterations=iterations, seed=cfg.seed + repeat,
+                          actions=None if task == "control" else ref["actions"], truth=truth or ref["truth"],
+                          spp=cfg.spp, plots=False, progress=False, **task_kw)
         return run_task(tcfg, echo=lambda *_: None)
 
 
@@ -144,10 +146,55 @@ def imitation(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> d
 
 
 def control(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> dict:
+    """Adapter over ``risp-task control``: from the simulator state of repeat k's reference video at frame 0,
+    reach the state pictured in its last frame (horizon = frames − 1) with the nominal simulator; the value is
+    the per-state L1 error (angles wrapped) between the reached and the pictured state."""
+    import json
+
+    from PIL import Image
+
+    from risp_tasks.sims import get_simulator
+    from risp_tasks.tasks.simulate import frame_states, initial_sim_state, steps_per_frame, to_sim_actions
+    from risp_tasks.video import read_video, to_uint8
+    from risp_train.evaluate import state_differences
+
     if env_name == "cube":
         return {"na": "the cube has no actions"}
-    return {"na": "pending: risp_tasks.tasks.run reports no final-state error for control (needs a goal state "
-                  "from a reference and the reached state in result['errors'])"}
+    if method == "perceptual":
+        return {"na": PENDING_PERCEPTUAL}
+    ref = art.video(env_name, repeat)
+    with open(ref["truth"]) as f:
+        truth = json.load(f)
+    horizon = cfg.frames - 1
+    goal = np.asarray(truth["env_states"][horizon], np.float64)
+    sim = get_simulator(env_name)
+    if truth.get("sim_states") is not None:
+        s0 = torch.tensor(truth["sim_states"][0], dtype=torch.float64)[None]
+    else:  # large states (the rod) are not stored: its reference videos start at rest, as initial_sim_state does
+        s0 = initial_sim_state(sim, torch.tensor(truth["env_states"][0], dtype=torch.float64), None, truth["fps"])
+    with tempfile.TemporaryDirectory(dir=art.root) as tmp:
+        goal_png, init_json, goal_json = (os.path.join(tmp, n) for n in ("goal.png", "initial.json", "goal.json"))
+        frame = read_video(ref["video"], resolution=cfg.resolution).frames[horizon]
+        Image.fromarray(to_uint8(frame)).save(goal_png)
+        with open(init_json, "w") as f:
+            json.dump({"state": s0[0].tolist()}, f)
+        with open(goal_json, "w") as f:  # the oracle loss compares the loss frame (the last) with this state
+            json.dump({"env_states": [goal.tolist()]}, f)
+        result = _task_run(cfg, art, "control", env_name, method, repeat, video=goal_png, truth=goal_json,
+                           initial_state=init_json, horizon=horizon, fps=truth["fps"])
+    params = sim.default_params()
+    actions = to_sim_actions(sim, params, torch.tensor(result["estimates"]["actions"], dtype=torch.float64))
+    with torch.no_grad():
+        reached = frame_states(sim, params, s0, actions, horizon + 1, steps_per_frame(sim, truth["fps"]))[-1]
+    diff = state_differences(reached.numpy()[None], goal[None], sim_env_names(env_name))
+    return {"value": float(np.abs(diff).mean()), "metric": "l1", "reached": reached.tolist(), "goal": goal.tolist(),
+            "final_loss": result["final_loss"]}
+
+
+def sim_env_names(env_name: str) -> tuple[str, ...]:
+    from risp_data.envs import get_environment
+
+    return get_environment(env_name).state_names
 
 
 CELLS = {"estimation": estimation, "sysid": sysid, "imitation": imitation, "control": control}

@@ -17,7 +17,8 @@ METRICS = {"estimation": "per-image L1 state error (paper's metric; angles wrapp
            "sysid": "absolute parameter error (quadrotor mass kg, cube log10 k_n, hand stiffness (mean of 5), "
                     "rod log10 E), target-domain reference video",
            "imitation": "state RMSE between reference and reproduced trajectory, target-domain reference video",
-           "control": "final-state error w.r.t. the pictured goal"}
+           "control": "per-state L1 error (angles wrapped) between the reached and the pictured goal state, nominal "
+                      "simulator, horizon = frames − 1"}
 
 
 def aggregate(results: list[dict], env: str, method: str) -> dict:
