@@ -13,8 +13,8 @@ from .methods import METHODS
 #: Sizes per preset.  ``cpu``: this 2-core machine (hours for all four tables); ``paper``: the paper's scale,
 #: for a GPU machine (``cuda_ad_rgb`` renders, CUDA torch).  ``--quick`` shrinks everything to a smoke run.
 PRESETS: dict[str, dict] = {
-    "cpu": dict(n_train=1000, n_test=32, resolution=64, spp=8, frames=8, iterations=50, epochs=None, width=None),
-    "paper": dict(n_train=10000, n_test=200, resolution=64, spp=16, frames=10, iterations=100, epochs=None, width=None),
+    "cpu": dict(n_train=1000, n_test=32, resolution=64, spp=8, frames=8, iterations=50, train_preset="cpu"),
+    "paper": dict(n_train=10000, n_test=200, resolution=64, spp=16, frames=10, iterations=100, train_preset="paper"),
 }
 QUICK: dict = dict(n_train=32, n_test=4, spp=4, frames=3, iterations=3, epochs=1, width=8)
 
