@@ -85,6 +85,21 @@ def test_control_reaches_for_the_pictured_state(cache, tmp_path):
     assert len(cell["reached"]) == len(cell["goal"]) == 10  # the rod's ten sensor heights
 
 
+def test_regularizer_comparison(cache, tmp_path):
+    cfg = make_config("regularizers", quick=True, out=str(tmp_path), envs=("cube",), **dict(TINY, epochs=2))
+    assert cfg.methods == ("none", "surrogate", "exact", "stochastic")
+    report = run_table(cfg, cache=cache, echo=lambda *_: None)
+    for reg in cfg.methods:
+        err, sec = report["cells"]["cube"][reg], report["seconds_per_epoch"]["cube"][reg]
+        assert math.isfinite(err["mean"]) and sec["mean"] > 0, (reg, err, sec)
+    # same data and budget, different regularizers: four different networks
+    models = {json.load(open(cell_path(report["folder"], Cell("cube", r, 0))))["model"] for r in cfg.methods}
+    assert len(models) == 4
+    assert os.path.getsize(os.path.join(report["folder"], "regularizers.png")) > 1000
+    with pytest.raises(RispError, match="unknown regularizer 'ours'"):
+        make_config("regularizers", methods=("ours",))
+
+
 class Killed(Exception):
     pass
 

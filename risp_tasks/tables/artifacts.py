@@ -60,17 +60,18 @@ class Artifacts:
 
     # ------------------------------------------------------------------ networks
 
-    def network(self, env: str, which: str) -> str:
-        """Checkpoint of the network ``which`` ("none": ours-no-grad; "reg": ours with cfg.reg)."""
+    def network(self, env: str, which: str, seed: int | None = None) -> str:
+        """Checkpoint of the network ``which`` ("none": ours-no-grad; "reg": ours with cfg.reg; or a regularizer's
+        name) trained with ``seed`` (default: the table's seed) on the environment's training set."""
         from risp_train.config import make_config
         from risp_train.data import manifest_hash, open_shards
         from risp_train.train import MODEL, fit
 
         cfg = self.cfg
         shards = self.train_shards(env)
-        reg = "none" if which == "none" else cfg.reg
+        reg = cfg.reg if which == "reg" else which
         tcfg = make_config(shards, "", preset=cfg.train_preset, reg=reg, epochs=cfg.epochs, width=cfg.width,
-                           batch_size=cfg.batch_size, seed=cfg.seed, workers=cfg.workers)
+                           batch_size=cfg.batch_size, seed=cfg.seed if seed is None else seed, workers=cfg.workers)
         ident = {k: v for k, v in tcfg.to_dict().items() if k not in ("shards", "out", "workers", "threads", "device")}
         key = checksum({**ident, "data": manifest_hash(open_shards(shards).manifest)})
         out = os.path.join(self.root, "runs", f"{env}-{reg}-{key}")
@@ -101,6 +102,12 @@ def prepare(cfg: TableConfig, env: str, cache: str | None = None) -> None:
     from .methods import get_method
 
     art = Artifacts(cfg, cache)
+    if cfg.table == "regularizers":
+        for r in range(cfg.repeats):
+            art.test_shards(env, r)
+            for reg in cfg.methods:
+                art.network(env, reg, seed=cfg.seed + r)
+        return
     networks = {get_method(m).network for m in cfg.methods} - {None}
     if cfg.table == "estimation":
         for r in range(cfg.repeats):

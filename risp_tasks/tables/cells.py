@@ -197,4 +197,29 @@ def sim_env_names(env_name: str) -> tuple[str, ...]:
     return get_environment(env_name).state_names
 
 
-CELLS = {"estimation": estimation, "sysid": sysid, "imitation": imitation, "control": control}
+def regularizers(cfg, art: Artifacts, env_name: str, reg: str, repeat: int) -> dict:
+    """The regularizer comparison (the paper's future work): a network trained with ``reg`` on the same training
+    set with the same budget (epochs, batch, γ preset) and training seed ``seed + repeat``; its estimation error
+    on repeat k's target-domain images and its median wall time per epoch (risp-train's history.json)."""
+    import json
+
+    from risp_data.envs import get_environment
+    from risp_train.evaluate import per_image_error, state_differences
+    from risp_train.predictor import load
+
+    env = get_environment(env_name)
+    path = art.network(env_name, reg, seed=cfg.seed + repeat)
+    images, true = load_images(art.test_shards(env_name, repeat))
+    with torch.no_grad():
+        pred = load(path)(images).to(torch.float64)
+    e = per_image_error(state_differences(pred.numpy(), true.numpy(), env.state_names), "l1")
+    with open(os.path.join(os.path.dirname(path), "history.json")) as f:
+        ends = [h["seconds"] for h in json.load(f) if h.get("epoch", -1) >= 0]
+    per_epoch = np.diff([0.0, *ends])
+    per_epoch = per_epoch[per_epoch > 0]  # a resumed run restarts its clock
+    return {"value": float(e.mean()), "std_images": float(e.std()), "n": len(images), "metric": "l1",
+            "seconds_per_epoch": float(np.median(per_epoch)) if len(per_epoch) else None, "model": path}
+
+
+CELLS = {"estimation": estimation, "sysid": sysid, "imitation": imitation, "control": control,
+         "regularizers": regularizers}

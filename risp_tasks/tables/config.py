@@ -55,13 +55,17 @@ class TableConfig:
 def make_config(table: str, preset: str = "cpu", quick: bool = False, **overrides) -> TableConfig:
     """Preset sizes, then ``--quick``'s, then every override that is not None; validated."""
     if table not in TABLES and table != "regularizers":
-        raise RispError(f"unknown table {table!r}; choose one of: {', '.join(TABLES)}")
+        raise RispError(f"unknown table {table!r}; choose one of: {', '.join(TABLES)}, regularizers")
     if preset not in PRESETS:
         raise RispError(f"unknown preset {preset!r}; choose one of: {', '.join(PRESETS)}")
     values = dict(PRESETS[preset])
     if quick:
         values.update(QUICK)
     values.update({k: v for k, v in overrides.items() if v is not None})
+    if table == "regularizers" and overrides.get("methods") is None:
+        from risp_train.regularizers import REGULARIZERS
+
+        values["methods"] = REGULARIZERS  # the rows of this table are the regularizers
     cfg = TableConfig(table=table, preset=preset, quick=quick, **values)
     validate(cfg)
     return cfg
@@ -73,9 +77,11 @@ def validate(cfg: TableConfig) -> None:
     for env in cfg.envs:
         if env not in ENV_NAMES:
             raise RispError(f"unknown environment {env!r}; choose from: {', '.join(ENV_NAMES)}")
+    rows = REGULARIZERS if cfg.table == "regularizers" else METHODS
     for m in cfg.methods:
-        if m not in METHODS:
-            raise RispError(f"unknown method {m!r}; choose from: {', '.join(METHODS)}")
+        if m not in rows:
+            what = "regularizer" if cfg.table == "regularizers" else "method"
+            raise RispError(f"unknown {what} {m!r}; choose from: {', '.join(rows)}")
     if cfg.reg not in REGULARIZERS or cfg.reg == "none":
         raise RispError(f"the regularizer of `ours` must be one of: {', '.join(r for r in REGULARIZERS if r != 'none')}")
     for name in ("repeats", "n_train", "n_test", "resolution", "spp", "frames"):
