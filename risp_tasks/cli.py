@@ -180,13 +180,15 @@ def make_video(env, out, frames, fps, resolution, spp, domain, params, effect, c
 
 # ---- BEGIN table command (owned by risp_tasks/tables; docs/tables.md) ----------------------------------------
 @cli.command()
-@click.option("--table", "table", required=True, help="estimation | sysid | imitation | control")
+@click.option("--table", "table", required=True,
+              help="estimation | sysid | imitation | control (the paper's); regularizers | sampling (rod ablation)")
 @click.option("--preset", default="cpu", show_default=True, help="cpu (this machine) | paper (a GPU machine)")
 @click.option("--repeats", type=int, default=4, show_default=True, help="random looks / initial guesses per cell")
 @click.option("--quick", is_flag=True, help="smoke version: tiny data, 1 epoch, 3 iterations (minutes)")
 @click.option("--out", default="tables", show_default=True, help="folder of the tables, data sets and networks")
 @click.option("--envs", default=None, help="comma-separated environments (default: all)")
-@click.option("--methods", default=None, help="comma-separated methods (default: all; docs/tables.md)")
+@click.option("--methods", default=None, help="comma-separated rows: methods / regularizers / sampling schemes "
+              "(default: all; docs/tables.md)")
 @click.option("--reg", default=None, help="regularizer of `ours` [default: surrogate, the paper's]")
 @click.option("--perceptual-weights", default=None, help="local torchvision vgg16 state dict for `perceptual` "
               "(default: the built-in filter bank)")

@@ -100,6 +100,23 @@ def test_regularizer_comparison(cache, tmp_path):
         make_config("regularizers", methods=("ours",))
 
 
+def test_rod_temporal_sampling_ablation(cache, tmp_path):
+    from risp_tasks.tables.sampling import SCHEMES, scheme_frames
+
+    assert scheme_frames("every-5th", 11) == [0, 5, 10] and scheme_frames("first-middle", 11) == [0, 5]
+    cfg = make_config("sampling", quick=True, out=str(tmp_path), **TINY)
+    assert cfg.envs == ("rod",) and cfg.methods == SCHEMES
+    report = run_table(cfg, cache=cache, echo=lambda *_: None)
+    cells = [json.load(open(cell_path(report["folder"], Cell("rod", s, 0)))) for s in SCHEMES]
+    for c in cells:
+        assert len(c["losses"]) == len(c["grid"]) == 5 and min(c["losses"]) >= 0
+        assert c["value"] == pytest.approx(abs(c["grid"][c["losses"].index(min(c["losses"]))] - c["true"]))
+        assert 4 <= c["true"] < 7
+    # the schemes see different frames, so their landscapes differ
+    assert cells[0]["losses"] != cells[3]["losses"]
+    assert os.path.getsize(os.path.join(report["folder"], "sampling.png")) > 1000
+
+
 class Killed(Exception):
     pass
 

@@ -82,12 +82,12 @@ class Artifacts:
 
     # ------------------------------------------------------------------ reference videos
 
-    def video(self, env: str, repeat: int) -> dict:
+    def video(self, env: str, repeat: int, frames: int | None = None) -> dict:
         """The target-domain reference video of repeat ``repeat``: {"video", "truth", "actions"} paths."""
         from risp_tasks.tasks.reference import ReferenceConfig, actions_path, make_reference, truth_path
 
         cfg = self.cfg
-        ref = ReferenceConfig(env=env, out="", frames=cfg.frames, fps=10.0, resolution=cfg.resolution, spp=cfg.spp,
+        ref = ReferenceConfig(env=env, out="", frames=frames or cfg.frames, fps=10.0, resolution=cfg.resolution, spp=cfg.spp,
                               domain="target", seed=TEST_SEED + cfg.seed + repeat, progress=False)
         key = checksum({k: v for k, v in asdict(ref).items() if k not in ("out", "progress")})
         out = os.path.join(self.root, "videos", f"{env}-r{repeat}-{key}.mp4")
@@ -102,6 +102,12 @@ def prepare(cfg: TableConfig, env: str, cache: str | None = None) -> None:
     from .methods import get_method
 
     art = Artifacts(cfg, cache)
+    if cfg.table == "sampling":
+        from .sampling import landscape
+
+        for r in range(cfg.repeats):
+            landscape(cfg, art, r)
+        return
     if cfg.table == "regularizers":
         for r in range(cfg.repeats):
             art.test_shards(env, r)

@@ -221,5 +221,11 @@ def regularizers(cfg, art: Artifacts, env_name: str, reg: str, repeat: int) -> d
             "seconds_per_epoch": float(np.median(per_epoch)) if len(per_epoch) else None, "model": path}
 
 
+def sampling(cfg, art: Artifacts, env_name: str, scheme: str, repeat: int) -> dict:
+    from .sampling import sampling as cell
+
+    return cell(cfg, art, env_name, scheme, repeat)
+
+
 CELLS = {"estimation": estimation, "sysid": sysid, "imitation": imitation, "control": control,
-         "regularizers": regularizers}
+         "regularizers": regularizers, "sampling": sampling}

@@ -8,6 +8,8 @@ from risp_data.envs import ENV_NAMES
 from risp_data.errors import RispError
 
 from . import TABLES
+
+EXTRA_TABLES: tuple[str, ...] = ("regularizers", "sampling")  # the project's own: not among the paper's four
 from .methods import METHODS
 
 #: Sizes per preset.  ``cpu``: this 2-core machine (hours for all four tables); ``paper``: the paper's scale,
@@ -54,8 +56,8 @@ class TableConfig:
 
 def make_config(table: str, preset: str = "cpu", quick: bool = False, **overrides) -> TableConfig:
     """Preset sizes, then ``--quick``'s, then every override that is not None; validated."""
-    if table not in TABLES and table != "regularizers":
-        raise RispError(f"unknown table {table!r}; choose one of: {', '.join(TABLES)}, regularizers")
+    if table not in TABLES + EXTRA_TABLES:
+        raise RispError(f"unknown table {table!r}; choose one of: {', '.join(TABLES + EXTRA_TABLES)}")
     if preset not in PRESETS:
         raise RispError(f"unknown preset {preset!r}; choose one of: {', '.join(PRESETS)}")
     values = dict(PRESETS[preset])
@@ -66,6 +68,12 @@ def make_config(table: str, preset: str = "cpu", quick: bool = False, **override
         from risp_train.regularizers import REGULARIZERS
 
         values["methods"] = REGULARIZERS  # the rows of this table are the regularizers
+    if table == "sampling":
+        from .sampling import SCHEMES
+
+        values.setdefault("envs", ("rod",))
+        if overrides.get("methods") is None:
+            values["methods"] = SCHEMES  # the rows: temporal-sampling schemes
     cfg = TableConfig(table=table, preset=preset, quick=quick, **values)
     validate(cfg)
     return cfg
@@ -77,10 +85,12 @@ def validate(cfg: TableConfig) -> None:
     for env in cfg.envs:
         if env not in ENV_NAMES:
             raise RispError(f"unknown environment {env!r}; choose from: {', '.join(ENV_NAMES)}")
-    rows = REGULARIZERS if cfg.table == "regularizers" else METHODS
+    from .sampling import SCHEMES
+
+    rows, what = {"regularizers": (REGULARIZERS, "regularizer"), "sampling": (SCHEMES, "sampling scheme")}.get(
+        cfg.table, (METHODS, "method"))
     for m in cfg.methods:
         if m not in rows:
-            what = "regularizer" if cfg.table == "regularizers" else "method"
             raise RispError(f"unknown {what} {m!r}; choose from: {', '.join(rows)}")
     if cfg.reg not in REGULARIZERS or cfg.reg == "none":
         raise RispError(f"the regularizer of `ours` must be one of: {', '.join(r for r in REGULARIZERS if r != 'none')}")

@@ -19,6 +19,7 @@ METRICS = {"estimation": "per-image L1 state error (paper's metric; angles wrapp
            "imitation": "state RMSE between reference and reproduced trajectory, target-domain reference video",
            "regularizers": "per-image L1 state error on target-domain images (same training set and budget per "
                            "regularizer; repeats = training seeds)",
+           "sampling": "|argmin over a log10 E grid of the state loss − true log10 E| (rod, target-domain video)",
            "control": "per-state L1 error (angles wrapped) between the reached and the pictured goal state, nominal "
                       "simulator, horizon = frames − 1"}
 
@@ -52,7 +53,9 @@ def build_report(cfg: TableConfig, results: list[dict]) -> dict:
     return {**extra, "table": cfg.table, "metric": METRICS[cfg.table], "config": cfg.to_dict(), "cells": table,
             "ours_regularizer": cfg.reg, "perceptual_extractor": extractor or (
                 "vgg16-relu2_2" if cfg.perceptual_weights else "filterbank"),
-            "paper_source": SOURCE if cfg.table != "regularizers" else "the paper has no such table", "seconds": float(sum(r.get("seconds", 0.0) for r in results)),
+            "paper_source": {"regularizers": "the paper has no such table (its future work)",
+                             "sampling": "the paper shows this ablation as a figure, without numbers"}.get(cfg.table, SOURCE),
+            "rows": "scheme" if cfg.table == "sampling" else "regularizer" if cfg.table == "regularizers" else "method", "seconds": float(sum(r.get("seconds", 0.0) for r in results)),
             "loadavg_max": max((r.get("loadavg", [0])[0] for r in results), default=0.0)}
 
 
@@ -77,12 +80,14 @@ def markdown(report: dict) -> str:
     lines = [f"### {report['table']} ({cfg['preset']} preset{', quick' if cfg['quick'] else ''}, "
              f"{cfg['repeats']} repeats)", "",
              f"Metric: {report['metric']}; mean ± std over repeats (lower is better).", ""]
-    lines += _rows("regularizer" if regs else "method", envs, methods, report["cells"], paper=not regs)
+    lines += _rows(report["rows"], envs, methods, report["cells"], paper=report["rows"] == "method")
     if regs:
         lines += ["", "Median wall time per training epoch [s] (mean ± std over repeats; under load, see below):", ""]
         lines += _rows("regularizer", envs, methods, report["seconds_per_epoch"], paper=False)
         lines += ["", f"- Networks: risp-train preset `{cfg['train_preset']}`, γ its per-environment default; "
                       "figure: regularizers.png."]
+    elif report["rows"] == "scheme":
+        lines += ["", f"- N: the `ours` network (`{report['ours_regularizer']}` regularizer); figure: sampling.png."]
     else:
         lines += ["", f"- `ours`: network trained with the `{report['ours_regularizer']}` regularizer "
                       f"(risp-train preset `{cfg['train_preset']}`); `ours-no-grad`: `--reg none`.",
@@ -102,6 +107,10 @@ def write_report(cfg: TableConfig, folder: str, results: list[dict]) -> dict:
     report["folder"] = folder
     write_text_atomic(os.path.join(folder, "table.json"), json.dumps(report, indent=1, sort_keys=True) + "\n")
     write_text_atomic(os.path.join(folder, "table.md"), markdown(report) + "\n")
+    if cfg.table == "sampling":
+        from .sampling import plot_sampling
+
+        plot_sampling(results, os.path.join(folder, "sampling.png"))
     if cfg.table == "regularizers":
         plot_regularizers(report, os.path.join(folder, "regularizers.png"))
     report["files"] = [os.path.join(folder, "table.md"), os.path.join(folder, "table.json")]
