@@ -189,7 +189,7 @@ def make_video(env, out, frames, fps, resolution, spp, domain, params, effect, c
 @click.option("--envs", default=None, help="comma-separated environments (default: all)")
 @click.option("--methods", default=None, help="comma-separated rows: methods / regularizers / sampling schemes "
               "(default: all; docs/tables.md)")
-@click.option("--reg", default=None, help="regularizer of `ours` [default: surrogate, the paper's]")
+@click.option("--reg", default=None, help="regularizer of `ours` [default: risp-train's, else surrogate]")
 @click.option("--perceptual-weights", default=None, help="local torchvision vgg16 state dict for `perceptual` "
               "(default: the built-in filter bank)")
 @click.option("--n-train", type=int, default=None, help="training samples per environment [preset]")

@@ -49,7 +49,7 @@ def test_every_method_estimation(cache, tmp_path):
     assert cells["perceptual"]["mean"] != cells["average"]["mean"]
     assert report["perceptual_extractor"] == "filterbank"
     runs = sorted(os.listdir(os.path.join(cache, "runs")))
-    assert any("-none-" in r for r in runs) and any("-surrogate-" in r for r in runs)
+    assert cfg.reg != "none" and any("-none-" in r for r in runs) and any(f"-{cfg.reg}-" in r for r in runs)
     md = open(report["files"][0]).read()
     assert "| oracle | 0 ± 0 |" in md and "filterbank" in md
 

@@ -40,7 +40,7 @@ class TableConfig:
     epochs: int | None = None  # training epochs (None: the risp-train preset's)
     width: int | None = None  # network width (None: the risp-train preset's)
     batch_size: int | None = None  # training batch (None: the risp-train preset's)
-    reg: str = "surrogate"  # the regularizer of `ours` (the paper's surrogate, Eq. 12); `ours-no-grad`: none
+    reg: str = "surrogate"  # the regularizer of `ours` (make_config: default_reg()); `ours-no-grad`: none
     train_preset: str = "cpu"  # risp-train preset of both networks
     perceptual_weights: str | None = None  # local feature-extractor weights (methods.FeatureExtractor)
     workers: int = 1  # data workers of training
@@ -64,6 +64,7 @@ def make_config(table: str, preset: str = "cpu", quick: bool = False, **override
     if quick:
         values.update(QUICK)
     values.update({k: v for k, v in overrides.items() if v is not None})
+    values.setdefault("reg", default_reg())
     if table == "regularizers" and overrides.get("methods") is None:
         from risp_train.regularizers import REGULARIZERS
 
@@ -77,6 +78,17 @@ def make_config(table: str, preset: str = "cpu", quick: bool = False, **override
     cfg = TableConfig(table=table, preset=preset, quick=quick, **values)
     validate(cfg)
     return cfg
+
+
+def default_reg() -> str:
+    """The regularizer of `ours`: risp-train's default when it has one (not ``none``), else the paper's
+    surrogate (Eq. 12) — so the tables follow the trainer's choice."""
+    from dataclasses import fields
+
+    from risp_train.config import TrainConfig
+
+    default = next(f.default for f in fields(TrainConfig) if f.name == "reg")
+    return default if default != "none" else "surrogate"
 
 
 def validate(cfg: TableConfig) -> None:
