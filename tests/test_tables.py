@@ -183,6 +183,26 @@ def test_bad_input_is_one_error_line(tmp_path, args, message):
     assert not os.path.exists(tmp_path / "t")
 
 
+def test_cli_writes_and_prints_the_table(tmp_path):
+    from risp_tasks.cli import cli
+
+    r = CliRunner().invoke(cli, ["table", "--table", "control", "--envs", "cube", "--quick", "--repeats", "1",
+                                 "--out", str(tmp_path), "--quiet"])
+    assert r.exit_code == 0, r.output
+    assert "| average | N/A (the cube has no actions) | not found |" in r.output
+    written = r.output.strip().splitlines()[-1]
+    assert written.startswith("wrote ") and written.endswith("table.json")
+    report = json.load(open(written.split(" and ")[1]))
+    assert report["cells"]["cube"]["ours"] == {"na": "the cube has no actions", "n_na": 1, "n": 1, "paper": None}
+
+
+def test_ray_executor_runs_cells_as_ray_tasks(cache, tmp_path):
+    pytest.importorskip("ray")
+    cfg = make_config("control", quick=True, out=str(tmp_path), envs=("cube",), executor="ray", **TINY)
+    report = run_table(cfg, cache=cache, echo=lambda *_: None)
+    assert all(e["na"] == "the cube has no actions" for e in report["cells"]["cube"].values())
+
+
 def test_ray_executor_without_ray_is_a_clear_error(tmp_path):
     try:
         import ray  # noqa: F401
