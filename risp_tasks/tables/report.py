@@ -93,8 +93,11 @@ def markdown(report: dict) -> str:
                       f"(risp-train preset `{cfg['train_preset']}`); `ours-no-grad`: `--reg none`.",
                   f"- `perceptual` feature extractor: `{report['perceptual_extractor']}` "
                   "(risp_tasks/tables/methods.py)."]
+    from .sampling import SAMPLING_FRAMES
+
+    frames = SAMPLING_FRAMES if report["rows"] == "scheme" else cfg["frames"]
     lines += [f"- Sizes: {cfg['n_train']} training samples, {cfg['n_test']} test images per repeat, "
-              f"{cfg['frames']} video frames, {cfg['iterations']} optimisation iterations, spp {cfg['spp']}, "
+              f"{frames} video frames, {cfg['iterations']} optimisation iterations, spp {cfg['spp']}, "
               f"{cfg['resolution']}×{cfg['resolution']}, seed {cfg['seed']}.",
               f"- Compute: {report['seconds']:.0f} s summed over cells (max 1-min load average "
               f"{report['loadavg_max']:.1f}: timings taken under load).",
