@@ -8,6 +8,10 @@ stopped.  Data sets and networks are made through the public functions (``risp_d
 ``risp_train.train.fit``) and reused by the checksum of their configuration (:mod:`.artifacts`).  Methods are
 configuration (:mod:`.methods`), never copied scripts.  :mod:`.report` writes the markdown and JSON tables
 with mean ± std over repeats and the paper's published numbers (:mod:`.paper`) beside ours.
+
+Besides the paper's four (``TABLES``), ``--table regularizers`` compares the regularizers on the same data and
+budget (the paper's future work) and ``--table sampling`` is the rod's temporal-sampling ablation
+(:mod:`.sampling`).
 """
 
 TABLES: tuple[str, ...] = ("estimation", "sysid", "imitation", "control")
