@@ -34,9 +34,12 @@ def aggregate(results: list[dict], env: str, method: str, field: str = "value") 
     return {"mean": float(values.mean()), "std": float(values.std()), "n": len(values), "values": values.tolist()}
 
 
-def _fmt(entry: dict) -> str:
+def _fmt(entry: dict, notes: list[str]) -> str:
+    """mean ± std, or "N/A [n]" with the reason as footnote n (one footnote per distinct reason)."""
     if "na" in entry:
-        return f"N/A ({entry['na']})"
+        if entry["na"] not in notes:
+            notes.append(entry["na"])
+        return f"N/A [{notes.index(entry['na']) + 1}]"
     return f"{entry['mean']:.4g} ± {entry['std']:.2g}"
 
 
@@ -50,22 +53,23 @@ def build_report(cfg: TableConfig, results: list[dict]) -> dict:
     if cfg.table == "regularizers":
         extra["seconds_per_epoch"] = {env: {m: aggregate(results, env, m, "seconds_per_epoch") for m in cfg.methods}
                                       for env in cfg.envs}
+    paper_source = {"regularizers": "the paper has no such table (its future work)",
+                    "sampling": "the paper shows this ablation as a figure, without numbers"}.get(cfg.table, SOURCE)
+    rows = {"sampling": "scheme", "regularizers": "regularizer"}.get(cfg.table, "method")
     return {**extra, "table": cfg.table, "metric": METRICS[cfg.table], "config": cfg.to_dict(), "cells": table,
-            "ours_regularizer": cfg.reg, "perceptual_extractor": extractor or (
-                "vgg16-relu2_2" if cfg.perceptual_weights else "filterbank"),
-            "paper_source": {"regularizers": "the paper has no such table (its future work)",
-                             "sampling": "the paper shows this ablation as a figure, without numbers"}.get(cfg.table, SOURCE),
-            "rows": "scheme" if cfg.table == "sampling" else "regularizer" if cfg.table == "regularizers" else "method", "seconds": float(sum(r.get("seconds", 0.0) for r in results)),
+            "rows": rows, "ours_regularizer": cfg.reg,
+            "perceptual_extractor": extractor,  # None: no cell of this table ran `perceptual`
+            "paper_source": paper_source, "seconds": float(sum(r.get("seconds", 0.0) for r in results)),
             "loadavg_max": max((r.get("loadavg", [0])[0] for r in results), default=0.0)}
 
 
-def _rows(title: str, envs, methods, cells: dict, paper: bool) -> list[str]:
+def _rows(title: str, envs, methods, cells: dict, paper: bool, notes: list[str]) -> list[str]:
     head = f"| {title} | " + " | ".join(f"{e} (ours) | {e} (paper)" if paper else e for e in envs) + " |"
     lines = [head, "|---|" + ("---:|---:|" if paper else "---:|") * len(envs)]
     for m in methods:
         row = []
         for e in envs:
-            row.append(_fmt(cells[e][m]))
+            row.append(_fmt(cells[e][m], notes))
             if paper:
                 value = cells[e][m].get("paper")
                 row.append("not found" if value is None else f"{value:.3g}†")
@@ -80,10 +84,11 @@ def markdown(report: dict) -> str:
     lines = [f"### {report['table']} ({cfg['preset']} preset{', quick' if cfg['quick'] else ''}, "
              f"{cfg['repeats']} repeats)", "",
              f"Metric: {report['metric']}; mean ± std over repeats (lower is better).", ""]
-    lines += _rows(report["rows"], envs, methods, report["cells"], paper=report["rows"] == "method")
+    notes: list[str] = []
+    lines += _rows(report["rows"], envs, methods, report["cells"], paper=report["rows"] == "method", notes=notes)
     if regs:
         lines += ["", "Median wall time per training epoch [s] (mean ± std over repeats; under load, see below):", ""]
-        lines += _rows("regularizer", envs, methods, report["seconds_per_epoch"], paper=False)
+        lines += _rows("regularizer", envs, methods, report["seconds_per_epoch"], paper=False, notes=notes)
         lines += ["", f"- Networks: risp-train preset `{cfg['train_preset']}`, γ its per-environment default; "
                       "figure: regularizers.png."]
     elif report["rows"] == "scheme":
@@ -91,8 +96,8 @@ def markdown(report: dict) -> str:
     else:
         lines += ["", f"- `ours`: network trained with the `{report['ours_regularizer']}` regularizer "
                       f"(risp-train preset `{cfg['train_preset']}`); `ours-no-grad`: `--reg none`.",
-                  f"- `perceptual` feature extractor: `{report['perceptual_extractor']}` "
-                  "(risp_tasks/tables/methods.py)."]
+                  "- `perceptual` feature extractor: " + (f"`{report['perceptual_extractor']}` (risp_tasks/tables/methods.py)."
+                                                          if report["perceptual_extractor"] else "not used in this table.")]
     from .sampling import SAMPLING_FRAMES
 
     frames = SAMPLING_FRAMES if report["rows"] == "scheme" else cfg["frames"]
@@ -102,6 +107,7 @@ def markdown(report: dict) -> str:
               f"- Compute: {report['seconds']:.0f} s summed over cells (max 1-min load average "
               f"{report['loadavg_max']:.1f}: timings taken under load).",
               f"- † Paper numbers: {report['paper_source']}."]
+    lines += [f"- [{i}] N/A: {reason}" for i, reason in enumerate(notes, 1)]
     return "\n".join(lines)
 
 
