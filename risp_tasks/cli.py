@@ -4,6 +4,7 @@
     risp-task estimate|sysid|imitate VIDEO [--model M] [--loss render|state|oracle|pixelwise] …
     risp-task control TARGET.png [--model M] [--initial-state S.json] [--horizon 10]
     risp-task make-video --env E --out video.mp4 [--frames 20] [--fps 10] [--resolution 64] [--seed 0]
+    risp-task table --table estimation|sysid|imitation|control [--preset cpu|paper] [--repeats 4] [--quick]
 
 Thin layer: click options -> :class:`risp_tasks.diagnose.run.DiagnoseConfig` -> ``diagnose``.
 Documentation: docs/cli-task.md.
@@ -175,6 +176,45 @@ def make_video(env, out, frames, fps, resolution, spp, domain, params, effect, c
                           params=params, effect=effect, camera=camera, seed=seed, progress=not quiet)
     truth = make_reference(cfg)
     click.echo(f"wrote {out} ({frames} frames, {resolution}×{resolution}, {fps:g} fps), ground truth {truth['truth_path']}")
+
+
+# ---- BEGIN table command (owned by risp_tasks/tables; docs/tables.md) ----------------------------------------
+@cli.command()
+@click.option("--table", "table", required=True,
+              help="estimation | sysid | imitation | control (the paper's); regularizers | sampling (rod ablation)")
+@click.option("--preset", default="cpu", show_default=True, help="cpu (this machine) | paper (a GPU machine)")
+@click.option("--repeats", type=int, default=4, show_default=True, help="random looks / initial guesses per cell")
+@click.option("--quick", is_flag=True, help="smoke version: tiny data, 1 epoch, 3 iterations (minutes)")
+@click.option("--out", default="tables", show_default=True, help="folder of the tables, data sets and networks")
+@click.option("--envs", default=None, help="comma-separated environments (default: all)")
+@click.option("--methods", default=None, help="comma-separated rows: methods / regularizers / sampling schemes "
+              "(default: all; docs/tables.md)")
+@click.option("--reg", default=None, help="regularizer of `ours` [default: risp-train's, else surrogate]")
+@click.option("--perceptual-weights", default=None, help="local torchvision vgg16 state dict for `perceptual` "
+              "(default: the built-in filter bank)")
+@click.option("--n-train", type=int, default=None, help="training samples per environment [preset]")
+@click.option("--n-test", type=int, default=None, help="target-domain test images per repeat [preset]")
+@click.option("--iterations", type=int, default=None, help="optimisation iterations [preset]")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--executor", type=click.Choice(("local", "ray")), default="local", show_default=True,
+              help="ray: cells as Ray tasks (optional extra risp[ray])")
+@click.option("--quiet", is_flag=True, help="no progress bar")
+def table(table, preset, repeats, quick, out, envs, methods, reg, perceptual_weights, n_train, n_test, iterations,
+          seed, executor, quiet):
+    """One of the paper's tables: every method on every environment, mean ± std over repeats (resumable)."""
+    from risp_tasks.tables.config import make_config
+    from risp_tasks.tables.grid import run_table
+
+    def names(value):
+        return None if value is None else tuple(v.strip() for v in value.split(",") if v.strip())
+
+    cfg = make_config(table, preset=preset, quick=quick, out=out, repeats=repeats, envs=names(envs),
+                      methods=names(methods), reg=reg, perceptual_weights=perceptual_weights, n_train=n_train,
+                      n_test=n_test, iterations=iterations, seed=seed, executor=executor, progress=not quiet)
+    report = run_table(cfg, echo=click.echo)
+    click.echo(open(report["files"][0]).read())
+    click.echo(f"wrote {report['files'][0]} and {report['files'][1]}")
+# ---- END table command ---------------------------------------------------------------------------------------
 
 
 def main():

@@ -1,0 +1,128 @@
+"""Data sets, networks and reference videos of a table, made through the public functions and reused by the
+checksum of their configuration.
+
+    <cache>/data/<env>-train-<key>/       risp_data.generate.run_job (train domain, with Jacobians)
+    <cache>/data/<env>-test-r<k>-<key>/   target-domain test images of repeat k (no Jacobians)
+    <cache>/runs/<env>-<reg>-<key>/       risp_train.train.fit (key: training config + data manifest hash)
+    <cache>/videos/<env>-r<k>-<key>.mp4   risp_tasks.tasks.reference.make_reference (target domain, random look)
+
+``<key>`` is the first 12 hex digits of the sha256 of the JSON of everything that determines the artifact, so
+a changed setting makes a new artifact and an unchanged one is found again (also by another table).  Both
+run_job and fit resume a half-made artifact.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import asdict, replace
+
+from .config import TableConfig
+
+#: Seeds of the test sets and reference videos: repeat k uses TEST_SEED + k, never the training seed.
+TEST_SEED = 1000
+
+
+def checksum(obj) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:12]
+
+
+def _quiet(*_):
+    return None
+
+
+class Artifacts:
+    """Lazily made, cached artifacts of one table configuration (one environment at a time)."""
+
+    def __init__(self, cfg: TableConfig, cache: str | None = None):
+        self.cfg = cfg
+        self.root = cache or cfg.out
+
+    # ------------------------------------------------------------------ data sets
+
+    def _render(self, env: str, name: str, n: int, domain: str, seed: int, jacobian: bool) -> str:
+        from risp_data.generate import RenderJob, run_job
+
+        cfg = self.cfg
+        job = RenderJob(env=env, n=n, out="", domain=domain, formats=("wds",), resolution=cfg.resolution,
+                        spp=cfg.spp, seed=seed, workers=1, shard_size=min(64, n), jacobian=jacobian)
+        key = checksum({k: v for k, v in asdict(job).items() if k not in ("out", "workers")})
+        out = os.path.join(self.root, "data", f"{env}-{name}-{key}")
+        run_job(replace(job, out=out), progress=cfg.progress, log=_quiet)
+        return out
+
+    def train_shards(self, env: str) -> str:
+        return self._render(env, "train", self.cfg.n_train, "train", self.cfg.seed, True)
+
+    def test_shards(self, env: str, repeat: int) -> str:
+        return self._render(env, f"test-r{repeat}", self.cfg.n_test, "target", TEST_SEED + self.cfg.seed + repeat, False)
+
+    # ------------------------------------------------------------------ networks
+
+    def network(self, env: str, which: str, seed: int | None = None) -> str:
+        """Checkpoint of the network ``which`` ("none": ours-no-grad; "reg": ours with cfg.reg; or a regularizer's
+        name) trained with ``seed`` (default: the table's seed) on the environment's training set."""
+        from risp_train.config import make_config
+        from risp_train.data import manifest_hash, open_shards
+        from risp_train.train import MODEL, fit
+
+        cfg = self.cfg
+        shards = self.train_shards(env)
+        reg = cfg.reg if which == "reg" else which
+        tcfg = make_config(shards, "", preset=cfg.train_preset, reg=reg, epochs=cfg.epochs, width=cfg.width,
+                           batch_size=cfg.batch_size, seed=cfg.seed if seed is None else seed, workers=cfg.workers)
+        ident = {k: v for k, v in tcfg.to_dict().items() if k not in ("shards", "out", "workers", "threads", "device")}
+        key = checksum({**ident, "data": manifest_hash(open_shards(shards).manifest)})
+        out = os.path.join(self.root, "runs", f"{env}-{reg}-{key}")
+        model = os.path.join(out, MODEL)
+        if not os.path.exists(model):
+            fit(replace(tcfg, out=out), resume=True, progress=cfg.progress)
+        return model
+
+    # ------------------------------------------------------------------ reference videos
+
+    def video(self, env: str, repeat: int, frames: int | None = None) -> dict:
+        """The target-domain reference video of repeat ``repeat``: {"video", "truth", "actions"} paths."""
+        from risp_tasks.tasks.reference import ReferenceConfig, actions_path, make_reference, truth_path
+
+        cfg = self.cfg
+        ref = ReferenceConfig(env=env, out="", frames=frames or cfg.frames, fps=10.0, resolution=cfg.resolution, spp=cfg.spp,
+                              domain="target", seed=TEST_SEED + cfg.seed + repeat, progress=False)
+        key = checksum({k: v for k, v in asdict(ref).items() if k not in ("out", "progress")})
+        out = os.path.join(self.root, "videos", f"{env}-r{repeat}-{key}.mp4")
+        if not (os.path.exists(out) and os.path.exists(truth_path(out))):  # the truth is written last
+            make_reference(replace(ref, out=out))
+        actions = actions_path(out)
+        return {"video": out, "truth": truth_path(out), "actions": actions if os.path.exists(actions) else None}
+
+
+def prepare(cfg: TableConfig, env: str, cache: str | None = None) -> None:
+    """Make every artifact the table's cells of ``env`` read, so that concurrent cells (Ray) only read them."""
+    from .methods import get_method
+
+    art = Artifacts(cfg, cache)
+    if cfg.table == "sampling":
+        from .sampling import landscape
+
+        for r in range(cfg.repeats):
+            landscape(cfg, art, r)
+        return
+    if cfg.table == "regularizers":
+        for r in range(cfg.repeats):
+            art.test_shards(env, r)
+            for reg in cfg.methods:
+                art.network(env, reg, seed=cfg.seed + r)
+        return
+    networks = {get_method(m).network for m in cfg.methods} - {None}
+    if cfg.table == "estimation":
+        for r in range(cfg.repeats):
+            art.test_shards(env, r)
+        if {"average", "pixelwise", "perceptual"} & set(cfg.methods):
+            art.train_shards(env)
+    else:
+        networks.add("reg")  # the tasks read the initial state from a network
+        for r in range(cfg.repeats):
+            art.video(env, r)
+    for which in sorted(networks):
+        art.network(env, which)

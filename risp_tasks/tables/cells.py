@@ -1,0 +1,231 @@
+"""One function per table: a cell (environment × method × repeat) → a JSON-able result.
+
+A result is ``{"value": float, ...}`` (lower is better) or ``{"na": reason}`` — never a made-up number.
+
+* estimation — per-image L1 state error (the paper's metric: (1/S) Σ_i |ŝ_i − s_i|, angles wrapped to
+  (−π, π]; risp_train.evaluate) on the ``n_test`` target-domain images of repeat k (random looks), averaged
+  over the images.  Optimising methods start every image at the ``average`` state and run ``iterations``
+  RMSProp steps (lr ``TableConfig.lr``, momentum 0.5) through the tasks' shared loop.
+* sysid — mean absolute error of the identified parameter(s) (quadrotor mass [kg], cube log10 k_n, hand
+  joint stiffnesses (mean of 5), rod log10 E) on repeat k's target-domain reference video (risp_tasks.tasks).
+* imitation — RMSE between the reference and the reproduced states (risp_tasks.tasks ``state_rmse_final``).
+* control — per-state L1 error between the reached and the pictured state (:func:`control`).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+
+import numpy as np
+import torch
+
+from .artifacts import Artifacts
+from .methods import feature_extractor, get_method
+
+PENDING_PERCEPTUAL = ("pending: risp_tasks.tasks.loop.make_loss has no perceptual mode (the tasks need a hook for "
+                      "a custom image loss)")
+
+
+# ------------------------------------------------------------------------------------------ estimation
+
+
+def load_images(shards_dir: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """(images (N, H, W, 3) float32, states (N, S) float64) of a shard folder, in shard order."""
+    from risp_train.data import iter_batches, open_shards
+
+    batches = list(iter_batches(open_shards(shards_dir), batch_size=64))
+    return torch.cat([b["image"] for b in batches]), torch.cat([b["state"] for b in batches])
+
+
+def average_state(env, shards_dir: str) -> torch.Tensor:
+    """target_to_state of the mean network target over the training set (circular mean for sin/cos pairs)."""
+    _, states = load_images(shards_dir)
+    return env.target_to_state(env.state_to_target(states).mean(0, keepdim=True))[0]
+
+
+def optimise_states(cfg, env, images: torch.Tensor, init: torch.Tensor, loss_name: str) -> torch.Tensor:
+    """Per-image analysis by synthesis: s ← argmin ‖R(s) − I‖² (pixelwise) or ‖F(R(s)) − F(I)‖² (perceptual),
+    R = risp_data.diff_render in the train domain's nominal look, through the tasks' one loop."""
+    from risp_data.diff_render import StateRenderer
+    from risp_tasks.tasks.loop import Problem, Timer, make_loss, optimize
+
+    renderer = StateRenderer(env.name, resolution=cfg.resolution, spp=cfg.spp)
+    states = init.detach().clone().to(torch.float32).requires_grad_(True)
+    frames = list(range(len(images)))
+    if loss_name == "pixelwise":
+        loss = make_loss("pixelwise", env, frames, None, None, images, renderer=renderer)
+    else:
+        features = feature_extractor(cfg.perceptual_weights)
+        goal = features(images)
+
+        def loss(s):
+            return ((features(renderer(s, seed=0)) - goal) ** 2).mean()
+    problem = Problem(variables={"states": states}, states=lambda: states, estimates=dict)
+    optimize(problem, loss, optimizer="rmsprop", lr=cfg.lr, momentum=0.5, iterations=cfg.iterations, timer=Timer(),
+             progress=False)
+    return states.detach().to(torch.float64)
+
+
+def estimation(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> dict:
+    from risp_data.envs import get_environment
+    from risp_train.evaluate import per_image_error, state_differences
+
+    env, m = get_environment(env_name), get_method(method)
+    images, true = load_images(art.test_shards(env_name, repeat))
+    n = len(images)
+    info: dict = {}
+    if m.name == "oracle":
+        pred = true
+    elif m.name == "random":
+        rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, repeat, 0x7AB1E]))
+        pred = torch.from_numpy(np.asarray(env.sample_states(rng, n), np.float64))
+    elif m.network is not None:
+        from risp_train.predictor import load
+
+        path = art.network(env_name, m.network)
+        with torch.no_grad():
+            pred = load(path)(images).to(torch.float64)
+        info["model"] = path
+    else:
+        avg = average_state(env, art.train_shards(env_name))
+        if m.name == "average":
+            pred = avg.expand(n, -1)
+        else:
+            pred = optimise_states(cfg, env, images, avg.expand(n, -1), m.loss)
+            if m.name == "perceptual":
+                info["extractor"] = feature_extractor(cfg.perceptual_weights).name
+    diff = state_differences(pred.numpy(), true.numpy(), env.state_names)
+    e = per_image_error(diff, "l1")
+    return {"value": float(e.mean()), "std_images": float(e.std()), "n": n, "metric": "l1",
+            "per_dim_mae": np.abs(diff).mean(0).tolist(), "state_names": list(env.state_names), **info}
+
+
+# ------------------------------------------------------------------------------------------ tasks
+
+
+def _task_run(cfg, art: Artifacts, task: str, env_name: str, method: str, repeat: int, video: str | None = None,
+              truth: str | None = None, **task_kw) -> dict:
+    """One risp_tasks.tasks run of ``method`` on repeat k's reference video; the result dict."""
+    from risp_tasks.tasks.config import TaskConfig
+    from risp_tasks.tasks.run import run_task
+
+    m = get_method(method)
+    ref = art.video(env_name, repeat)
+    # every method needs a network: the tasks read the initial state from N(first two frames); the
+    # non-network methods use the `ours` network for that only
+    model = art.network(env_name, m.network or "reg")
+    loss = {None: "state", "render": "render", "pixelwise": "pixelwise", "oracle": "oracle"}[m.loss]
+    init = "default" if m.name == "average" else "random"  # optimisers start at the seeded random guess
+    iterations = 0 if m.loss is None else cfg.iterations
+    with tempfile.TemporaryDirectory(dir=art.root) as tmp:
+        tcfg = TaskConfig(task=task, video=video or ref["video"], out=os.path.join(tmp, "result"), model=model,
+                          loss=loss, init=init, iterations=iterations, seed=cfg.seed + repeat,
+                          actions=None if task == "control" else ref["actions"], truth=truth or ref["truth"],
+                          spp=cfg.spp, plots=False, progress=False, **task_kw)
+        return run_task(tcfg, echo=lambda *_: None)
+
+
+def sysid(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> dict:
+    if method == "perceptual":
+        return {"na": PENDING_PERCEPTUAL}
+    result = _task_run(cfg, art, "sysid", env_name, method, repeat)
+    errors = result["errors"]["parameter_error_final"]
+    return {"value": float(np.mean(list(errors.values()))), "errors": errors, "metric": "abs parameter error",
+            "estimates": result["estimates"]["parameters"], "final_loss": result["final_loss"]}
+
+
+def imitation(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> dict:
+    if env_name == "cube":
+        return {"na": "the cube has no actions"}
+    if method == "perceptual":
+        return {"na": PENDING_PERCEPTUAL}
+    result = _task_run(cfg, art, "imitate", env_name, method, repeat)
+    return {"value": float(result["errors"]["state_rmse_final"]), "metric": "state RMSE",
+            "initial": result["errors"].get("state_rmse_initial"), "final_loss": result["final_loss"]}
+
+
+def control(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> dict:
+    """Adapter over ``risp-task control``: from the simulator state of repeat k's reference video at frame 0,
+    reach the state pictured in its last frame (horizon = frames − 1) with the nominal simulator; the value is
+    the per-state L1 error (angles wrapped) between the reached and the pictured state."""
+    import json
+
+    from PIL import Image
+
+    from risp_tasks.sims import get_simulator
+    from risp_tasks.tasks.simulate import frame_states, initial_sim_state, steps_per_frame, to_sim_actions
+    from risp_tasks.video import read_video, to_uint8
+    from risp_train.evaluate import state_differences
+
+    if env_name == "cube":
+        return {"na": "the cube has no actions"}
+    if method == "perceptual":
+        return {"na": PENDING_PERCEPTUAL}
+    ref = art.video(env_name, repeat)
+    with open(ref["truth"]) as f:
+        truth = json.load(f)
+    horizon = cfg.frames - 1
+    goal = np.asarray(truth["env_states"][horizon], np.float64)
+    sim = get_simulator(env_name)
+    if truth.get("sim_states") is not None:
+        s0 = torch.tensor(truth["sim_states"][0], dtype=torch.float64)[None]
+    else:  # large states (the rod) are not stored: its reference videos start at rest, as initial_sim_state does
+        s0 = initial_sim_state(sim, torch.tensor(truth["env_states"][0], dtype=torch.float64), None, truth["fps"])
+    with tempfile.TemporaryDirectory(dir=art.root) as tmp:
+        goal_png, init_json, goal_json = (os.path.join(tmp, n) for n in ("goal.png", "initial.json", "goal.json"))
+        frame = read_video(ref["video"], resolution=cfg.resolution).frames[horizon]
+        Image.fromarray(to_uint8(frame)).save(goal_png)
+        with open(init_json, "w") as f:
+            json.dump({"state": s0[0].tolist()}, f)
+        with open(goal_json, "w") as f:  # the oracle loss compares the loss frame (the last) with this state
+            json.dump({"env_states": [goal.tolist()]}, f)
+        result = _task_run(cfg, art, "control", env_name, method, repeat, video=goal_png, truth=goal_json,
+                           initial_state=init_json, horizon=horizon, fps=truth["fps"])
+    params = sim.default_params()
+    actions = to_sim_actions(sim, params, torch.tensor(result["estimates"]["actions"], dtype=torch.float64))
+    with torch.no_grad():
+        reached = frame_states(sim, params, s0, actions, horizon + 1, steps_per_frame(sim, truth["fps"]))[-1]
+    diff = state_differences(reached.numpy()[None], goal[None], sim_env_names(env_name))
+    return {"value": float(np.abs(diff).mean()), "metric": "l1", "reached": reached.tolist(), "goal": goal.tolist(),
+            "final_loss": result["final_loss"]}
+
+
+def sim_env_names(env_name: str) -> tuple[str, ...]:
+    from risp_data.envs import get_environment
+
+    return get_environment(env_name).state_names
+
+
+def regularizers(cfg, art: Artifacts, env_name: str, reg: str, repeat: int) -> dict:
+    """The regularizer comparison (the paper's future work): a network trained with ``reg`` on the same training
+    set with the same budget (epochs, batch, γ preset) and training seed ``seed + repeat``; its estimation error
+    on repeat k's target-domain images and its median wall time per epoch (risp-train's history.json)."""
+    import json
+
+    from risp_data.envs import get_environment
+    from risp_train.evaluate import per_image_error, state_differences
+    from risp_train.predictor import load
+
+    env = get_environment(env_name)
+    path = art.network(env_name, reg, seed=cfg.seed + repeat)
+    images, true = load_images(art.test_shards(env_name, repeat))
+    with torch.no_grad():
+        pred = load(path)(images).to(torch.float64)
+    e = per_image_error(state_differences(pred.numpy(), true.numpy(), env.state_names), "l1")
+    with open(os.path.join(os.path.dirname(path), "history.json")) as f:
+        ends = [h["seconds"] for h in json.load(f) if h.get("epoch", -1) >= 0]
+    per_epoch = np.diff([0.0, *ends])
+    per_epoch = per_epoch[per_epoch > 0]  # a resumed run restarts its clock
+    return {"value": float(e.mean()), "std_images": float(e.std()), "n": len(images), "metric": "l1",
+            "seconds_per_epoch": float(np.median(per_epoch)) if len(per_epoch) else None, "model": path}
+
+
+def sampling(cfg, art: Artifacts, env_name: str, scheme: str, repeat: int) -> dict:
+    from .sampling import sampling as cell
+
+    return cell(cfg, art, env_name, scheme, repeat)
+
+
+CELLS = {"estimation": estimation, "sysid": sysid, "imitation": imitation, "control": control,
+         "regularizers": regularizers, "sampling": sampling}

@@ -1,0 +1,119 @@
+"""Table configuration: plain values in a frozen dataclass; the ``cpu``/``paper`` presets and ``--quick``."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, replace
+
+from risp_data.envs import ENV_NAMES
+from risp_data.errors import RispError
+
+from . import TABLES
+
+EXTRA_TABLES: tuple[str, ...] = ("regularizers", "sampling")  # the project's own: not among the paper's four
+from .methods import METHODS
+
+#: Sizes per preset.  ``cpu``: this 2-core machine (hours for all four tables); ``paper``: the paper's scale,
+#: for a GPU machine (``cuda_ad_rgb`` renders, CUDA torch).  ``--quick`` shrinks everything to a smoke run.
+PRESETS: dict[str, dict] = {
+    "cpu": dict(n_train=1000, n_test=32, resolution=64, spp=8, frames=8, iterations=50, train_preset="cpu"),
+    "paper": dict(n_train=10000, n_test=200, resolution=64, spp=16, frames=10, iterations=100, train_preset="paper"),
+}
+QUICK: dict = dict(n_train=32, n_test=4, spp=4, frames=3, iterations=3, epochs=1, width=8)
+
+
+@dataclass(frozen=True)
+class TableConfig:
+    table: str
+    out: str = "tables"
+    preset: str = "cpu"
+    repeats: int = 4
+    envs: tuple[str, ...] = ENV_NAMES
+    methods: tuple[str, ...] = METHODS
+    seed: int = 0
+    n_train: int = 1000  # training-domain samples (with Jacobians) per environment
+    n_test: int = 32  # target-domain test images per repeat (estimation)
+    resolution: int = 64
+    spp: int = 8
+    frames: int = 8  # reference-video frames (sysid, imitation; control: horizon)
+    iterations: int = 50  # optimisation iterations of the optimising methods
+    lr: float = 1e-2  # RMSProp step of the per-image state optimisation (estimation: pixelwise, perceptual)
+    epochs: int | None = None  # training epochs (None: the risp-train preset's)
+    width: int | None = None  # network width (None: the risp-train preset's)
+    batch_size: int | None = None  # training batch (None: the risp-train preset's)
+    reg: str = "surrogate"  # the regularizer of `ours` (make_config: default_reg()); `ours-no-grad`: none
+    train_preset: str = "cpu"  # risp-train preset of both networks
+    perceptual_weights: str | None = None  # local feature-extractor weights (methods.FeatureExtractor)
+    workers: int = 1  # data workers of training
+    executor: str = "local"  # local | ray
+    quick: bool = False
+    progress: bool = True
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["envs"], d["methods"] = list(self.envs), list(self.methods)
+        return d
+
+
+def make_config(table: str, preset: str = "cpu", quick: bool = False, **overrides) -> TableConfig:
+    """Preset sizes, then ``--quick``'s, then every override that is not None; validated."""
+    if table not in TABLES + EXTRA_TABLES:
+        raise RispError(f"unknown table {table!r}; choose one of: {', '.join(TABLES + EXTRA_TABLES)}")
+    if preset not in PRESETS:
+        raise RispError(f"unknown preset {preset!r}; choose one of: {', '.join(PRESETS)}")
+    values = dict(PRESETS[preset])
+    if quick:
+        values.update(QUICK)
+    values.update({k: v for k, v in overrides.items() if v is not None})
+    values.setdefault("reg", default_reg())
+    if table == "regularizers" and overrides.get("methods") is None:
+        from risp_train.regularizers import REGULARIZERS
+
+        values["methods"] = REGULARIZERS  # the rows of this table are the regularizers
+    if table == "sampling":
+        from .sampling import SCHEMES
+
+        values.setdefault("envs", ("rod",))
+        if overrides.get("methods") is None:
+            values["methods"] = SCHEMES  # the rows: temporal-sampling schemes
+    cfg = TableConfig(table=table, preset=preset, quick=quick, **values)
+    validate(cfg)
+    return cfg
+
+
+def default_reg() -> str:
+    """The regularizer of `ours`: risp-train's default when it has one (not ``none``), else the paper's
+    surrogate (Eq. 12) — so the tables follow the trainer's choice."""
+    from dataclasses import fields
+
+    from risp_train.config import TrainConfig
+
+    default = next(f.default for f in fields(TrainConfig) if f.name == "reg")
+    return default if default != "none" else "surrogate"
+
+
+def validate(cfg: TableConfig) -> None:
+    from risp_train.regularizers import REGULARIZERS
+
+    for env in cfg.envs:
+        if env not in ENV_NAMES:
+            raise RispError(f"unknown environment {env!r}; choose from: {', '.join(ENV_NAMES)}")
+    from .sampling import SCHEMES
+
+    rows, what = {"regularizers": (REGULARIZERS, "regularizer"), "sampling": (SCHEMES, "sampling scheme")}.get(
+        cfg.table, (METHODS, "method"))
+    for m in cfg.methods:
+        if m not in rows:
+            raise RispError(f"unknown {what} {m!r}; choose from: {', '.join(rows)}")
+    if cfg.reg not in REGULARIZERS or cfg.reg == "none":
+        raise RispError(f"the regularizer of `ours` must be one of: {', '.join(r for r in REGULARIZERS if r != 'none')}")
+    for name in ("repeats", "n_train", "n_test", "resolution", "spp", "frames"):
+        if getattr(cfg, name) < 1:
+            raise RispError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(cfg, name)}")
+    if cfg.iterations < 0 or not cfg.lr > 0:
+        raise RispError("--iterations must be >= 0 and --lr > 0")
+    if cfg.executor not in ("local", "ray"):
+        raise RispError(f"unknown executor {cfg.executor!r}; choose local or ray")
+
+
+def with_(cfg: TableConfig, **kw) -> TableConfig:
+    return replace(cfg, **kw)

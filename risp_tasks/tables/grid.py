@@ -1,0 +1,143 @@
+"""The cell grid of a table (environment × method × repeat) and the resumable runner.
+
+    <out>/<table>-<preset>[-quick]-<key>/config.json           the table's configuration
+    <out>/<table>-<preset>[-quick]-<key>/cells/<env>/<method>/r<k>.json   one atomic file per finished cell
+    <out>/<table>-<preset>[-quick]-<key>/table.md, table.json  the report (report.py)
+
+``<key>`` is the checksum of every setting that changes a cell's number (not of repeats, environments or
+methods: adding repeats or methods reuses the finished cells).  A cell whose file exists is never recomputed;
+a killed run resumes where it stopped.  A cell that raised is stored with ``failed`` and retried next time.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+import traceback
+from dataclasses import dataclass
+from typing import Callable
+
+from risp_data.atomic import write_text_atomic
+from risp_data.errors import RispError
+
+from .artifacts import Artifacts, checksum, prepare
+from .config import TableConfig
+
+#: settings that do not change a cell's number
+NOT_IN_KEY = ("out", "repeats", "envs", "methods", "progress", "executor", "workers")
+
+
+@dataclass(frozen=True)
+class Cell:
+    env: str
+    method: str
+    repeat: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.env}/{self.method}/r{self.repeat}"
+
+
+def grid(cfg: TableConfig) -> list[Cell]:
+    """Environment-major order, so each environment's data and networks are made once, early."""
+    return [Cell(e, m, r) for e in cfg.envs for m in cfg.methods for r in range(cfg.repeats)]
+
+
+def run_folder(cfg: TableConfig) -> str:
+    key = checksum({k: v for k, v in cfg.to_dict().items() if k not in NOT_IN_KEY})
+    return os.path.join(cfg.out, f"{cfg.table}-{cfg.preset}{'-quick' if cfg.quick else ''}-{key}")
+
+
+def cell_path(folder: str, cell: Cell) -> str:
+    return os.path.join(folder, "cells", cell.env, cell.method, f"r{cell.repeat}.json")
+
+
+def read_cell(path: str) -> dict | None:
+    """A finished cell's result, or None when absent or failed (to be (re)computed)."""
+    if not os.path.exists(path):
+        return None
+    with open(path) as f:
+        result = json.load(f)
+    return None if result.get("failed") else result
+
+
+def compute_cell(cfg: TableConfig, cell: Cell, folder: str, cache: str | None) -> dict:
+    """Compute one cell and store it atomically; an exception becomes a stored ``failed`` N/A result."""
+    from .cells import CELLS
+
+    started = time.perf_counter()
+    try:
+        result = CELLS[cfg.table](cfg, Artifacts(cfg, cache), cell.env, cell.method, cell.repeat)
+    except (KeyboardInterrupt, SystemExit):
+        raise
+    except Exception as e:  # noqa: BLE001 - one failing cell must not end a four-hour run
+        line = str(e).splitlines()[0] if str(e) else ""
+        result = {"na": f"failed: {type(e).__name__}: {line}", "failed": True,
+                  "traceback": traceback.format_exc(limit=8)}
+    result.update({"table": cfg.table, "env": cell.env, "method": cell.method, "repeat": cell.repeat,
+                   "seed": cfg.seed, "seconds": time.perf_counter() - started, "loadavg": list(os.getloadavg())})
+    write_text_atomic(cell_path(folder, cell), json.dumps(result, indent=1, sort_keys=True) + "\n")
+    return result
+
+
+def run_table(cfg: TableConfig, cache: str | None = None, on_cell: Callable[[Cell, dict], None] | None = None,
+              echo: Callable[[str], None] = print) -> dict:
+    """Compute every missing cell of ``cfg`` (resuming), then write and return the report."""
+    from tqdm.auto import tqdm
+
+    from .report import write_report
+
+    folder = run_folder(cfg)
+    os.makedirs(folder, exist_ok=True)
+    write_text_atomic(os.path.join(folder, "config.json"), json.dumps(cfg.to_dict(), indent=1, sort_keys=True) + "\n")
+    cells = grid(cfg)
+    todo = [c for c in cells if read_cell(cell_path(folder, c)) is None]
+    echo(f"{cfg.table}: {len(cells) - len(todo)} of {len(cells)} cells done, {len(todo)} to run; results: {folder}")
+    if cfg.executor == "ray" and todo:
+        _run_ray(cfg, todo, folder, cache, on_cell)
+    else:
+        with tqdm(todo, unit="cell", desc=cfg.table, disable=not cfg.progress) as bar:
+            for cell in bar:
+                bar.set_description(f"{cfg.table} {cell.name}")
+                result = compute_cell(cfg, cell, folder, cache)
+                if on_cell is not None:
+                    on_cell(cell, result)
+    results = [read_cell(cell_path(folder, c)) or _failed(folder, c) for c in cells]
+    return write_report(cfg, folder, results)
+
+
+def _failed(folder: str, cell: Cell) -> dict:
+    with open(cell_path(folder, cell)) as f:
+        return json.load(f)
+
+
+def _require_ray():
+    try:
+        import ray
+    except ImportError:
+        raise RispError("--executor ray needs the optional ray extra: pip install 'risp[ray]'") from None
+    return ray
+
+
+def _run_ray(cfg: TableConfig, todo: list[Cell], folder: str, cache: str | None, on_cell) -> None:
+    """Each environment's artifacts as one Ray task (so no two tasks make the same one), then every cell as a
+    Ray task (a running cluster when RAY_ADDRESS is set, else a local one)."""
+    from tqdm.auto import tqdm
+
+    ray = _require_ray()
+    if not ray.is_initialized():
+        ray.init()
+    remote_prepare = ray.remote(prepare)
+    remote_cell = ray.remote(compute_cell)
+    ray.get([remote_prepare.remote(cfg, env, cache) for env in sorted({c.env for c in todo})])
+    pending = {remote_cell.remote(cfg, c, folder, cache): c for c in todo}
+    with tqdm(total=len(todo), unit="cell", desc=f"{cfg.table} (ray)", disable=not cfg.progress) as bar:
+        while pending:
+            done, _ = ray.wait(list(pending), num_returns=1)
+            cell = pending.pop(done[0])
+            result = ray.get(done[0])
+            bar.set_description(f"{cfg.table} {cell.name} done")
+            bar.update(1)
+            if on_cell is not None:
+                on_cell(cell, result)

@@ -1,0 +1,244 @@
+"""risp-task table (risp_tasks/tables): every method on a tiny configuration, resume, bad input.
+
+The configurations are tiny (8 training samples, 2 test images, 1 epoch, 1–2 iterations): these tests check
+the machinery and that each method does what it says, not accuracy (docs/RESULTS.md holds the real tables).
+Data sets and networks are shared by the tests of this module through one cache folder.
+"""
+
+import json
+import math
+import os
+
+import pytest
+import torch
+from click.testing import CliRunner
+
+from risp_data.errors import RispError
+from risp_tasks.tables.config import make_config
+from risp_tasks.tables.grid import Cell, cell_path, run_folder, run_table
+from risp_tasks.tables.methods import METHODS, FilterBank, VGG_BLOCK, feature_extractor
+
+pytestmark = pytest.mark.timeout(300)
+
+TINY = dict(n_train=8, n_test=2, iterations=2, spp=1, width=4, epochs=1, batch_size=4, frames=3, repeats=1, progress=False)
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    torch.set_num_threads(1)
+    return str(tmp_path_factory.mktemp("cache"))
+
+
+def _cells(report, env):
+    return report["cells"][env]
+
+
+def test_every_method_estimation(cache, tmp_path):
+    cfg = make_config("estimation", quick=True, out=str(tmp_path), envs=("cube",), **TINY)
+    report = run_table(cfg, cache=cache, echo=lambda *_: None)
+    cells = _cells(report, "cube")
+    assert set(cells) == set(METHODS)
+    for m, entry in cells.items():
+        assert "na" not in entry, (m, entry)
+        assert math.isfinite(entry["mean"]) and entry["n"] == 1
+    assert cells["oracle"]["mean"] == 0.0
+    assert cells["average"]["mean"] > 0
+    # the optimising methods moved away from their start (the average state) and the two networks differ in
+    # nothing but the regularizer: their runs are two different checkpoints
+    assert cells["pixelwise"]["mean"] != cells["average"]["mean"]
+    assert cells["perceptual"]["mean"] != cells["average"]["mean"]
+    assert report["perceptual_extractor"] == "filterbank"
+    runs = sorted(os.listdir(os.path.join(cache, "runs")))
+    assert cfg.reg != "none" and any("-none-" in r for r in runs) and any(f"-{cfg.reg}-" in r for r in runs)
+    md = open(report["files"][0]).read()
+    assert "| oracle | 0 ± 0 |" in md and "filterbank" in md
+
+
+def test_every_method_sysid_and_imitation(cache, tmp_path):
+    cfg = make_config("sysid", quick=True, out=str(tmp_path), envs=("cube",), **TINY)
+    cells = _cells(run_table(cfg, cache=cache, echo=lambda *_: None), "cube")
+    for m in set(METHODS) - {"perceptual"}:
+        assert "na" not in cells[m] and math.isfinite(cells[m]["mean"]), (m, cells[m])
+    assert cells["perceptual"]["na"].startswith("pending:")
+    # average = middle of the range, no optimisation: |0.5·(low+high) − truth| for log10 k_n in [5.5, 6.5)
+    assert 0 <= cells["average"]["mean"] <= 0.5
+    cfg = make_config("imitation", quick=True, out=str(tmp_path), envs=("cube",), **TINY)
+    cells = _cells(run_table(cfg, cache=cache, echo=lambda *_: None), "cube")
+    assert all(e["na"] == "the cube has no actions" for e in cells.values())
+
+
+def test_imitation_runs_on_an_actuated_system(cache, tmp_path):
+    cfg = make_config("imitation", quick=True, out=str(tmp_path), envs=("rod",),
+                      methods=("average", "random", "pixelwise", "ours", "oracle"), **TINY)
+    cells = _cells(run_table(cfg, cache=cache, echo=lambda *_: None), "rod")
+    for m, entry in cells.items():
+        assert "na" not in entry and math.isfinite(entry["mean"]) and entry["mean"] >= 0, (m, entry)
+
+
+def test_control_reaches_for_the_pictured_state(cache, tmp_path):
+    cfg = make_config("control", quick=True, out=str(tmp_path), envs=("rod",), methods=("average", "ours", "oracle"),
+                      **TINY)
+    report = run_table(cfg, cache=cache, echo=lambda *_: None)
+    for m, entry in report["cells"]["rod"].items():
+        assert "na" not in entry and math.isfinite(entry["mean"]) and entry["mean"] >= 0, (m, entry)
+    cell = json.load(open(cell_path(report["folder"], Cell("rod", "oracle", 0))))
+    assert len(cell["reached"]) == len(cell["goal"]) == 10  # the rod's ten sensor heights
+
+
+def test_regularizer_comparison(cache, tmp_path):
+    cfg = make_config("regularizers", quick=True, out=str(tmp_path), envs=("cube",), **dict(TINY, epochs=2))
+    assert cfg.methods == ("none", "surrogate", "exact", "stochastic")
+    report = run_table(cfg, cache=cache, echo=lambda *_: None)
+    for reg in cfg.methods:
+        err, sec = report["cells"]["cube"][reg], report["seconds_per_epoch"]["cube"][reg]
+        assert math.isfinite(err["mean"]) and sec["mean"] > 0, (reg, err, sec)
+    # same data and budget, different regularizers: four different networks
+    models = {json.load(open(cell_path(report["folder"], Cell("cube", r, 0))))["model"] for r in cfg.methods}
+    assert len(models) == 4
+    assert os.path.getsize(os.path.join(report["folder"], "regularizers.png")) > 1000
+    with pytest.raises(RispError, match="unknown regularizer 'ours'"):
+        make_config("regularizers", methods=("ours",))
+
+
+def test_rod_temporal_sampling_ablation(cache, tmp_path):
+    from risp_tasks.tables.sampling import SCHEMES, scheme_frames
+
+    assert scheme_frames("every-5th", 11) == [0, 5, 10] and scheme_frames("first-middle", 11) == [0, 5]
+    cfg = make_config("sampling", quick=True, out=str(tmp_path), **TINY)
+    assert cfg.envs == ("rod",) and cfg.methods == SCHEMES
+    report = run_table(cfg, cache=cache, echo=lambda *_: None)
+    cells = [json.load(open(cell_path(report["folder"], Cell("rod", s, 0)))) for s in SCHEMES]
+    for c in cells:
+        assert len(c["losses"]) == len(c["grid"]) == 5 and min(c["losses"]) >= 0
+        assert c["value"] == pytest.approx(abs(c["grid"][c["losses"].index(min(c["losses"]))] - c["true"]))
+        assert 4 <= c["true"] < 7
+    # the schemes see different frames, so their landscapes differ
+    assert cells[0]["losses"] != cells[3]["losses"]
+    assert os.path.getsize(os.path.join(report["folder"], "sampling.png")) > 1000
+
+
+class Killed(Exception):
+    pass
+
+
+def test_killed_and_resumed_run_gives_the_same_table(cache, tmp_path):
+    kw = dict(TINY, repeats=2)
+    methods = ("average", "random", "ours", "oracle")
+    whole = run_table(make_config("estimation", quick=True, out=str(tmp_path / "a"), envs=("cube",),
+                                  methods=methods, **kw), cache=cache, echo=lambda *_: None)
+    cfg = make_config("estimation", quick=True, out=str(tmp_path / "b"), envs=("cube",), methods=methods, **kw)
+    seen = []
+
+    def kill_after_3(cell, result):
+        seen.append(cell)
+        if len(seen) == 3:
+            raise Killed
+
+    with pytest.raises(Killed):
+        run_table(cfg, cache=cache, on_cell=kill_after_3, echo=lambda *_: None)
+    folder = run_folder(cfg)
+    cells = [Cell("cube", m, r) for m in methods for r in range(2)]
+    assert sum(os.path.exists(cell_path(folder, c)) for c in cells) == 3
+    assert not os.path.exists(os.path.join(folder, "table.json"))
+    seen.clear()
+    resumed = run_table(cfg, cache=cache, on_cell=lambda c, r: seen.append(c), echo=lambda *_: None)
+    assert len(seen) == len(cells) - 3  # only the missing cells ran
+    for m in methods:
+        a, b = whole["cells"]["cube"][m], resumed["cells"]["cube"][m]
+        assert a["values"] == pytest.approx(b["values"], rel=1e-9, abs=1e-12), m
+    strip = lambda text: [ln for ln in text.splitlines() if not ln.startswith("- Compute")]  # noqa: E731
+    assert strip(open(whole["files"][0]).read()) == strip(open(resumed["files"][0]).read())
+
+
+def test_failed_cell_is_stored_and_retried(cache, tmp_path, monkeypatch):
+    from risp_tasks.tables import cells as cells_mod
+
+    cfg = make_config("estimation", quick=True, out=str(tmp_path), envs=("cube",), methods=("average",), **TINY)
+
+    def boom(*a, **k):
+        raise RuntimeError("disk on fire")
+
+    monkeypatch.setitem(cells_mod.CELLS, "estimation", boom)
+    report = run_table(cfg, cache=cache, echo=lambda *_: None)
+    assert report["cells"]["cube"]["average"]["na"] == "failed: RuntimeError: disk on fire"
+    monkeypatch.undo()
+    report = run_table(cfg, cache=cache, echo=lambda *_: None)
+    assert math.isfinite(report["cells"]["cube"]["average"]["mean"])
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--table", "lighting"], "Error: unknown table 'lighting'; choose one of: estimation, sysid, imitation, control"),
+    (["--table", "estimation", "--methods", "average,magic"], "Error: unknown method 'magic'"),
+    (["--table", "estimation", "--envs", "cube,mars"], "Error: unknown environment 'mars'"),
+    (["--table", "estimation", "--preset", "tpu"], "Error: unknown preset 'tpu'; choose one of: cpu, paper"),
+    (["--table", "estimation", "--reg", "none"], "Error: the regularizer of `ours` must be one of"),
+])
+def test_bad_input_is_one_error_line(tmp_path, args, message):
+    from risp_tasks.cli import cli
+
+    r = CliRunner().invoke(cli, ["table", *args, "--out", str(tmp_path / "t")])
+    assert r.exit_code == 1
+    lines = r.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(message), r.output
+    assert not os.path.exists(tmp_path / "t")
+
+
+def test_cli_writes_and_prints_the_table(tmp_path):
+    from risp_tasks.cli import cli
+
+    r = CliRunner().invoke(cli, ["table", "--table", "control", "--envs", "cube", "--quick", "--repeats", "1",
+                                 "--out", str(tmp_path), "--quiet"])
+    assert r.exit_code == 0, r.output
+    assert "| average | N/A [1] | not found |" in r.output and "- [1] N/A: the cube has no actions" in r.output
+    written = r.output.strip().splitlines()[-1]
+    assert written.startswith("wrote ") and written.endswith("table.json")
+    report = json.load(open(written.split(" and ")[1]))
+    assert report["cells"]["cube"]["ours"] == {"na": "the cube has no actions", "n_na": 1, "n": 1, "paper": None}
+
+
+def test_ray_executor_runs_cells_as_ray_tasks(cache, tmp_path):
+    pytest.importorskip("ray")
+    cfg = make_config("control", quick=True, out=str(tmp_path), envs=("cube",), executor="ray", **TINY)
+    report = run_table(cfg, cache=cache, echo=lambda *_: None)
+    assert all(e["na"] == "the cube has no actions" for e in report["cells"]["cube"].values())
+
+
+def test_ray_executor_without_ray_is_a_clear_error(tmp_path):
+    try:
+        import ray  # noqa: F401
+        pytest.skip("ray is installed")
+    except ImportError:
+        pass
+    cfg = make_config("control", quick=True, out=str(tmp_path), envs=("rod",), executor="ray", **TINY)
+    with pytest.raises(RispError, match=r"pip install 'risp\[ray\]'"):
+        run_table(cfg, echo=lambda *_: None)
+
+
+def test_feature_extractors(tmp_path):
+    x = torch.rand(2, 16, 16, 3, dtype=torch.float64, requires_grad=True)
+    fb = feature_extractor(None)
+    assert isinstance(fb, FilterBank)
+    assert torch.equal(fb(x), fb(x))
+    assert torch.autograd.gradcheck(lambda i: fb(i)[:, ::97], (x,))
+    # a local VGG-16 state dict (torchvision's key names) is loaded and used
+    gen = torch.Generator().manual_seed(0)
+    state, i = {}, 0
+    for spec in VGG_BLOCK:
+        if spec != "pool":
+            state[f"features.{i}.weight"] = torch.randn(spec[1], spec[0], 3, 3, generator=gen) * 0.1
+            state[f"features.{i}.bias"] = torch.zeros(spec[1])
+            i += 2
+        else:
+            i += 1
+    state["classifier.0.weight"] = torch.zeros(1)
+    path = tmp_path / "vgg16.pth"
+    torch.save(state, path)
+    vgg = feature_extractor(str(path))
+    assert vgg.name == "vgg16-relu2_2"
+    assert torch.equal(vgg.features[0].weight, state["features.0.weight"])
+    assert vgg(x.float().detach()).shape == (2, 128 * 8 * 8)
+    (tmp_path / "bad.pth").write_bytes(b"not a state dict")
+    with pytest.raises(RispError, match="bad.pth: not a torchvision vgg16 state dict"):
+        feature_extractor(str(tmp_path / "bad.pth"))
+    with pytest.raises(RispError, match="missing.pth: perceptual weights file not found"):
+        feature_extractor(str(tmp_path / "missing.pth"))
