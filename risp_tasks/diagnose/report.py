@@ -205,9 +205,11 @@ def markdown(report: dict) -> str:
     L.append(f"**Cause: `{report['cause']}`** — {report['reason']}.\n")
     if report["parameters"]:
         L.append("## Fitted parameters (model `" + report["selected_model"] + "`)\n")
-        L.append("| parameter | value | ± 1σ | unit |\n|---|---|---|---|")
+        L.append("| parameter | value | ± 1σ (robust) | unit | note |\n|---|---|---|---|---|")
         for n, p in report["parameters"].items():
-            L.append(f"| {n} | {_fmt(p['value'])} | {_fmt(p['std'], 2)} | {p['unit']} |")
+            note = f"**at its {p['at_bound']} limit {p['limit']:.4g}**: the fit is bounded, not determined" \
+                if p.get("at_bound") else ""
+            L.append(f"| {n} | {_fmt(p['value'])} | {_fmt(p['std'], 2)} | {p['unit']} | {note} |")
         L.append("")
     L.append("## Held-out error: base vs `" + report["compared_model"] + "`\n")
     L.append("| quantity | group | base | extended | gain |\n|---|---|---|---|---|")
@@ -217,6 +219,8 @@ def markdown(report: dict) -> str:
         for grp in be[key]:
             unit = unit_of(grp) if key != "one_step_acceleration" else ("m/s²" if grp == "acceleration" else "rad/s²")
             L.append(f"| {label} | {grp} [{unit}] | {_fmt(be[key][grp])} | {_fmt(ee[key][grp])} | {g[key][grp]:+.1%} |")
+    L.append(f"| rollout error / noise σ (RMS over channels) | all | {_fmt(be['rollout_normalized'])} | "
+             f"{_fmt(ee['rollout_normalized'])} | {g['rollout_normalized']:+.1%} |")
     L.append(f"| normalised held-out RSS | all | {_fmt(be['normalized_rss'])} | {_fmt(ee['normalized_rss'])} | {g['normalized_rss']:+.1%} |")
     L.append(f"| residual / noise floor ρ | all | {_fmt(be['noise_floor_ratio'], 3)} | {_fmt(ee['noise_floor_ratio'], 3)} | |\n")
     L.append("## Ranking (held-out BIC)\n")
@@ -226,6 +230,13 @@ def markdown(report: dict) -> str:
     t = report["thresholds"]
     L.append(f"\nThresholds: ΔBIC ≥ {t['delta_bic_min']:g} and RSS reduction ≥ {t['min_rss_reduction']:.0%} to beat a model; "
              f"ρ ≤ {t['noise_floor_ratio_max']:g} counts as explained (docs/diagnose.md).\n")
+    deps = report.get("residual_dependence") or []
+    if deps:
+        L.append("## Remaining dependence of the selected model's held-out residual (docs/diagnose.md §6)\n")
+        L.append("| regressor | channel | p (Bonferroni) | η² | significant |\n|---|---|---|---|---|")
+        for d in deps[:5]:
+            L.append(f"| {d['regressor']} | {d['channel']} | {d['p_value']:.2g} | {d['eta2']:.3f} | {'yes' if d['significant'] else 'no'} |")
+        L.append("")
     if report["candidate_parameters"]:
         L.append("## Fitted parameters of every candidate\n")
         L.append("| model | parameter | value | ± 1σ |\n|---|---|---|---|")

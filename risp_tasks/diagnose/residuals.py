@@ -119,13 +119,15 @@ def accel_rms(obs: Observer, os_: OneStep) -> dict[str, float]:
     return out
 
 
-def rollout_error(sim, obs: Observer, params: torch.Tensor, trajs: list[Trajectory], k: int, horizon: int) -> dict[str, float]:
-    """RMS error per group after ``horizon`` open-loop samples from every non-overlapping segment start."""
+def rollout_error(sim, obs: Observer, params: torch.Tensor, trajs: list[Trajectory], k: int, horizon: int,
+                  sigma=1.0) -> dict:
+    """Error after ``horizon`` open-loop samples from every non-overlapping segment start: RMS per group
+    (SI units, ``groups``) and the RMS over all channels in units of each channel's noise σ (``normalized``)."""
     seg = make_segments(sim, trajs, horizon=horizon, k=k, stride=horizon)
     with torch.no_grad():
         pred = predict(sim, params, seg)
         err = obs.error(pred[:, -1], seg.meas[:, -1]).numpy()
-    return group_rms(obs, err)
+    return {"groups": group_rms(obs, err), "normalized": float(np.sqrt(np.mean((err / sigma) ** 2)))}
 
 
 def unit_of(group: str) -> str:

@@ -20,7 +20,8 @@ from . import candidates as cands
 from .adapter import Observer, calibrate_floor
 from .fit import FitConfig, FitResult, channel_sigma, estimate_noise, fit_model, make_segments
 from .residuals import accel_rms, group_rms, one_step, rollout_error
-from .select import RHO_MAX, Score, decide, held_out_score, noise_floor
+from .dependence import residual_dependence
+from .select import RHO_MAX, Score, bound_flag, check_dependence, decide, held_out_score, noise_floor
 
 
 @dataclass(frozen=True)
@@ -78,6 +79,8 @@ class Evaluated:
     score: Score
     k: int
     obs: Observer
+    seg_held: object = None
+    sigma: torch.Tensor | None = None
 
 
 def _segments(model, trajs, cfg: DiagnoseConfig, k: int, salt: int):
@@ -102,7 +105,7 @@ def evaluate_model(effects: tuple[str, ...], fit_trajs, held_trajs, cfg: Diagnos
     score = held_out_score(fit, obs, seg_held, sigma)
     score.noise_rss = noise_floor(fit, obs, seg_held, sigma, noise, seed=cfg.seed)
     score.rho = score.rss / max(score.noise_rss, 1e-300)
-    return Evaluated(fit, score, k, obs)
+    return Evaluated(fit, score, k, obs, seg_held, sigma)
 
 
 def errors(ev: Evaluated, held_trajs, cfg: DiagnoseConfig) -> dict:
@@ -111,10 +114,13 @@ def errors(ev: Evaluated, held_trajs, cfg: DiagnoseConfig) -> dict:
     os_ = one_step(sim, ev.obs, params, held_trajs, ev.k)
     H_r = cfg.rollout_horizon or 3 * cfg.horizon
     H_r = min(H_r, min(tr.n for tr in held_trajs) - 1)
+    sigma = ev.sigma.numpy() if ev.sigma is not None else 1.0
+    roll = rollout_error(sim, ev.obs, params, held_trajs, ev.k, H_r, sigma=sigma)
     return {
         "one_step": group_rms(ev.obs, os_.error),
         "one_step_acceleration": accel_rms(ev.obs, os_),
-        "rollout": rollout_error(sim, ev.obs, params, held_trajs, ev.k, H_r),
+        "rollout": roll["groups"],
+        "rollout_normalized": roll["normalized"],
         "rollout_horizon_samples": int(H_r),
         "rollout_horizon_s": float(H_r * held_trajs[0].dt),
         "normalized_rss": ev.score.rss,
@@ -128,6 +134,8 @@ def gain(base: dict, ext: dict) -> dict:
     for key in ("one_step", "one_step_acceleration", "rollout"):
         out[key] = {g: (1.0 - ext[key][g] / base[key][g]) if base[key][g] > 0 else 0.0 for g in base[key]}
     out["normalized_rss"] = 1.0 - ext["normalized_rss"] / base["normalized_rss"] if base["normalized_rss"] > 0 else 0.0
+    out["rollout_normalized"] = 1.0 - ext["rollout_normalized"] / base["rollout_normalized"] \
+        if base["rollout_normalized"] > 0 else 0.0
     return out
 
 
@@ -192,6 +200,9 @@ def _diagnose(cfg: DiagnoseConfig) -> dict:
 
     decision = decide(base.score, [s.score for s in singles], [p.score for p in pairs])
     chosen = evaluated[decision.selected.name]
+    # no confident wrong names: the selected model's held-out residual must not depend on a regressor
+    dependence = residual_dependence(chosen.fit, chosen.obs, chosen.sigma, held_trajs, cfg.horizon, chosen.k, cfg.seed)
+    decision = check_dependence(decision, dependence)
     ext_for_gain = chosen if decision.selected.name != "base" else (
         evaluated[decision.best_candidate.name] if decision.best_candidate is not None else base)
 
@@ -206,7 +217,8 @@ def _diagnose(cfg: DiagnoseConfig) -> dict:
             eff = sim.spec.available_effects[e]
             for p, u in zip(eff.param_names, eff.units or ("",) * len(eff.param_names)):
                 units[f"{e}.{p}"] = u
-        return {n: {"value": v, "std": ev.fit.stds.get(n, float("nan")), "unit": units.get(n, "")}
+        return {n: {"value": v, "std": ev.fit.stds.get(n, float("nan")), "unit": units.get(n, ""),
+                    **bound_flag(ev.fit.model, n, v)}
                 for n, v in ev.fit.values.items()}
 
     report = {
@@ -219,6 +231,7 @@ def _diagnose(cfg: DiagnoseConfig) -> dict:
         "candidate_parameters": {name: params_of(ev) for name, ev in evaluated.items() if ev.fit.model.effects},
         "fixed_parameters": {n: float(v) for n, v in zip(base.fit.model.sim.param_names, base.fit.model.base)},
         "ranking": ranking,
+        "residual_dependence": [d.as_dict() for d in dependence[:10]],
         "base_error": base_err,
         "extended_error": ext_err,
         "gain": gain(base_err, ext_err),

@@ -154,3 +154,37 @@ def decide(base: Score, singles: list[Score], pairs: list[Score]) -> Decision:
     return Decision(chosen.name, chosen, chosen,
                     f"{chosen.name} beats the base model (ΔBIC = {chosen.delta_bic(base):.1f}, held-out RSS −"
                     f"{chosen.rss_reduction(base):.0%}) and leaves the residual at the noise floor (ρ = {chosen.rho:.2f})")
+
+
+def check_dependence(decision: Decision, dependence) -> Decision:
+    """A named cause (or ``none``) whose held-out residual still depends on a regressor becomes
+    ``unexplained`` with the regressor in the reason (risp_tasks.diagnose.dependence)."""
+    sig = [d for d in dependence if d.significant]
+    if not sig:
+        return decision
+    d = sig[0]
+    if decision.cause == "unexplained":  # already no name: say what the residual still depends on
+        return Decision("unexplained", decision.selected, decision.best_candidate,
+                        f"{decision.reason}; the held-out residual of {decision.selected.name} still depends on "
+                        f"{d.regressor} (channel {d.channel}: p = {d.p_value:.1e}, η² = {d.eta2:.2f})")
+    what = f"{decision.cause} lowers the residual" if decision.cause != "none" else "the base model reaches the noise floor"
+    return Decision("unexplained", decision.selected, decision.best_candidate,
+                    f"{what} ({decision.reason}), but its held-out residual still depends on {d.regressor} "
+                    f"(channel {d.channel}: p = {d.p_value:.1e}, η² = {d.eta2:.2f}): not a confident name")
+
+
+#: A fitted value within this fraction of the limits' span of a limit is reported as at its bound.
+AT_BOUND = 0.01
+
+
+def bound_flag(model, name: str, value: float) -> dict:
+    """{"at_bound": "lower"/"upper"} when a fitted parameter sits at (within 1 % of) a limit of its search
+    interval (the plausible range widened by its width; docs/diagnose.md §2), else {}."""
+    i = model.free.index(name)
+    lo, hi = float(model.lower[i]), float(model.upper[i])
+    span = hi - lo if math.isfinite(hi - lo) else abs(value) + 1.0
+    if math.isfinite(lo) and value - lo <= AT_BOUND * span:
+        return {"at_bound": "lower", "limit": lo}
+    if math.isfinite(hi) and hi - value <= AT_BOUND * span:
+        return {"at_bound": "upper", "limit": hi}
+    return {}
