@@ -152,43 +152,83 @@ def fly(effect=None, par=None, seed=0, n=4, samples=300, dt=0.01, rate_hz=1000, 
     return t, np.stack(states, 1), np.stack(cmds, 1)
 
 
-def measured(t, states, seed, noise=NOISE):
-    """Per flight: dict of measured columns (scalar-first quaternion, body rates) with white noise."""
+def measured(t, states, seed, noise=NOISE, phi=0.0):
+    """Per flight: dict of measured columns (scalar-first quaternion, body rates) with white noise, or AR(1)
+    noise of lag-1 correlation ``phi`` (what a filter leaves)."""
     rng = np.random.default_rng(seed + 1000)
+
+    def draw(shape):
+        e = rng.standard_normal(shape)
+        for i in range(1, shape[0]):
+            e[i] = phi * e[i - 1] + math.sqrt(1 - phi * phi) * e[i]
+        return e
+
     out = []
     for b in range(states.shape[0]):
         s = states[b]
         N = len(t)
-        d = noise["attitude"] * rng.standard_normal((N, 3))
+        d = noise["attitude"] * draw((N, 3))
         q = qmul(s[:, 3:7], np.concatenate([np.ones((N, 1)), 0.5 * d], 1))
         q /= np.linalg.norm(q, axis=1, keepdims=True)
         q *= np.sign(q[:, :1])
         cols = {"t": t}
         for i, c in enumerate("xyz"):
-            cols[c] = s[:, i] + noise["position"] * rng.standard_normal(N)
+            cols[c] = s[:, i] + noise["position"] * draw((N,))
         for i, c in enumerate(("qw", "qx", "qy", "qz")):
             cols[c] = q[:, i]
         for i, c in enumerate(("vx", "vy", "vz")):
-            cols[c] = s[:, 7 + i] + noise["velocity"] * rng.standard_normal(N)
+            cols[c] = s[:, 7 + i] + noise["velocity"] * draw((N,))
         for i, c in enumerate(("wx", "wy", "wz")):
-            cols[c] = s[:, 10 + i] + noise["angular velocity"] * rng.standard_normal(N)
+            cols[c] = s[:, 10 + i] + noise["angular velocity"] * draw((N,))
         out.append(cols)
     return out
 
 
 SIDECAR = {"env": "quadrotor", "mass": 3.0, "inertia": [0.0583, 0.0583, 0.1099], "arm_length": 0.3,
-           "rotor_layout": "+", "yaw_torque_coefficient": 0.02, "gravity": 9.81}
+           "rotor_layout": "+", "yaw_torque_coefficient": 0.02, "gravity": 9.81,
+           "angular_velocity_frame": "body"}
 
 
-def write_flights(folder, effect=None, par=None, seed=0, n=4, samples=300, low=None):
+def write_flights(folder, effect=None, par=None, seed=0, n=4, samples=300, low=None, phi=0.0, sidecar=None):
     """Fly, add noise, write CSV + sidecar per flight (docs/measured-data.md); returns the folder."""
     from risp_tasks.measured import write_trajectory_csv
 
     low = effect in ("ground_effect", "ground_effect_centre") if low is None else low
     t, states, cmds = fly(effect, par, seed=seed, n=n, samples=samples, low=low)
     folder.mkdir(parents=True, exist_ok=True)
-    for b, cols in enumerate(measured(t, states, seed)):
+    for b, cols in enumerate(measured(t, states, seed, phi=phi)):
         for i in range(4):
             cols[f"f{i}"] = cmds[b, :, i]
-        write_trajectory_csv(folder / f"flight_{b}.csv", cols, SIDECAR)
+        write_trajectory_csv(folder / f"flight_{b}.csv", cols, sidecar or SIDECAR)
+    return folder
+
+
+#: A PX4-like quad-X: motors 1..4 = front-right, rear-left, front-left, rear-right (x forward, y left, z up),
+#: 1 and 2 counter-clockwise; 0.16 m arms, 2.6 kg.
+PX4_ANGLES_DEG = (-45.0, 135.0, 45.0, -135.0)
+PX4_SPIN = (1, 1, -1, -1)
+PX4_FULL_THRUST = 12.0  # N per rotor at command 1 (the true thrust map f = 12·u)
+PX4_SIDECAR = {"env": "quadrotor", "mass": 2.6, "inertia": [0.025, 0.025, 0.045], "arm_length": 0.16,
+               "rotor_layout": "x", "rotor_angles_deg": list(PX4_ANGLES_DEG), "rotor_spin": list(PX4_SPIN),
+               "yaw_torque_coefficient": 0.016, "quaternion_order": "xyzw", "angular_velocity_frame": "world",
+               "actuator": "pwm", "pwm_range": [1000, 2000], "hover_throttle": 0.55}
+
+
+def write_px4_flights(folder, wind, seed=0, n=4, samples=300):
+    """Flights of the PX4-like vehicle in a constant wind, logged in PX4-like conventions: header
+    t,x,y,z,vx,vy,vz,qx,qy,qz,qw (scalar last), world-frame rates, per-motor PWM in [1000, 2000] µs."""
+    from risp_tasks.measured import write_trajectory_csv
+
+    veh = Vehicle(mass=2.6, inertia=(0.025, 0.025, 0.045), arm=0.16, angles=np.radians(PX4_ANGLES_DEG),
+                  spin=PX4_SPIN, k_m=0.016)
+    t, states, cmds = fly("wind", dict(zip(("fx", "fy", "fz"), wind)), seed=seed, n=n, samples=samples, veh=veh)
+    folder.mkdir(parents=True, exist_ok=True)
+    for b, cols in enumerate(measured(t, states, seed)):
+        q = np.stack([cols[c] for c in ("qw", "qx", "qy", "qz")], 1)
+        w_world = np.einsum("nij,nj->ni", rotmat(q), np.stack([cols[c] for c in ("wx", "wy", "wz")], 1))
+        out = {k: cols[k] for k in ("t", "x", "y", "z", "vx", "vy", "vz", "qx", "qy", "qz", "qw")}
+        out.update(wx=w_world[:, 0], wy=w_world[:, 1], wz=w_world[:, 2])
+        for i in range(4):
+            out[f"pwm{i}"] = 1000.0 + 1000.0 * cmds[b, :, i] / PX4_FULL_THRUST
+        write_trajectory_csv(folder / f"log_{b}.csv", out, PX4_SIDECAR)
     return folder

@@ -81,3 +81,39 @@ def test_error_bars_cover_the_truth(tmp_path_factory):
             total += 1
             within += abs(got["value"] - truth) <= 3 * got["std"]
     assert within >= 0.9 * total, (within, total)
+
+
+def test_px4_style_log_fits_a_known_wind(tmp_path):
+    """X frame with PX4 motor numbering, 0.16 m arms, scalar-last quaternion, world-frame rates, PWM with a
+    hover throttle: read as declared in the sidecar, the thrust map k_f is fitted and the wind recovered."""
+    from diagnose_independent import PX4_FULL_THRUST, write_px4_flights
+
+    wind = (6.0, -3.0, 1.0)
+    folder = write_px4_flights(tmp_path / "px4", wind, seed=9)
+    rep = diagnose(DiagnoseConfig(data=(str(folder),), env="quadrotor", out=None, seed=9, pairs_top=2,
+                                  progress=False, plots=False, effects=("wind", "air_drag", "motor_lag")))
+    assert rep["cause"] == "wind", rep["reason"]
+    for name, truth in zip(("fx", "fy", "fz"), wind):
+        got = rep["parameters"][f"wind.{name}"]
+        assert abs(got["value"] - truth) <= 0.2 * abs(truth), (name, got)
+    assert rep["parameters"]["k_f"]["value"] == pytest.approx(PX4_FULL_THRUST, rel=0.05)
+
+
+def test_filtered_noise_is_modelled_and_declared_noise_is_used(tmp_path):
+    """Issue 12 §noise: time-correlated (AR(1), φ = 0.8) measurement noise on effect-free flights.  White-noise
+    assumptions put the floor far too low; the AR(1) noise model keeps the base at the floor (`none`) and says
+    so; a sidecar that declares the sensor noise is used as given."""
+    from diagnose_independent import NOISE, SIDECAR
+
+    folder = write_flights(tmp_path / "filtered", None, {}, seed=11, phi=0.8)
+    rep = diagnose(DiagnoseConfig(data=(str(folder),), env="quadrotor", out=None, seed=1, pairs_top=2,
+                                  progress=False, plots=False, effects=("wind", "air_drag")))
+    assert rep["noise_model"]["filtered"] and rep["noise_model"]["source"].startswith("estimated")
+    assert rep["cause"] == "none", rep["reason"]
+    declared = {**SIDECAR, "measurement_noise": NOISE, "measurement_noise_correlation": 0.8}
+    folder = write_flights(tmp_path / "declared", None, {}, seed=11, phi=0.8, sidecar=declared)
+    rep = diagnose(DiagnoseConfig(data=(str(folder),), env="quadrotor", out=None, seed=1, pairs_top=2,
+                                  progress=False, plots=False, effects=("wind", "air_drag")))
+    assert rep["noise_model"]["source"] == "declared in the sidecar"
+    assert rep["noise"] == NOISE and rep["noise_model"]["lag1_correlation"]["velocity"] == 0.8
+    assert rep["cause"] == "none" and rep["base_error"]["noise_floor_ratio"] <= 1.3, rep["reason"]

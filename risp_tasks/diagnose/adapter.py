@@ -134,6 +134,10 @@ def sim_actions(sim, traj: Trajectory, base_params: torch.Tensor | None = None) 
     """
     if sim.action_dim == 0:
         return None
+    if traj.command is not None:
+        # normalised rotor commands u ∈ [0, 1] are the simulator's action; its k_f (N per unit command,
+        # fitted: candidates.BASE_FREE) is the thrust map f = k_f·u (docs/measured-data.md §Actuators)
+        return traj.command
     if traj.thrust is not None:
         f = traj.thrust
         p = base_params if base_params is not None else sim.default_params(1)[0]

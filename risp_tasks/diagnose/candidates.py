@@ -163,7 +163,15 @@ def build_model(env: str, effects: tuple[str, ...], sidecar: Sidecar, sample_dt:
     base_ranges = dict(zip(sim.spec.base_param_names, getattr(sim.spec, "base_param_ranges", None) or ()))
     free = [n for n in BASE_FREE.get(env, ()) if n in sim.param_names]
     scale, lower, upper = [], [], []
-    for n in free:
+    if env == "quadrotor" and str(sidecar.get("actuator", "thrust")).lower() in ("normalized", "pwm"):
+        # normalised commands: the thrust map f = k_f·u is fitted, starting from hover m·g = 4·k_f·u_hover
+        k_f0 = float(base[sim.param_index("mass")]) * 9.81 / (4 * float(sidecar.get("hover_throttle")))
+        base[sim.param_index("k_f")] = k_f0
+        free.append("k_f")
+        scale.append(0.25 * k_f0)
+        lower.append(0.25 * k_f0)
+        upper.append(4.0 * k_f0)
+    for n in free[len(scale):]:
         if n in base_ranges:
             lo, hi = map(float, base_ranges[n])
             width = hi - lo

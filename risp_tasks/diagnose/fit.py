@@ -86,36 +86,42 @@ def make_segments(sim, trajs: list[Trajectory], horizon: int, k: int, stride: in
     """
     stride = stride or horizon
     latent = any(e.state_names for e in sim.spec.available_effects.values())
-    s0, acts, past, meas, ti, st = [], [], [], [], [], []
+    # choose the segments first (index pairs only), then build just those: a 200 MB log has ~10⁵ segments
+    # and materialising all of them before subsampling took gigabytes
+    pairs = []
     for j, tr in enumerate(trajs):
+        has_actions = sim.action_dim > 0
+        first = WARMUP_SAMPLES if latent and has_actions and tr.n - WARMUP_SAMPLES > 2 * horizon else 0
+        pairs += [(j, i) for i in range(first, tr.n - horizon, stride)]
+    if not pairs:
+        raise RispError(f"no trajectory is longer than the segment horizon ({horizon} samples); use a smaller --horizon")
+    idx = np.arange(len(pairs))
+    if max_segments is not None and len(idx) > max_segments:
+        if rng is None:
+            raise ValueError("a generator is needed to subsample segments")
+        idx = np.sort(rng.choice(len(idx), size=max_segments, replace=False))
+    chosen = [pairs[i] for i in idx]
+    s0, acts, past, meas = [], [], [], []
+    for j in sorted({j for j, _ in chosen}):
+        tr = trajs[j]
         a = sim_actions(sim, tr, params)
         x = sim_states(sim, tr, a)
         if a is not None:
             a_pad = np.concatenate([np.repeat(a[:1], WARMUP_SAMPLES, 0), a], 0)
-        first = WARMUP_SAMPLES if latent and a is not None and tr.n - WARMUP_SAMPLES > 2 * horizon else 0
-        for i in range(first, tr.n - horizon, stride):
+        for _, i in (p for p in chosen if p[0] == j):
             s0.append(x[i])
             meas.append(x[i : i + horizon + 1])
             if a is not None:
                 acts.append(np.repeat(a[i : i + horizon], k, axis=0))
                 past.append(np.repeat(a_pad[i : i + WARMUP_SAMPLES], k, axis=0))
-            ti.append(j)
-            st.append(i)
-    if not s0:
-        raise RispError(f"no trajectory is longer than the segment horizon ({horizon} samples); use a smaller --horizon")
-    idx = np.arange(len(s0))
-    if max_segments is not None and len(idx) > max_segments:
-        if rng is None:
-            raise ValueError("a generator is needed to subsample segments")
-        idx = np.sort(rng.choice(len(idx), size=max_segments, replace=False))
-    t = lambda arr: torch.as_tensor(np.stack([arr[i] for i in idx]), dtype=DTYPE)  # noqa: E731
+    t = lambda arr: torch.as_tensor(np.stack(arr), dtype=DTYPE)  # noqa: E731
     return Segments(
         s0=consistent_start(sim, t(s0)),
         actions=t(acts) if acts else None,
         past_actions=t(past) if past else None,
         meas=t(meas),
-        traj_index=np.asarray(ti)[idx],
-        start=np.asarray(st)[idx],
+        traj_index=np.asarray([j for j, _ in chosen]),
+        start=np.asarray([i for _, i in chosen]),
         horizon=horizon,
         k=k,
         sample_dt=float(np.median([tr.dt for tr in trajs])),
@@ -125,20 +131,17 @@ def make_segments(sim, trajs: list[Trajectory], horizon: int, k: int, stride: in
 # ------------------------------------------------------------------------------------------------
 # measurement noise
 # ------------------------------------------------------------------------------------------------
-def estimate_noise(sim, trajs: list[Trajectory], window: int = 7) -> dict[str, float]:
-    """Measurement-noise standard deviation per channel group (docs/diagnose.md §Noise).
+#: A lag-1 noise correlation φ below this is treated as white noise (φ = 0).
+MIN_NOISE_CORRELATION = 0.2
 
-    A local quadratic (Savitzky–Golay, ``window`` samples) is fitted around every sample; for white noise
-    of level σ the centre residual has variance σ²(1 − h), h the filter's centre weight.  The median of
-    the squared residuals (÷ 0.4549, the median of χ²₁) is robust to impacts and other rare jumps.
-    Attitude: the rotation vector between the measured and the smoothed (renormalised) quaternion.
-    """
+
+def _sg_residuals(sim, trajs: list[Trajectory], window: int) -> dict[str, list[np.ndarray]]:
+    """Centre residuals (n, c) of a local quadratic (Savitzky–Golay) fit, per channel group and trajectory."""
     from scipy.signal import savgol_coeffs
 
     obs = Observer(sim)
     coef = savgol_coeffs(window, 2)
-    h = coef[window // 2]
-    sq: dict[str, list[np.ndarray]] = {g: [] for g in obs.groups}
+    out: dict[str, list[np.ndarray]] = {g: [] for g in obs.groups}
     for tr in trajs:
         if tr.n < window + 2:
             continue
@@ -157,14 +160,70 @@ def estimate_noise(sim, trajs: list[Trajectory], window: int = 7) -> dict[str, f
                 r = 2.0 * np.sign(rel[:, :1] + 1e-300) * rel[:, 1:]
             else:
                 r = centre - smooth
-            sq[g].append((r**2).ravel())
-    out = {}
-    for g in obs.groups:
-        if not sq[g]:
-            raise RispError(f"trajectories are too short to estimate the measurement noise (need > {window + 2} samples)")
-        var = np.median(np.concatenate(sq[g])) / 0.4549 / (1.0 - h)
-        out[g] = float(max(np.sqrt(var), NOISE_FLOOR.get(g, 1e-8)))
+            out[g].append(r)
     return out
+
+
+def _sg_noise_factors(window: int, phi: float) -> tuple[float, float]:
+    """For AR(1) noise of unit variance and lag-1 correlation φ: (variance of the SG centre residual,
+    its lag-1 autocorrelation).  r_t = Σ_i d_i n_{t+i} with d = δ_centre − SG coefficients."""
+    from scipy.signal import savgol_coeffs
+
+    d = -savgol_coeffs(window, 2)
+    d[window // 2] += 1.0
+    i = np.arange(window)
+    cov0 = float(d @ (phi ** np.abs(i[:, None] - i[None, :])) @ d)
+    cov1 = float(d @ (phi ** np.abs(i[:, None] - i[None, :] - 1)) @ d)
+    return cov0, cov1 / cov0
+
+
+def noise_model(sim, trajs: list[Trajectory], window: int = 7, declared: dict | None = None,
+                declared_phi: float = 0.0) -> tuple[dict, dict, dict]:
+    """(σ per group, lag-1 correlation φ per group, description) of the measurement noise (docs §4).
+
+    Estimated: noise is modelled as AR(1) per channel group, n_t = φ n_{t−1} + √(1−φ²) e_t (φ = 0: white;
+    filtered logs have φ > 0).  φ is found from the lag-1 autocorrelation of the Savitzky–Golay residuals
+    (which is a known, monotone function of φ), σ from their robust variance divided by the residual
+    variance that AR(1) noise of unit variance gives.  φ < MIN_NOISE_CORRELATION counts as white.
+    Declared (sidecar ``measurement_noise``: {group: σ}, optional ``measurement_noise_correlation``: φ):
+    used as given for the groups it names.
+    """
+    res = _sg_residuals(sim, trajs, window)
+    grid = np.linspace(0.0, 0.99, 100)
+    table = [_sg_noise_factors(window, f) for f in grid]
+    sigma, phi = {}, {}
+    for g, rs in res.items():
+        if not rs:
+            raise RispError(f"trajectories are too short to estimate the measurement noise (need > {window + 2} samples)")
+        r = np.concatenate(rs)
+        mad = np.median(np.abs(r)) + 1e-300
+        clipped = [np.clip(x, -5 * mad / 0.6745, 5 * mad / 0.6745) for x in rs]  # impacts must not set φ
+        num = sum(float((x[1:] * x[:-1]).sum()) for x in clipped)
+        den = sum(float((x * x).sum()) for x in clipped)
+        ac = num / max(den, 1e-300)
+        j = int(np.argmin([abs(t[1] - ac) for t in table]))
+        f = float(grid[j]) if grid[j] >= MIN_NOISE_CORRELATION else 0.0
+        var0 = table[j][0] if f > 0 else _sg_noise_factors(window, 0.0)[0]
+        var = np.median(r**2) / 0.4549 / var0
+        sigma[g] = float(max(np.sqrt(var), NOISE_FLOOR.get(g, 1e-8)))
+        phi[g] = f
+    info = {"source": "estimated (Savitzky–Golay residuals, AR(1) noise model)",
+            "lag1_correlation": dict(phi), "declared_groups": []}
+    for g, v in (declared or {}).items():
+        if g in sigma:
+            sigma[g] = float(v)
+            phi[g] = float(declared_phi)
+            info["declared_groups"].append(g)
+    if info["declared_groups"]:
+        info["source"] = "declared in the sidecar" + (" (others estimated)" if len(info["declared_groups"]) < len(sigma) else "")
+    info["lag1_correlation"] = dict(phi)
+    info["filtered"] = any(v > 0 for v in phi.values())
+    return sigma, phi, info
+
+
+def estimate_noise(sim, trajs: list[Trajectory], window: int = 7) -> dict[str, float]:
+    """Measurement-noise standard deviation per channel group (:func:`noise_model`, estimated)."""
+    return noise_model(sim, trajs, window)[0]
 
 
 def channel_sigma(obs: Observer, noise: dict[str, float]) -> torch.Tensor:

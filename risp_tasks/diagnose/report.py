@@ -22,9 +22,20 @@ PLOTS = {
 }
 
 
+def _named(path: Path, write) -> None:
+    """Run ``write``; an OSError (disk full, permissions) is re-raised naming ``path``, not a temp name."""
+    try:
+        write()
+    except OSError as e:
+        raise OSError(e.errno, e.strerror or str(e), str(path)) from None
+
+
 def _savefig(fig, path: Path) -> None:
-    with atomic_write(path, "wb", suffix=".png") as f:
-        fig.savefig(f, format="png", dpi=110, bbox_inches="tight")
+    def write():
+        with atomic_write(path, "wb", suffix=".png") as f:
+            fig.savefig(f, format="png", dpi=110, bbox_inches="tight")
+
+    _named(path, write)
 
 
 def _json_default(o):
@@ -50,6 +61,7 @@ def _clean(o):
 # plots
 # ------------------------------------------------------------------------------------------------
 MAX_PLOTTED_CHANNELS = 6
+MAX_OVERLAY_SAMPLES = 3000
 
 
 def _top_channels(accel: np.ndarray) -> list[int]:
@@ -130,6 +142,7 @@ def plot_gain(path: Path, base_ev, ext_ev, held_trajs, horizon: int) -> None:
     import matplotlib.pyplot as plt
 
     tr = max(held_trajs, key=lambda t: t.n)
+    tr = tr.slice(0, min(tr.n, MAX_OVERLAY_SAMPLES), "")  # a long log: its first part is plenty to look at
     H = max(1, min(horizon, tr.n - 1))
     series = {}
     for label, ev in (("base", base_ev), ("extended", ext_ev)):
@@ -249,7 +262,14 @@ def markdown(report: dict) -> str:
     L.append(f"- {len(report['data']['files'])} file(s), {report['data']['samples']} samples, Δ = {report['data']['sample_interval_s']:.5g} s; sidecar: {report['data']['sidecar']}")
     L.append(f"- split by {s['mode']} (seed {s['seed']}): fitting {', '.join(s['fit'])}; held out {', '.join(s['held_out'])}")
     n = report["noise"]
-    L.append("- estimated measurement noise (1σ): " + ", ".join(f"{k} {_fmt(v, 3)} {unit_of(k)}" for k, v in n.items()))
+    nm = report.get("noise_model") or {}
+    L.append(f"- measurement noise (1σ), {nm.get('source', 'estimated')}: "
+             + ", ".join(f"{k} {_fmt(v, 3)} {unit_of(k)}" for k, v in n.items()))
+    if nm.get("filtered"):
+        L.append("- the noise is time-correlated (filtered data): lag-1 correlation "
+                 + ", ".join(f"{k} {v:.2f}" for k, v in nm["lag1_correlation"].items())
+                 + "; σ and the noise-floor bootstrap use an AR(1) noise model (docs/diagnose.md §4). "
+                   "Declare the sensor noise in the sidecar (`measurement_noise`) where it is known.")
     f = report["fit"]
     L.append(f"- multiple shooting: segments of {f['horizon_samples']} samples, {f['substeps_per_sample']} simulator step(s) of {f['sim_dt_s']:.4g} s per sample")
     L.append(f"- runtime {report['runtime_s']:.1f} s\n")
@@ -263,14 +283,16 @@ def write_report(report: dict, cfg, evaluated, base_ev, ext_ev, fit_trajs, held_
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     if cfg.plots:
-        os_b = one_step(base_ev.fit.model.sim, base_ev.obs, base_ev.fit.params, held_trajs, base_ev.k)
+        cap = dict(max_samples=10 * cfg.max_segments, seed=cfg.seed)
+        os_b = one_step(base_ev.fit.model.sim, base_ev.obs, base_ev.fit.params, held_trajs, base_ev.k, **cap)
         os_e = None
         if ext_ev is not base_ev:
-            os_e = one_step(ext_ev.fit.model.sim, ext_ev.obs, ext_ev.fit.params, held_trajs, ext_ev.k)
+            os_e = one_step(ext_ev.fit.model.sim, ext_ev.obs, ext_ev.fit.params, held_trajs, ext_ev.k, **cap)
         plot_residuals_time(out / PLOTS["residuals_time"], os_b, os_e, ("base", ext_ev.fit.model.name))
         plot_residuals_regressors(out / PLOTS["residuals_regressors"], os_b)
         plot_gain(out / PLOTS["gain"], base_ev, ext_ev, held_trajs, report["base_error"]["rollout_horizon_samples"])
         plot_ranking(out / PLOTS["ranking"], report)
         report["plots"] = {k: str(out / v) for k, v in PLOTS.items()}
-    write_text_atomic(out / "report.json", json.dumps(_clean(report), indent=2, default=_json_default))
-    write_text_atomic(out / "report.md", markdown(report))
+    text = json.dumps(_clean(report), indent=2, default=_json_default)
+    _named(out / "report.json", lambda: write_text_atomic(out / "report.json", text))
+    _named(out / "report.md", lambda: write_text_atomic(out / "report.md", markdown(report)))

@@ -69,16 +69,31 @@ def held_out_score(fit: FitResult, obs: Observer, seg: Segments, sigma: torch.Te
     return Score(fit.model.name, fit.model.effects, k, rss, n, n_eff, bic)
 
 
-def _perturb(obs: Observer, states: torch.Tensor, noise: dict[str, float], gen: torch.Generator) -> torch.Tensor:
-    """Add white measurement noise of the estimated level to simulator states (..., X)."""
+def _noise(shape, phi: float, gen: torch.Generator) -> torch.Tensor:
+    """Unit-variance noise of ``shape`` (S, T, c): white, or AR(1) with lag-1 correlation φ along T (filtered
+    logs; fit.noise_model), stationary from the first sample."""
+    e = torch.randn(shape, generator=gen, dtype=DTYPE)
+    if phi <= 0 or len(shape) < 3:
+        return e
+    out = [e[:, 0]]
+    c = math.sqrt(1 - phi * phi)
+    for t in range(1, shape[1]):
+        out.append(phi * out[-1] + c * e[:, t])
+    return torch.stack(out, 1)
+
+
+def _perturb(obs: Observer, states: torch.Tensor, noise: dict[str, float], gen: torch.Generator,
+             phi: dict[str, float] | None = None) -> torch.Tensor:
+    """Add measurement noise of the estimated level (and lag-1 correlation) to simulator states (S, T, X)."""
+    phi = phi or {}
     out = states.clone()
     if not obs.rigid:
         for i, g in enumerate(obs.group_of_channel()):
-            out[..., i] += noise[g] * torch.randn(states.shape[:-1], generator=gen, dtype=DTYPE)
+            out[..., i] += noise[g] * _noise(states.shape[:-1] + (1,), phi.get(g, 0.0), gen)[..., 0]
         return out
     for idx, g in ((obs.i_pos, "position"), (obs.i_vel, "velocity"), (obs.i_om, "angular velocity")):
-        out[..., idx] += noise[g] * torch.randn(states.shape[:-1] + (3,), generator=gen, dtype=DTYPE)
-    d = noise["attitude"] * torch.randn(states.shape[:-1] + (3,), generator=gen, dtype=DTYPE)
+        out[..., idx] += noise[g] * _noise(states.shape[:-1] + (3,), phi.get(g, 0.0), gen)
+    d = noise["attitude"] * _noise(states.shape[:-1] + (3,), phi.get("attitude", 0.0), gen)
     if obs.quat:
         q = states[..., obs.i_att]
         dq = torch.cat([torch.ones_like(d[..., :1]), 0.5 * d], -1)
@@ -93,7 +108,7 @@ def _perturb(obs: Observer, states: torch.Tensor, noise: dict[str, float], gen: 
 
 
 def noise_floor(fit: FitResult, obs: Observer, seg: Segments, sigma: torch.Tensor, noise: dict[str, float],
-                seed: int, replicas: int = BOOTSTRAP_REPLICAS) -> float:
+                seed: int, replicas: int = BOOTSTRAP_REPLICAS, phi: dict[str, float] | None = None) -> float:
     """Held-out RSS expected from measurement noise alone if ``fit`` were the true model (bootstrap mean)."""
     gen = torch.Generator().manual_seed(int(seed))
     sim = fit.model.sim
@@ -101,7 +116,7 @@ def noise_floor(fit: FitResult, obs: Observer, seg: Segments, sigma: torch.Tenso
     with torch.no_grad():
         clean = predict(sim, fit.params, seg)  # (S, H+1, X)
         for _ in range(replicas):
-            noisy = _perturb(obs, clean, noise, gen)
+            noisy = _perturb(obs, clean, noise, gen, phi)
             fake = seg.with_states(consistent_start(sim, noisy[:, 0]), noisy)
             pred = predict(sim, fit.params, fake)
             e = robust(obs.error(pred[:, 1:], noisy[:, 1:]) / sigma)
