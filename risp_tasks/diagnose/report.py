@@ -61,6 +61,28 @@ def _clean(o):
 # plots
 # ------------------------------------------------------------------------------------------------
 MAX_PLOTTED_CHANNELS = 6
+SMOOTH_SAMPLES = 11  # moving-average window of the smoothed residual curves
+
+
+def _robust_ylim(ax, *arrays) -> None:
+    """y limits from the 1st–99th percentiles (impact outliers must not flatten a few m/s² of friction)."""
+    y = np.concatenate([np.ravel(a) for a in arrays if a is not None and np.size(a)])
+    if y.size == 0:
+        return
+    lo, hi = np.percentile(y, [1, 99])
+    pad = 0.15 * (hi - lo) + 1e-12
+    ax.set_ylim(lo - pad, hi + pad)
+
+
+def _smooth(y: np.ndarray, n: int = SMOOTH_SAMPLES) -> np.ndarray:
+    """Centred moving average (shorter at the ends): measurement noise / Δ averages out, a bias stays."""
+    if len(y) < 3:
+        return y
+    n = min(n, len(y) if len(y) % 2 else len(y) - 1)
+    k = np.ones(n) / n
+    num = np.convolve(y, k, mode="same")
+    den = np.convolve(np.ones_like(y), k, mode="same")
+    return num / den
 MAX_OVERLAY_SAMPLES = 3000
 
 
@@ -86,14 +108,21 @@ def plot_residuals_time(path: Path, os_base, os_ext, names: tuple[str, str]) -> 
         ax = axes[row, 0]
         for j in trajs:
             m = os_base.traj == j
-            ax.plot(os_base.t[m], os_base.accel[m, c], lw=0.8, color="C3", alpha=0.8, label=names[0] if j == trajs[0] else None)
+            ax.plot(os_base.t[m], os_base.accel[m, c], lw=0.5, color="C3", alpha=0.25)
+            ax.plot(os_base.t[m], _smooth(os_base.accel[m, c]), lw=1.4, color="C3",
+                    label=f"{names[0]} ({SMOOTH_SAMPLES}-sample mean)" if j == trajs[0] else None)
             if os_ext is not None:
-                ax.plot(os_ext.t[m], os_ext.accel[m, c], lw=0.8, color="C0", alpha=0.8, label=names[1] if j == trajs[0] else None)
+                me = os_ext.traj == j
+                ax.plot(os_ext.t[me], os_ext.accel[me, c], lw=0.5, color="C0", alpha=0.25)
+                ax.plot(os_ext.t[me], _smooth(os_ext.accel[me, c]), lw=1.4, color="C0",
+                        label=f"{names[1]} ({SMOOTH_SAMPLES}-sample mean)" if j == trajs[0] else None)
         ax.set_ylabel(os_base.accel_names[c], fontsize=8)
         ax.axhline(0, color="k", lw=0.5)
+        _robust_ylim(ax, os_base.accel[:, c], None if os_ext is None else os_ext.accel[:, c])
     axes[0, 0].legend(fontsize=7, loc="upper right")
     axes[-1, 0].set_xlabel("time [s] (held-out trajectories, up to 3)")
-    fig.suptitle("one-step acceleration residuals a_meas − a_model (m/s², rad/s²)", fontsize=10)
+    fig.suptitle("one-step acceleration residuals a_meas − a_model (m/s², rad/s²); faint: raw, bold: moving mean; "
+                 "y: 1st–99th percentile", fontsize=9)
     _savefig(fig, path)
     plt.close(fig)
 
@@ -124,12 +153,17 @@ def plot_residuals_regressors(path: Path, os_base) -> None:
                 means = [y[idx == b].mean() for b in range(10) if np.any(idx == b)]
                 ax.plot(mids, means, "-o", ms=2.5, color="k", lw=1)
             ax.axhline(0, color="k", lw=0.4)
+            _robust_ylim(ax, y)
+            xl = np.percentile(x, [0.5, 99.5])
+            if xl[1] > xl[0]:
+                ax.set_xlim(xl[0] - 0.05 * (xl[1] - xl[0]), xl[1] + 0.05 * (xl[1] - xl[0]))
             ax.tick_params(labelsize=6)
             if row == A - 1:
                 ax.set_xlabel(name, fontsize=7)
             if r == 0:
                 ax.set_ylabel(os_base.accel_names[c], fontsize=7)
-    fig.suptitle("base-model one-step acceleration residuals vs candidate regressors (black: binned means)", fontsize=9)
+    fig.suptitle("base-model one-step acceleration residuals vs candidate regressors (black: binned means; "
+                 "axes: 1st–99th percentile)", fontsize=9)
     _savefig(fig, path)
     plt.close(fig)
 
@@ -182,23 +216,36 @@ def ev_name(ev) -> str:
 
 
 def plot_ranking(path: Path, report: dict) -> None:
+    """The decision: held-out ΔBIC vs base (left) and the noise-floor ratio ρ (right), thresholds dashed."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rows = [r for r in report["ranking"] if r["model"] != "base"]
+    rows = report["ranking"][::-1]
     if not rows:
         return
-    names = [r["model"] for r in rows][::-1]
-    vals = [r["delta_bic"] for r in rows][::-1]
-    fig, ax = plt.subplots(figsize=(7, 0.35 * len(rows) + 1.2))
-    ax.barh(names, vals, color=["C0" if v >= report["thresholds"]["delta_bic_min"] else "C7" for v in vals])
-    ax.axvline(report["thresholds"]["delta_bic_min"], color="k", ls="--", lw=0.8, label="ΔBIC threshold")
-    ax.set_xscale("symlog")
-    ax.set_xlabel("held-out ΔBIC vs base (larger is better)")
-    ax.legend(fontsize=7)
-    ax.set_title(f"cause: {report['cause']}", fontsize=10)
+    th = report["thresholds"]
+    names = [r["model"] for r in rows]
+    dbic = [r["delta_bic"] for r in rows]
+    rho = [r["noise_floor_ratio"] if r["noise_floor_ratio"] is not None else float("nan") for r in rows]
+    sel = report.get("selected_model")
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 0.35 * len(rows) + 1.4), sharey=True)
+    beat = [d >= th["delta_bic_min"] and r["rss_reduction"] >= th["min_rss_reduction"] for d, r in zip(dbic, rows)]
+    a1.barh(names, dbic, color=["C0" if b else "C7" for b in beat],
+            edgecolor=["k" if n == sel else "none" for n in names])
+    a1.axvline(th["delta_bic_min"], color="k", ls="--", lw=0.8, label=f"ΔBIC = {th['delta_bic_min']:g}")
+    a1.set_xscale("symlog")
+    a1.set_xlabel("held-out ΔBIC vs base (larger is better)")
+    a1.legend(fontsize=7)
+    a2.barh(names, rho, color=["C2" if v <= th["noise_floor_ratio_max"] else "C3" for v in rho],
+            edgecolor=["k" if n == sel else "none" for n in names])
+    a2.axvline(th["noise_floor_ratio_max"], color="k", ls="--", lw=0.8, label=f"ρ = {th['noise_floor_ratio_max']:g}")
+    a2.axvline(1.0, color="k", lw=0.5)
+    a2.set_xscale("log")
+    a2.set_xlabel("held-out RSS / noise floor ρ (≈ 1: only noise left)")
+    a2.legend(fontsize=7)
+    fig.suptitle(f"cause: {report['cause']} (selected: {sel}, outlined); blue/green: passes, grey/red: fails", fontsize=9)
     _savefig(fig, path)
     plt.close(fig)
 
