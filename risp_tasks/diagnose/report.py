@@ -312,11 +312,12 @@ def markdown(report: dict) -> str:
     nm = report.get("noise_model") or {}
     L.append(f"- measurement noise (1σ), {nm.get('source', 'estimated')}: "
              + ", ".join(f"{k} {_fmt(v, 3)} {unit_of(k)}" for k, v in n.items()))
-    if nm.get("filtered"):
-        L.append("- the noise is time-correlated (filtered data): lag-1 correlation "
-                 + ", ".join(f"{k} {v:.2f}" for k, v in nm["lag1_correlation"].items())
-                 + "; σ and the noise-floor bootstrap use an AR(1) noise model (docs/diagnose.md §4). "
-                   "Declare the sensor noise in the sidecar (`measurement_noise`) where it is known.")
+    if nm.get("time_correlated") and not nm.get("declared_groups"):
+        L.append("- **the estimated noise looks time-correlated** (lag-1 AR(1) fit of the smoothing residuals: "
+                 + ", ".join(f"{k} {v:.2f}" for k, v in nm["lag1_correlation_estimate"].items())
+                 + "): filtered data, or motion too fast for the 7-sample smoother. σ and ρ assume white noise and "
+                   "are then only indicative; declare the sensor noise in the sidecar (`measurement_noise`, "
+                   "`measurement_noise_correlation`) where it is known (docs/diagnose.md §4).")
     f = report["fit"]
     L.append(f"- multiple shooting: segments of {f['horizon_samples']} samples, {f['substeps_per_sample']} simulator step(s) of {f['sim_dt_s']:.4g} s per sample")
     L.append(f"- runtime {report['runtime_s']:.1f} s\n")
