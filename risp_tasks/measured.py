@@ -55,11 +55,13 @@ CHOICES = {
     "quaternion_order": ("wxyz", "xyzw"),
     "angular_velocity_frame": ("body", "world"),
     "rotor_layout": ("+", "x"),
-    "actuator": ("thrust", "normalized", "pwm"),
+    "actuator": ("thrust", "normalized", "pwm", "collective", "collective_normalized"),
 }
 #: Actuator columns: per-rotor thrust [N], normalised command [0, 1], or PWM [µs] mapped to [0, 1] by pwm_range.
 ACTUATOR_COLUMNS = {"thrust": THRUST_COLUMNS, "normalized": ("u0", "u1", "u2", "u3"),
-                    "pwm": ("pwm0", "pwm1", "pwm2", "pwm3")}
+                    "pwm": ("pwm0", "pwm1", "pwm2", "pwm3"),
+                    # collective commands: diagnose's translational mode (attitude from the data)
+                    "collective": ("thrust",), "collective_normalized": ("throttle",)}
 NUMBERED_QUAT = ("q0", "q1", "q2", "q3")
 
 MAX_ABS_POSITION = 1000.0  # m
@@ -100,7 +102,9 @@ class Trajectory:
     vel_estimated: bool = False
     omega_estimated: bool = False
     extra: dict = field(default_factory=dict)
-    command: np.ndarray | None = None  # (N, 4) normalised rotor commands in [0, 1] (actuator "normalized"/"pwm")
+    # (N, 4) normalised rotor commands in [0, 1] (actuator "normalized"/"pwm"), or (N, 1) a collective command
+    # (actuator "collective" [N] / "collective_normalized" [0, 1])
+    command: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -226,7 +230,7 @@ def _check_sidecar(values: dict, env: str, source: str) -> None:
     if not (isinstance(phi, (int, float)) and 0.0 <= phi < 1.0):
         raise RispError(f"{source}: sidecar key 'measurement_noise_correlation' must lie in [0, 1), got {phi!r}")
     actuator = str(values.get("actuator", "thrust")).lower()
-    if actuator in ("normalized", "pwm") and "hover_throttle" not in values:
+    if actuator in ("normalized", "pwm", "collective_normalized") and "hover_throttle" not in values:
         raise RispError(f"{source}: sidecar key 'hover_throttle' is required with actuator {actuator!r} (the normalised "
                         f"command that holds hover, e.g. PX4's MPC_THR_HOVER; it starts the fitted thrust map)")
     if actuator == "pwm":
@@ -479,6 +483,8 @@ def read_trajectory(path: Path, env: str, overrides: dict | None = None) -> Traj
     thrust = command = None
     if actuator == "thrust":
         thrust = _delayed(t, np.stack([cols[c] for c in THRUST_COLUMNS], 1), sidecar)
+    elif actuator == "collective":  # newtons, the whole vehicle
+        command = _delayed(t, cols["thrust"][:, None], sidecar)
     elif actuator is not None:
         command = _delayed(t, _normalized_command(cols, act_cols, sidecar, path), sidecar)
     known = set(POSE_COLUMNS + VEL_COLUMNS + OMEGA_COLUMNS + act_cols + quat_cols)

@@ -214,9 +214,10 @@ PX4_SIDECAR = {"env": "quadrotor", "mass": 2.6, "inertia": [0.025, 0.025, 0.045]
                "actuator": "pwm", "pwm_range": [1000, 2000], "hover_throttle": 0.55}
 
 
-def write_px4_flights(folder, wind, seed=0, n=4, samples=300):
+def write_px4_flights(folder, wind, seed=0, n=4, samples=300, collective=False):
     """Flights of the PX4-like vehicle in a constant wind, logged in PX4-like conventions: header
-    t,x,y,z,vx,vy,vz,qx,qy,qz,qw (scalar last), world-frame rates, per-motor PWM in [1000, 2000] µs."""
+    t,x,y,z,vx,vy,vz,qx,qy,qz,qw (scalar last), world-frame rates, per-motor PWM in [1000, 2000] µs — or,
+    with ``collective``, only the normalised collective throttle Σf / (4·12 N) (translational mode)."""
     from risp_tasks.measured import write_trajectory_csv
 
     veh = Vehicle(mass=2.6, inertia=(0.025, 0.025, 0.045), arm=0.16, angles=np.radians(PX4_ANGLES_DEG),
@@ -228,7 +229,13 @@ def write_px4_flights(folder, wind, seed=0, n=4, samples=300):
         w_world = np.einsum("nij,nj->ni", rotmat(q), np.stack([cols[c] for c in ("wx", "wy", "wz")], 1))
         out = {k: cols[k] for k in ("t", "x", "y", "z", "vx", "vy", "vz", "qx", "qy", "qz", "qw")}
         out.update(wx=w_world[:, 0], wy=w_world[:, 1], wz=w_world[:, 2])
-        for i in range(4):
-            out[f"pwm{i}"] = 1000.0 + 1000.0 * cmds[b, :, i] / PX4_FULL_THRUST
-        write_trajectory_csv(folder / f"log_{b}.csv", out, PX4_SIDECAR)
+        if collective:
+            out["throttle"] = cmds[b].sum(1) / (4 * PX4_FULL_THRUST)
+            sidecar = {k: v for k, v in PX4_SIDECAR.items() if k != "pwm_range"}
+            sidecar["actuator"] = "collective_normalized"
+        else:
+            for i in range(4):
+                out[f"pwm{i}"] = 1000.0 + 1000.0 * cmds[b, :, i] / PX4_FULL_THRUST
+            sidecar = PX4_SIDECAR
+        write_trajectory_csv(folder / f"log_{b}.csv", out, sidecar)
     return folder

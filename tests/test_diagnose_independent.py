@@ -117,3 +117,19 @@ def test_filtered_noise_is_flagged_and_declared_noise_is_used(tmp_path):
     assert rep["noise_model"]["source"] == "declared in the sidecar"
     assert rep["noise"] == NOISE and rep["noise_model"]["lag1_correlation"]["velocity"] == 0.8
     assert rep["cause"] == "none" and rep["base_error"]["noise_floor_ratio"] <= 1.3, rep["reason"]
+
+
+def test_collective_throttle_log_in_translational_mode(tmp_path):
+    """A log with only a normalised collective throttle (and the attitude): the translational model
+    (attitude from the data) fits the thrust map (4·12 N per unit throttle) and the wind."""
+    from diagnose_independent import PX4_FULL_THRUST, write_px4_flights
+
+    wind = (6.0, -3.0, 1.0)
+    folder = write_px4_flights(tmp_path / "px4c", wind, seed=9, collective=True)
+    rep = diagnose(DiagnoseConfig(data=(str(folder),), env="quadrotor", out=str(tmp_path / "rep"), seed=9,
+                                  pairs_top=2, progress=False, plots=True, effects=("wind", "air_drag", "motor_lag")))
+    assert rep["cause"] == "wind", rep["reason"]
+    for name, truth in zip(("fx", "fy", "fz"), wind):
+        assert abs(rep["parameters"][f"wind.{name}"]["value"] - truth) <= 0.2 * abs(truth), rep["parameters"]
+    assert rep["parameters"]["k_f"]["value"] == pytest.approx(4 * PX4_FULL_THRUST, rel=0.05)
+    assert set(rep["noise"]) == {"coordinate", "rate"}  # position and velocity channels only

@@ -110,7 +110,9 @@ def make_sim(env: str, effects: tuple[str, ...], sidecar: Sidecar, sample_dt: fl
     if env == "quadrotor":
         k = max(k, math.ceil(sample_dt / QUAD_MAX_STEP - 1e-9))
     options = {"dt": sample_dt / k}
-    if env == "quadrotor":
+    if env == "quadrotor" and translational(sidecar):
+        options["mode"] = "translational"
+    elif env == "quadrotor":
         options.update(quadrotor_geometry(sidecar))
     if env == "cube":
         # substeps of at most CUBE_MAX_SUBSTEP: the light real cube (0.37 kg, k_n = 1e6) with friction
@@ -122,6 +124,11 @@ def make_sim(env: str, effects: tuple[str, ...], sidecar: Sidecar, sample_dt: fl
     except TypeError:
         sim, k = matched_simulator(get_simulator(env, effects), sample_dt)
     return sim, k
+
+
+def translational(sidecar: Sidecar) -> bool:
+    """Collective-thrust logs are diagnosed with the translational quadrotor model (attitude from the data)."""
+    return sidecar.env == "quadrotor" and str(sidecar.get("actuator", "thrust")).lower().startswith("collective")
 
 
 def quadrotor_geometry(sidecar: Sidecar) -> dict:
@@ -163,9 +170,12 @@ def build_model(env: str, effects: tuple[str, ...], sidecar: Sidecar, sample_dt:
     base_ranges = dict(zip(sim.spec.base_param_names, getattr(sim.spec, "base_param_ranges", None) or ()))
     free = [n for n in BASE_FREE.get(env, ()) if n in sim.param_names]
     scale, lower, upper = [], [], []
-    if env == "quadrotor" and str(sidecar.get("actuator", "thrust")).lower() in ("normalized", "pwm"):
-        # normalised commands: the thrust map f = k_f·u is fitted, starting from hover m·g = 4·k_f·u_hover
-        k_f0 = float(base[sim.param_index("mass")]) * 9.81 / (4 * float(sidecar.get("hover_throttle")))
+    actuator = str(sidecar.get("actuator", "thrust")).lower()
+    if env == "quadrotor" and actuator in ("normalized", "pwm", "collective_normalized"):
+        # normalised commands: the thrust map f = k_f·u is fitted, starting from hover m·g = n·k_f·u_hover
+        # (n = 4 rotor commands, or 1 collective throttle)
+        n_cmd = 1 if actuator == "collective_normalized" else 4
+        k_f0 = float(base[sim.param_index("mass")]) * 9.81 / (n_cmd * float(sidecar.get("hover_throttle")))
         base[sim.param_index("k_f")] = k_f0
         free.append("k_f")
         scale.append(0.25 * k_f0)
@@ -203,7 +213,12 @@ def build_model(env: str, effects: tuple[str, ...], sidecar: Sidecar, sample_dt:
     return model, k
 
 
-def effect_names(env: str) -> tuple[str, ...]:
+def effect_names(env: str, sidecar: Sidecar | None = None) -> tuple[str, ...]:
+    """The candidate library: the simulator's effects (the translational quadrotor model has its own)."""
+    if sidecar is not None and translational(sidecar):
+        from risp_tasks.sims.quadrotor import TRANSLATIONAL_EFFECTS
+
+        return TRANSLATIONAL_EFFECTS
     return tuple(available_effects(env))
 
 

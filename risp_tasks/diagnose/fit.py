@@ -291,11 +291,11 @@ def latent_start(sim, params: torch.Tensor, seg: Segments) -> torch.Tensor:
     if "motor_lag" not in getattr(sim, "effects", ()) or seg.past_actions is None:
         return seg.s0
     names = list(sim.state_names)
-    idx = [names.index(f"f{i}") for i in range(4)]
+    idx = [names.index(n) for n in sim.spec.available_effects["motor_lag"].state_names]
     tau = params[sim.param_index("motor_lag.tau")]
     k_f = params[sim.param_index("k_f")]
     alpha = -torch.expm1(-sim.dt / tau)
-    target = k_f * seg.past_actions  # (S, W·k, 4)
+    target = k_f * seg.past_actions[..., : len(idx)]  # (S, W·k, 4) rotor commands, or (S, W·k, 1) collective
     f = target[:, 0]
     for j in range(1, target.shape[1]):
         f = f + alpha * (target[:, j - 1] - f)

@@ -198,7 +198,7 @@ def _diagnose(cfg: DiagnoseConfig) -> dict:
     trajs, floor = calibrate_floor(trajs, cfg.floor_offset)
     fit_trajs, held_trajs, split = split_trajectories(trajs, cfg.held_out, cfg.seed)
 
-    library = cands.effect_names(cfg.env)
+    library = cands.effect_names(cfg.env, trajs[0].sidecar)
     if cfg.effects is not None:
         unknown = [e for e in cfg.effects if e not in library]
         if unknown:

@@ -307,7 +307,93 @@ class QuadrotorSimulator(Simulator):
         return torch.cat([s0.unsqueeze(1), later], 1)
 
 
-def make_simulator(effects: tuple[str, ...] = (), **options) -> QuadrotorSimulator:
+def make_simulator(effects: tuple[str, ...] = (), mode: str = "full", **options):
     """The quadrotor simulator with the named effects; ``options``: dt (s), arm_length (m), layout ("+"/"x"),
-    rotor_angles (rad), spin (±1 each)."""
+    rotor_angles (rad), spin (±1 each).  ``mode="translational"``: :class:`QuadrotorTranslational` (dt only)."""
+    if mode == "translational":
+        return QuadrotorTranslational(effects, dt=options.get("dt", DT))
+    if mode != "full":
+        raise RispError(f"quadrotor mode {mode!r} is not known; choose 'full' or 'translational'")
     return QuadrotorSimulator(effects, **options)
+
+
+# ------------------------------------------------------------------------------------------------
+# translational mode: collective thrust with the attitude taken from the data (docs/models.md §2)
+# ------------------------------------------------------------------------------------------------
+TRANSLATIONAL_EFFECTS = ("rotor_drag", "air_drag", "wind", "motor_lag", "ground_effect_centre")
+TRANSLATIONAL_SPEC = SimulatorSpec(
+    env="quadrotor",
+    dt=DT,
+    state_names=("x", "y", "z", "vx", "vy", "vz"),
+    base_param_names=("mass", "k_f"),
+    base_param_defaults=(MASS, 1.0),
+    action_dim=5,
+    available_effects={k: (dataclasses.replace(EFFECTS[k], state_names=("f0",)) if k == "motor_lag" else EFFECTS[k])
+                       for k in TRANSLATIONAL_EFFECTS},
+    base_param_bounds=(_POS, _POS),
+    base_param_ranges=((2.8, 3.2), (0.5, 2.0)),
+    base_param_units=("kg", "N"),
+)
+
+
+class QuadrotorTranslational(Simulator):
+    """Translational dynamics only, as much of the multirotor aerodynamics literature models them:
+
+        m·v̇ = k_f·c·g_e(z)·R(q)·e_z + m·g + F_effects(v, R),    ṗ = v
+
+    State (6, + the collective thrust with ``motor_lag``): x y z vx vy vz [, f0].  Action (5): the collective
+    command c (newtons with k_f = 1, or a normalised throttle with a fitted k_f) and the measured attitude
+    quaternion (qw, qx, qy, qz), both held over the step.  Effects: rotor_drag (body-frame linear drag
+    with R from the action), air_drag, wind, motor_lag (on the collective), ground_effect_centre.  Integrator:
+    semi-implicit Euler with step ``dt``.
+    """
+
+    spec = TRANSLATIONAL_SPEC
+
+    def __init__(self, effects: tuple[str, ...] | list[str] = (), dt: float = DT):
+        if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
+            raise RispError(f"dt must be a positive number of seconds, got {dt!r}")
+        self.spec = dataclasses.replace(TRANSLATIONAL_SPEC, dt=float(dt))
+        super().__init__(effects)
+
+    def to_env_state(self, states: torch.Tensor) -> torch.Tensor:
+        raise RispError("the translational quadrotor model has no attitude state to render")
+
+    def _eff(self, params, name):
+        if name not in self.effects:
+            return None
+        i = self.param_index(f"{name}.{EFFECTS[name].param_names[0]}")
+        return params[:, i:i + len(EFFECTS[name].param_names)]
+
+    def step(self, params: torch.Tensor, state: torch.Tensor, action: torch.Tensor | None, t: int) -> torch.Tensor:
+        h = self.dt
+        p, v = state[:, 0:3], state[:, 3:6]
+        cmd = params[:, 1:2] * action[:, 0:1]
+        q = normalize_quat(action[:, 1:5])
+        qq = quat_outer(q)
+        tau = self._eff(params, "motor_lag")
+        if tau is not None:
+            f = state[:, 6:7] + (-torch.expm1(-h / tau)) * (cmd - state[:, 6:7])
+        else:
+            f = cmd
+        thrust = f
+        k_ge = self._eff(params, "ground_effect_centre")
+        if k_ge is not None:
+            thrust = thrust * ground_factor(k_ge, p[:, 2:3])
+        force = thrust * (qq @ const("R_col2", q))
+        drag = self._eff(params, "rotor_drag")
+        if drag is not None:
+            R = (qq @ const("R", q)).unflatten(-1, (3, 3))
+            v_body = (v.unsqueeze(1) @ R).squeeze(1)
+            force = force - (R @ (drag * v_body).unsqueeze(-1)).squeeze(-1)
+        c = self._eff(params, "air_drag")
+        if c is not None:
+            force = force - c * torch.sqrt((v * v).sum(1, keepdim=True) + AIR_DRAG_EPS**2) * v
+        wind = self._eff(params, "wind")
+        if wind is not None:
+            force = force + wind
+        g = torch.tensor([0.0, 0.0, -GRAVITY], dtype=v.dtype, device=v.device)
+        v_new = v + h * (force / params[:, 0:1] + g)
+        p_new = p + h * v_new
+        parts = [p_new, v_new] + ([f] if tau is not None else [])
+        return torch.cat(parts, 1)
