@@ -277,3 +277,26 @@ def test_layout_and_arm_length_set_the_torques(layout, angle):
     assert base.arm_length == ARM_LENGTH and base.default_params(1)[0, 1].item() == pytest.approx(default_inertia()[0])
     with pytest.raises(RispError, match="rotor layout 'h'"):
         QuadrotorSimulator(layout="h")
+
+
+def test_translational_mode_closed_form_and_gradient():
+    """m·v̇ = k_f·c·R(q)e_z + m·g + F: a tilted attitude from the action tilts the thrust; wind adds a force."""
+    from risp_tasks.sims.quadrotor import QuadrotorTranslational, make_simulator
+
+    sim = make_simulator(("wind", "motor_lag"), mode="translational", dt=0.002)
+    assert isinstance(sim, QuadrotorTranslational) and sim.state_names == ("x", "y", "z", "vx", "vy", "vz", "f0")
+    p = sim.default_params(1)
+    p[0, sim.param_index("motor_lag.tau")] = 1e-3  # thrust state starts at the command: no lag effect
+    s0 = torch.zeros(1, 7, dtype=torch.float64)
+    s0[0, 2], s0[0, 6] = 1.0, MASS * G
+    q = euler_to_quat(_t(0.0), _t(0.1), _t(0.0)).reshape(1, 1, 4)
+    act = torch.cat([torch.full((1, 3, 1), MASS * G, dtype=torch.float64), q.expand(1, 3, 4)], -1)
+    S = sim.rollout(p, s0, act, 1)
+    R = 1 - 2 * (q[0, 0, 1] ** 2 + q[0, 0, 2] ** 2)
+    wind = p[0, 2:5]
+    a = (MASS * G * torch.stack([2 * (q[0, 0, 1] * q[0, 0, 3] + q[0, 0, 0] * q[0, 0, 2]),
+                                 2 * (q[0, 0, 2] * q[0, 0, 3] - q[0, 0, 0] * q[0, 0, 1]), R]) + wind) / MASS
+    a[2] -= G
+    assert torch.allclose(S[0, 1, 3:6], 0.002 * a, rtol=1e-9, atol=1e-12)
+    p.requires_grad_(True)
+    assert gradcheck(lambda pp: sim.rollout(pp, s0, act, 3), (p,), eps=1e-6, atol=1e-6)
