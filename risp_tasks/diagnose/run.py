@@ -24,7 +24,8 @@ from .adapter import Observer, calibrate_floor
 from .fit import FitConfig, FitResult, channel_sigma, fit_model, make_segments, noise_model
 from .residuals import accel_rms, group_rms, one_step, rollout_error
 from .dependence import residual_dependence
-from .select import RHO_MAX, Score, bound_flag, check_dependence, decide, held_out_score, noise_floor
+from .select import (RHO_MAX, Score, bound_flag, check_dependence, decide, held_out_score, noise_floor,
+                     runner_up_note)
 
 
 #: Held-out one-step residuals are scored on at most this many × --max-segments samples (a seeded subset).
@@ -232,6 +233,7 @@ def _diagnose(cfg: DiagnoseConfig) -> dict:
     dependence = residual_dependence(chosen.fit, chosen.obs, chosen.sigma, held_trajs, cfg.horizon, chosen.k, cfg.seed,
                                      phi=max(phi.values(), default=0.0))
     decision = check_dependence(decision, dependence)
+    decision, runner_up = runner_up_note(decision, [ev.score for ev in evaluated.values()])
     ext_for_gain = chosen if decision.selected.name != "base" else (
         evaluated[decision.best_candidate.name] if decision.best_candidate is not None else base)
 
@@ -261,6 +263,7 @@ def _diagnose(cfg: DiagnoseConfig) -> dict:
         "fixed_parameters": {n: float(v) for n, v in zip(base.fit.model.sim.param_names, base.fit.model.base)},
         "ranking": ranking,
         "residual_dependence": [d.as_dict() for d in dependence[:10]],
+        "runner_up": runner_up,
         "base_error": base_err,
         "extended_error": ext_err,
         "gain": gain(base_err, ext_err),

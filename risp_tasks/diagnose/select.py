@@ -203,3 +203,22 @@ def bound_flag(model, name: str, value: float) -> dict:
     if math.isfinite(hi) and hi - value <= AT_BOUND * span:
         return {"at_bound": "upper", "limit": hi}
     return {}
+
+
+def runner_up_note(decision: Decision, scores: list[Score]) -> tuple[Decision, dict | None]:
+    """A named cause whose nearest rival (a model that does not contain it) is within ΔBIC < DELTA_BIC_MIN
+    keeps its name — it is still the best — but the reason says the data hardly separate the two."""
+    if decision.cause in ("none", "unexplained"):
+        return decision, None
+    named = set(decision.selected.effects)
+    rivals = [sc for sc in scores if sc.effects and not named & set(sc.effects)]
+    if not rivals:
+        return decision, None
+    rival = min(rivals, key=lambda sc: sc.bic)
+    gap = rival.bic - decision.selected.bic
+    info = {"model": rival.name, "delta_bic_to_selected": gap}
+    if gap >= DELTA_BIC_MIN:
+        return decision, info
+    return Decision(decision.cause, decision.selected, decision.best_candidate,
+                    f"{decision.reason}; runner-up {rival.name} is only ΔBIC = {gap:.1f} behind (< {DELTA_BIC_MIN:g}): "
+                    f"these data hardly separate the two"), info
