@@ -56,6 +56,7 @@ CHOICES = {
     "angular_velocity_frame": ("body", "world"),
     "rotor_layout": ("+", "x"),
     "actuator": ("thrust", "normalized", "pwm", "collective", "collective_normalized"),
+    "thrust_map": ("linear", "quadratic"),
 }
 #: Actuator columns: per-rotor thrust [N], normalised command [0, 1], or PWM [µs] mapped to [0, 1] by pwm_range.
 ACTUATOR_COLUMNS = {"thrust": THRUST_COLUMNS, "normalized": ("u0", "u1", "u2", "u3"),
@@ -230,6 +231,9 @@ def _check_sidecar(values: dict, env: str, source: str) -> None:
     if not (isinstance(phi, (int, float)) and 0.0 <= phi < 1.0):
         raise RispError(f"{source}: sidecar key 'measurement_noise_correlation' must lie in [0, 1), got {phi!r}")
     actuator = str(values.get("actuator", "thrust")).lower()
+    if str(values.get("thrust_map", "linear")).lower() == "quadratic" and actuator not in ("normalized", "pwm"):
+        raise RispError(f"{source}: sidecar key 'thrust_map' = 'quadratic' needs per-rotor normalised commands "
+                        f"(actuator 'normalized' or 'pwm'), not {actuator!r}")
     if actuator in ("normalized", "pwm", "collective_normalized") and "hover_throttle" not in values:
         raise RispError(f"{source}: sidecar key 'hover_throttle' is required with actuator {actuator!r} (the normalised "
                         f"command that holds hover, e.g. PX4's MPC_THR_HOVER; it starts the fitted thrust map)")

@@ -214,10 +214,11 @@ PX4_SIDECAR = {"env": "quadrotor", "mass": 2.6, "inertia": [0.025, 0.025, 0.045]
                "actuator": "pwm", "pwm_range": [1000, 2000], "hover_throttle": 0.55}
 
 
-def write_px4_flights(folder, wind, seed=0, n=4, samples=300, collective=False):
+def write_px4_flights(folder, wind, seed=0, n=4, samples=300, collective=False, quadratic=None):
     """Flights of the PX4-like vehicle in a constant wind, logged in PX4-like conventions: header
     t,x,y,z,vx,vy,vz,qx,qy,qz,qw (scalar last), world-frame rates, per-motor PWM in [1000, 2000] µs — or,
-    with ``collective``, only the normalised collective throttle Σf / (4·12 N) (translational mode)."""
+    with ``collective``, only the normalised collective throttle Σf / (4·12 N) (translational mode).
+    ``quadratic`` = (a, b): the motors' thrust map is f = a·u + b·u² instead of 12·u."""
     from risp_tasks.measured import write_trajectory_csv
 
     veh = Vehicle(mass=2.6, inertia=(0.025, 0.025, 0.045), arm=0.16, angles=np.radians(PX4_ANGLES_DEG),
@@ -233,6 +234,12 @@ def write_px4_flights(folder, wind, seed=0, n=4, samples=300, collective=False):
             out["throttle"] = cmds[b].sum(1) / (4 * PX4_FULL_THRUST)
             sidecar = {k: v for k, v in PX4_SIDECAR.items() if k != "pwm_range"}
             sidecar["actuator"] = "collective_normalized"
+        elif quadratic is not None:
+            qa, qb = quadratic
+            for i in range(4):
+                u = (-qa + np.sqrt(qa * qa + 4 * qb * cmds[b, :, i])) / (2 * qb)
+                out[f"pwm{i}"] = 1000.0 + 1000.0 * u
+            sidecar = {**PX4_SIDECAR, "thrust_map": "quadratic"}
         else:
             for i in range(4):
                 out[f"pwm{i}"] = 1000.0 + 1000.0 * cmds[b, :, i] / PX4_FULL_THRUST

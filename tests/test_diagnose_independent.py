@@ -133,3 +133,18 @@ def test_collective_throttle_log_in_translational_mode(tmp_path):
         assert abs(rep["parameters"][f"wind.{name}"]["value"] - truth) <= 0.2 * abs(truth), rep["parameters"]
     assert rep["parameters"]["k_f"]["value"] == pytest.approx(4 * PX4_FULL_THRUST, rel=0.05)
     assert set(rep["noise"]) == {"coordinate", "rate"}  # position and velocity channels only
+
+
+def test_quadratic_thrust_map_is_fitted(tmp_path):
+    """PWM whose thrust map is f = 7·u + 6·u² (sidecar "thrust_map": "quadratic"): both coefficients and the
+    wind are recovered."""
+    from diagnose_independent import write_px4_flights
+
+    wind = (6.0, -3.0, 1.0)
+    folder = write_px4_flights(tmp_path / "px4q", wind, seed=9, quadratic=(7.0, 6.0))
+    rep = diagnose(DiagnoseConfig(data=(str(folder),), env="quadrotor", out=None, seed=9, pairs_top=0,
+                                  progress=False, plots=False, effects=("wind", "air_drag")))
+    assert rep["cause"] == "wind", rep["reason"]
+    assert rep["parameters"]["k_f"]["value"] == pytest.approx(7.0, rel=0.1), rep["parameters"]
+    assert rep["parameters"]["k_f2"]["value"] == pytest.approx(6.0, rel=0.1), rep["parameters"]
+    assert abs(rep["parameters"]["wind.fx"]["value"] - 6.0) <= 1.2

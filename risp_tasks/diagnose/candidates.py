@@ -114,6 +114,8 @@ def make_sim(env: str, effects: tuple[str, ...], sidecar: Sidecar, sample_dt: fl
         options["mode"] = "translational"
     elif env == "quadrotor":
         options.update(quadrotor_geometry(sidecar))
+        if str(sidecar.get("thrust_map", "linear")).lower() == "quadratic":
+            options["thrust_quadratic"] = True
     if env == "cube":
         # substeps of at most CUBE_MAX_SUBSTEP: the light real cube (0.37 kg, k_n = 1e6) with friction
         # blows up at the simulator's default 5 ms substep (measured: speeds of 10³ m/s within 0.6 s)
@@ -181,6 +183,12 @@ def build_model(env: str, effects: tuple[str, ...], sidecar: Sidecar, sample_dt:
         scale.append(0.25 * k_f0)
         lower.append(0.25 * k_f0)
         upper.append(4.0 * k_f0)
+        if "k_f2" in sim.param_names:  # quadratic thrust map f = k_f·u + k_f2·u², k_f2 from 0
+            base[sim.param_index("k_f2")] = 0.0
+            free.append("k_f2")
+            scale.append(0.25 * k_f0)
+            lower.append(-k_f0)
+            upper.append(k_f0)
     for n in free[len(scale):]:
         if n in base_ranges:
             lo, hi = map(float, base_ranges[n])

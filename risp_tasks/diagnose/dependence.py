@@ -13,7 +13,7 @@ cause is named, the selected model's held-out residuals are tested against every
   least MIN_PER_BIN); Welch's heteroscedastic comparison of the bin means, χ² = Σ_b w_b (m_b − m̄_w)² with
   w_b = n_b / s_b² and m̄_w the w-weighted mean, B − 1 degrees of freedom;
 * a dependence is declared when the Bonferroni-corrected p-value (× regressors × channels) is below
-  ALPHA = 1e-3 **and** the bins explain at least ETA2_MIN = 5 % of the residual's variance (η² = between-bin
+  ALPHA = 1e-3 **and** the bins explain at least ETA2_MIN = 15 % of the residual's variance (η² = between-bin
   sum of squares / total) — with thousands of segments a statistically detectable but tiny trend is no
   reason to withhold a name.
 """
@@ -33,7 +33,7 @@ from .residuals import _rate_channels, regressors
 
 BINS = 6
 ALPHA = 1e-3
-ETA2_MIN = 0.05
+ETA2_MIN = 0.15
 MIN_PER_BIN = 15
 MAX_SEGMENTS = 2000
 

@@ -295,7 +295,10 @@ def latent_start(sim, params: torch.Tensor, seg: Segments) -> torch.Tensor:
     tau = params[sim.param_index("motor_lag.tau")]
     k_f = params[sim.param_index("k_f")]
     alpha = -torch.expm1(-sim.dt / tau)
-    target = k_f * seg.past_actions[..., : len(idx)]  # (S, W·k, 4) rotor commands, or (S, W·k, 1) collective
+    u = seg.past_actions[..., : len(idx)]  # (S, W·k, 4) rotor commands, or (S, W·k, 1) collective
+    target = k_f * u
+    if "k_f2" in sim.param_names:  # quadratic thrust map
+        target = target + params[sim.param_index("k_f2")] * u * u
     f = target[:, 0]
     for j in range(1, target.shape[1]):
         f = f + alpha * (target[:, j - 1] - f)

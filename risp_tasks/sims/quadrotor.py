@@ -150,7 +150,8 @@ class QuadrotorSimulator(Simulator):
     """
 
     def __init__(self, effects: tuple[str, ...] | list[str] = (), dt: float = DT, arm_length: float = ARM_LENGTH,
-                 layout: str = "+", rotor_angles: tuple[float, ...] | None = None, spin: tuple[float, ...] = SPIN):
+                 layout: str = "+", rotor_angles: tuple[float, ...] | None = None, spin: tuple[float, ...] = SPIN,
+                 thrust_quadratic: bool = False):
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
             raise RispError(f"dt must be a positive number of seconds, got {dt!r}")
         if not (isinstance(arm_length, (int, float)) and math.isfinite(arm_length) and arm_length > 0):
@@ -168,6 +169,14 @@ class QuadrotorSimulator(Simulator):
         if self.arm_length != ARM_LENGTH:
             defaults = (MASS, *default_inertia(MASS, self.arm_length), K_F, K_M)
         self.spec = dataclasses.replace(SPEC, dt=float(dt), base_param_defaults=defaults)
+        if thrust_quadratic:
+            # a quadratic thrust map f = k_f·u + k_f2·u² (normalised commands); k_f2 is appended so that the
+            # other parameters keep their positions
+            self.spec = dataclasses.replace(
+                self.spec, base_param_names=SPEC.base_param_names + ("k_f2",), base_param_defaults=defaults + (0.0,),
+                base_param_bounds=SPEC.base_param_bounds + ((-_INF, _INF),),
+                base_param_ranges=SPEC.base_param_ranges + ((-0.05, 0.05),), base_param_units=SPEC.base_param_units + ("N",))
+        self.thrust_quadratic = bool(thrust_quadratic)
         super().__init__(effects)
 
     # -- layout ---------------------------------------------------------------------------------
@@ -230,12 +239,15 @@ class QuadrotorSimulator(Simulator):
             rotor_pos=rotor_pos,
         )
 
-    @staticmethod
-    def _commanded_thrust(params: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        """k_f · clamp_s(u) (docs §2.2), for any leading shape of ``actions`` (B, ..., 4)."""
+    def _commanded_thrust(self, params: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """k_f · clamp_s(u) (docs §2.2) [+ k_f2 · clamp_s(u)² with ``thrust_quadratic``], for any leading
+        shape of ``actions`` (B, ..., 4)."""
         u = soft_clamp(actions, -COMMAND_LIMIT, COMMAND_LIMIT, CLAMP_WIDTH)
-        k_f = params[:, 4].reshape((-1,) + (1,) * (actions.ndim - 1))
-        return k_f * u
+        shape = (-1,) + (1,) * (actions.ndim - 1)
+        f = params[:, 4].reshape(shape) * u
+        if self.thrust_quadratic:
+            f = f + params[:, 6].reshape(shape) * u * u
+        return f
 
     @staticmethod
     def _advance(c: _Consts, p, q, v, w, f_state, f_cmd):
