@@ -42,11 +42,28 @@ SIDECAR_RANGES: dict[str, dict[str, tuple[float, float]]] = {
         "inertia": (1e-6, 20.0),
         "yaw_torque_coefficient": (0.0, 1.0),
         "gravity": (1.0, 30.0),
+        "hover_throttle": (0.01, 1.0),
+        "actuator_delay": (0.0, 0.5),
     },
     "hand": {"gravity": (0.0, 30.0)},
     "rod": {"gravity": (0.0, 30.0)},
 }
 REQUIRED_SIDECAR_KEYS = {"cube": ("side", "mass"), "quadrotor": ("mass",), "hand": (), "rod": ()}
+
+#: Conventions of real logs, declared in the sidecar (docs/measured-data.md §Conventions): allowed values.
+CHOICES = {
+    "quaternion_order": ("wxyz", "xyzw"),
+    "angular_velocity_frame": ("body", "world"),
+    "rotor_layout": ("+", "x"),
+    "actuator": ("thrust", "normalized", "pwm", "collective", "collective_normalized"),
+    "thrust_map": ("linear", "quadratic"),
+}
+#: Actuator columns: per-rotor thrust [N], normalised command [0, 1], or PWM [µs] mapped to [0, 1] by pwm_range.
+ACTUATOR_COLUMNS = {"thrust": THRUST_COLUMNS, "normalized": ("u0", "u1", "u2", "u3"),
+                    "pwm": ("pwm0", "pwm1", "pwm2", "pwm3"),
+                    # collective commands: diagnose's translational mode (attitude from the data)
+                    "collective": ("thrust",), "collective_normalized": ("throttle",)}
+NUMBERED_QUAT = ("q0", "q1", "q2", "q3")
 
 MAX_ABS_POSITION = 1000.0  # m
 MAX_SPEED = 100.0  # m/s
@@ -81,11 +98,14 @@ class Trajectory:
     quat: np.ndarray | None  # (N, 4) scalar-first, body to world, unit, sign-continuous
     vel: np.ndarray | None  # (N, 3) world frame
     omega: np.ndarray | None  # (N, 3) body frame
-    thrust: np.ndarray | None  # (N, 4) newtons (quadrotor) or None
+    thrust: np.ndarray | None  # (N, 4) newtons (quadrotor, actuator "thrust") or None
     sidecar: Sidecar
     vel_estimated: bool = False
     omega_estimated: bool = False
     extra: dict = field(default_factory=dict)
+    # (N, 4) normalised rotor commands in [0, 1] (actuator "normalized"/"pwm"), or (N, 1) a collective command
+    # (actuator "collective" [N] / "collective_normalized" [0, 1])
+    command: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -108,6 +128,7 @@ class Trajectory:
             vel=None if self.vel is None else self.vel[sl],
             omega=None if self.omega is None else self.omega[sl],
             thrust=None if self.thrust is None else self.thrust[sl],
+            command=None if self.command is None else self.command[sl],
             sidecar=self.sidecar,
             vel_estimated=self.vel_estimated,
             omega_estimated=self.omega_estimated,
@@ -193,6 +214,34 @@ def _check_sidecar(values: dict, env: str, source: str) -> None:
     for key in REQUIRED_SIDECAR_KEYS.get(env, ()):
         if key not in values:
             raise RispError(f"{source}: sidecar lacks {key!r} (required for {env})")
+    for key, allowed in CHOICES.items():
+        if key in values and str(values[key]).lower() not in allowed:
+            raise RispError(f"{source}: sidecar key {key!r} = {values[key]!r}; choose one of {', '.join(allowed)}")
+    for key, check in (("rotor_angles_deg", lambda v: isinstance(v, (int, float)) and math.isfinite(v)),
+                       ("rotor_spin", lambda v: v in (1, -1))):
+        if key in values and not (isinstance(values[key], list) and len(values[key]) == 4 and all(map(check, values[key]))):
+            raise RispError(f"{source}: sidecar key {key!r} must be a list of 4 {'numbers' if key.endswith('deg') else '+1/-1 signs'}, "
+                            f"got {values[key]!r}")
+    noise = values.get("measurement_noise")
+    if noise is not None and not (isinstance(noise, dict) and noise and all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0 for v in noise.values())):
+        raise RispError(f"{source}: sidecar key 'measurement_noise' must map channel groups (position, attitude, velocity, "
+                        f"angular velocity; hand/rod: coordinate, rate) to positive standard deviations in SI units, got {noise!r}")
+    phi = values.get("measurement_noise_correlation", 0.0)
+    if not (isinstance(phi, (int, float)) and 0.0 <= phi < 1.0):
+        raise RispError(f"{source}: sidecar key 'measurement_noise_correlation' must lie in [0, 1), got {phi!r}")
+    actuator = str(values.get("actuator", "thrust")).lower()
+    if str(values.get("thrust_map", "linear")).lower() == "quadratic" and actuator not in ("normalized", "pwm"):
+        raise RispError(f"{source}: sidecar key 'thrust_map' = 'quadratic' needs per-rotor normalised commands "
+                        f"(actuator 'normalized' or 'pwm'), not {actuator!r}")
+    if actuator in ("normalized", "pwm", "collective_normalized") and "hover_throttle" not in values:
+        raise RispError(f"{source}: sidecar key 'hover_throttle' is required with actuator {actuator!r} (the normalised "
+                        f"command that holds hover, e.g. PX4's MPC_THR_HOVER; it starts the fitted thrust map)")
+    if actuator == "pwm":
+        lo_hi = values.get("pwm_range", [1000, 2000])
+        if not (isinstance(lo_hi, list) and len(lo_hi) == 2 and all(isinstance(v, (int, float)) for v in lo_hi)
+                and lo_hi[1] > lo_hi[0]):
+            raise RispError(f"{source}: sidecar key 'pwm_range' must be [min, max] with max > min, got {lo_hi!r}")
     for key, (lo, hi) in SIDECAR_RANGES.get(env, {}).items():
         if key not in values:
             continue
@@ -211,37 +260,90 @@ def _check_sidecar(values: dict, env: str, source: str) -> None:
 # ------------------------------------------------------------------------------------------------
 # CSV reading and validation
 # ------------------------------------------------------------------------------------------------
-def read_csv_columns(path: Path) -> dict[str, np.ndarray]:
-    """Header + numeric rows -> {column: float64 array}. Errors name the file, row and column."""
+#: Files larger than this are read in chunks with a progress bar.
+CHUNK_ROWS = 200_000
+
+
+def read_csv_columns(path: Path, progress: bool = False) -> dict[str, np.ndarray]:
+    """Header + numeric rows -> {column: float64 array}. Errors name the file, row and column.
+
+    Fast path: numpy's C parser in chunks of CHUNK_ROWS rows straight into float64 (a 200 MB log without
+    Python objects per cell); any irregularity re-reads the file with the row-by-row validator, whose
+    message names the line and column.  A UTF-8 byte-order mark is skipped; binary or non-UTF-8 content
+    is one clear error.
+    """
     try:
-        with open(path, newline="") as fh:
-            reader = csv.reader(fh)
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            header = _read_header(fh, path)
             try:
-                header = [h.strip() for h in next(reader)]
-            except StopIteration:
-                raise RispError(f"{path}: empty file (expected a header row)") from None
-            if len(set(header)) != len(header):
-                dup = sorted({h for h in header if header.count(h) > 1})
-                raise RispError(f"{path}: duplicate column(s) {', '.join(dup)}")
-            rows = []
-            for i, row in enumerate(reader, start=2):
-                if not row or all(not c.strip() for c in row):
-                    continue
-                if len(row) != len(header):
-                    raise RispError(f"{path}: line {i} has {len(row)} fields, header has {len(header)} (truncated file?)")
-                vals = []
-                for col, c in zip(header, row):
-                    try:
-                        vals.append(float(c))
-                    except ValueError:
-                        raise RispError(f"{path}: line {i}, column {col}: not a number ({c!r})") from None
-                rows.append(vals)
+                data = _fast_rows(fh, len(header), path, progress)
+            except (ValueError, UnicodeDecodeError, csv.Error):
+                data = None
+        if data is None:
+            with open(path, newline="", encoding="utf-8-sig") as fh:
+                _read_header(fh, path)
+                data = _validated_rows(csv.reader(fh), header, path)
+    except UnicodeDecodeError as e:
+        raise RispError(f"{path}: not a UTF-8 text CSV (byte {e.object[e.start:e.start + 1]!r} at offset {e.start}); "
+                        f"is it a binary file?") from None
+    except csv.Error as e:
+        raise RispError(f"{path}: not a readable CSV ({e}); is it a binary file?") from None
     except OSError as e:
         raise RispError(f"{path}: cannot read ({e.strerror})") from None
-    if len(rows) < 3:
-        raise RispError(f"{path}: needs at least 3 rows of data, found {len(rows)}")
-    data = np.asarray(rows, dtype=np.float64)
-    return {h: data[:, j] for j, h in enumerate(header)}
+    if len(data) < 3:
+        raise RispError(f"{path}: needs at least 3 rows of data, found {len(data)}")
+    return {h: np.ascontiguousarray(data[:, j]) for j, h in enumerate(header)}
+
+
+def _read_header(fh, path: Path) -> list[str]:
+    line = fh.readline()
+    if not line:
+        raise RispError(f"{path}: empty file (expected a header row)")
+    if "\x00" in line:
+        raise RispError(f"{path}: not a text CSV (NUL bytes in the header); is it a binary file?")
+    header = [h.strip() for h in next(csv.reader([line]))]
+    if len(set(header)) != len(header):
+        dup = sorted({h for h in header if header.count(h) > 1})
+        raise RispError(f"{path}: duplicate column(s) {', '.join(dup)}")
+    return header
+
+
+def _fast_rows(fh, ncols: int, path: Path, progress: bool) -> np.ndarray:
+    """All data rows by numpy's parser, chunk by chunk (ValueError on anything irregular)."""
+    from tqdm.auto import tqdm
+
+    size = os.path.getsize(path)
+    chunks = []
+    with tqdm(unit=" rows", unit_scale=True, desc=f"reading {path.name} ({size / 1e6:.0f} MB)", leave=False,
+              disable=not progress or size < 20_000_000) as bar:
+        while True:
+            block = np.loadtxt(fh, delimiter=",", dtype=np.float64, ndmin=2, max_rows=CHUNK_ROWS, comments=None)
+            if block.size == 0:
+                break
+            if block.shape[1] != ncols:
+                raise ValueError("column count")
+            chunks.append(block)
+            bar.update(len(block))
+            if len(block) < CHUNK_ROWS:
+                break
+    return np.concatenate(chunks) if chunks else np.zeros((0, ncols))
+
+
+def _validated_rows(reader, header: list[str], path: Path) -> np.ndarray:
+    rows = []
+    for i, row in enumerate(reader, start=2):
+        if not row or all(not c.strip() for c in row):
+            continue
+        if len(row) != len(header):
+            raise RispError(f"{path}: line {i} has {len(row)} fields, header has {len(header)} (truncated file?)")
+        vals = []
+        for col, c in zip(header, row):
+            try:
+                vals.append(float(c))
+            except ValueError:
+                raise RispError(f"{path}: line {i}, column {col}: not a number ({c!r})") from None
+        rows.append(vals)
+    return np.asarray(rows, dtype=np.float64).reshape(-1, len(header))
 
 
 def _require(cols: dict, names: tuple[str, ...], path: Path) -> None:
@@ -270,12 +372,12 @@ def _check_time(t: np.ndarray, path: Path) -> None:
         raise RispError(f"{path}: column t has a gap of {d[i]:g} s at data row {i + 2} (median step {dt:g} s); split the file there")
 
 
-def _check_quat(q: np.ndarray, path: Path) -> np.ndarray:
+def _check_quat(q: np.ndarray, path: Path, names=("qw", "qx", "qy", "qz")) -> np.ndarray:
     norm = np.linalg.norm(q, axis=1)
     bad = np.flatnonzero(np.abs(norm - 1.0) > QUAT_NORM_TOL)
     if bad.size:
         raise RispError(
-            f"{path}: columns qw,qx,qy,qz are not a unit quaternion at data row {bad[0] + 1} (|q| = {norm[bad[0]]:.4g})"
+            f"{path}: columns {','.join(names)} are not a unit quaternion at data row {bad[0] + 1} (|q| = {norm[bad[0]]:.4g})"
         )
     q = q / norm[:, None]
     # q and -q are the same rotation: make the sequence continuous so differences are meaningful
@@ -288,9 +390,11 @@ def _check_quat(q: np.ndarray, path: Path) -> np.ndarray:
 def _check_range(cols: dict, names: tuple[str, ...], limit: float, unit: str, path: Path) -> None:
     for name in names:
         if name in cols:
-            m = float(np.max(np.abs(cols[name])))
-            if m > limit:
-                raise RispError(f"{path}: column {name} reaches {m:g}, implausible in {unit} (limit {limit:g}); check the unit")
+            i = int(np.argmax(np.abs(cols[name])))
+            v = float(cols[name][i])  # signed: "z reaches -1021.49", not 1021.49
+            if abs(v) > limit:
+                raise RispError(f"{path}: column {name} reaches {v:g} at data row {i + 1}, implausible in {unit} "
+                                f"(|{name}| ≤ {limit:g}); check the unit and the data")
 
 
 def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -321,7 +425,7 @@ def _check_consistency(env: str, cols: dict, side: Sidecar, path: Path) -> None:
         zmin = float(np.min(cols["z"]))
         if zmin < -s:
             raise RispError(f"{path}: column z goes to {zmin:g} m, more than a side ({s} m) below the floor z = 0; check the unit")
-    if env == "quadrotor":
+    if env == "quadrotor" and str(side.get("actuator", "thrust")).lower() == "thrust":
         mg = float(side.get("mass")) * float(side.get("gravity", 9.81))
         for name in THRUST_COLUMNS:
             m = float(np.max(np.abs(cols[name])))
@@ -356,12 +460,15 @@ def read_trajectory(path: Path, env: str, overrides: dict | None = None) -> Traj
     cols = read_csv_columns(path)
     if env in ("hand", "rod"):
         return _read_generic(path, env, sidecar, cols)
-    required = POSE_COLUMNS + (THRUST_COLUMNS if env == "quadrotor" else ())
-    _require(cols, required, path)
+    quat_cols = _quaternion_columns(cols, sidecar, path)
+    actuator = str(sidecar.get("actuator", "thrust")).lower() if env == "quadrotor" else None
+    act_cols = ACTUATOR_COLUMNS[actuator] if actuator else ()
+    _require(cols, ("t", "x", "y", "z") + act_cols, path)
     for group in (VEL_COLUMNS, OMEGA_COLUMNS):
         present = [c for c in group if c in cols]
         if present and len(present) != 3:
             raise RispError(f"{path}: column(s) {', '.join(c for c in group if c not in cols)} missing (give all of {','.join(group)} or none)")
+    frame = _omega_frame(env, cols, sidecar, path)
     _check_finite(cols, path)
     t = cols["t"]
     _check_time(t, path)
@@ -370,13 +477,21 @@ def read_trajectory(path: Path, env: str, overrides: dict | None = None) -> Traj
     _check_range(cols, OMEGA_COLUMNS, MAX_ANGULAR_SPEED, "rad/s", path)
     _check_consistency(env, cols, sidecar, path)
     pos = np.stack([cols[c] for c in ("x", "y", "z")], 1)
-    quat = _check_quat(np.stack([cols[c] for c in ("qw", "qx", "qy", "qz")], 1), path)
+    quat = _check_quat(np.stack([cols[c] for c in quat_cols], 1), path, quat_cols)
     vel_est = "vx" not in cols
     vel = np.gradient(pos, t, axis=0) if vel_est else np.stack([cols[c] for c in VEL_COLUMNS], 1)
     om_est = "wx" not in cols
     omega = body_rates_from_quat(t, quat) if om_est else np.stack([cols[c] for c in OMEGA_COLUMNS], 1)
-    thrust = np.stack([cols[c] for c in THRUST_COLUMNS], 1) if env == "quadrotor" else None
-    known = set(POSE_COLUMNS + VEL_COLUMNS + OMEGA_COLUMNS + THRUST_COLUMNS)
+    if frame == "world":  # ω_body = Rᵀ ω_world
+        omega = np.einsum("nji,nj->ni", quat_to_matrix_np(quat), omega)
+    thrust = command = None
+    if actuator == "thrust":
+        thrust = _delayed(t, np.stack([cols[c] for c in THRUST_COLUMNS], 1), sidecar)
+    elif actuator == "collective":  # newtons, the whole vehicle
+        command = _delayed(t, cols["thrust"][:, None], sidecar)
+    elif actuator is not None:
+        command = _delayed(t, _normalized_command(cols, act_cols, sidecar, path), sidecar)
+    known = set(POSE_COLUMNS + VEL_COLUMNS + OMEGA_COLUMNS + act_cols + quat_cols)
     extra = {k: v for k, v in cols.items() if k not in known}
     return Trajectory(
         name=path.stem,
@@ -387,11 +502,76 @@ def read_trajectory(path: Path, env: str, overrides: dict | None = None) -> Traj
         vel=vel,
         omega=omega,
         thrust=thrust,
+        command=command,
         sidecar=sidecar,
         vel_estimated=vel_est,
         omega_estimated=om_est,
         extra=extra,
     )
+
+
+def _quaternion_columns(cols: dict, sidecar: Sidecar, path: Path) -> tuple[str, ...]:
+    """Names of the (w, x, y, z) columns.  Named columns qw,qx,qy,qz are read by name; their header order
+    must not contradict a declared ``quaternion_order``; numbered columns q0…q3 need the declaration."""
+    order = sidecar.get("quaternion_order")
+    order = None if order is None else str(order).lower()
+    if all(c in cols for c in ("qw", "qx", "qy", "qz")):
+        header = [c for c in cols if c in ("qw", "qx", "qy", "qz")]
+        scalar_last = header == ["qx", "qy", "qz", "qw"]
+        if order is not None and (order == "xyzw") != scalar_last:
+            raise RispError(f"{path}: the header lists {','.join(header)} but the sidecar says quaternion_order "
+                            f"{order!r}: ambiguous, make them agree")
+        return ("qw", "qx", "qy", "qz")
+    if all(c in cols for c in NUMBERED_QUAT):
+        if order is None:
+            raise RispError(f"{path}: columns q0..q3 without a sidecar 'quaternion_order' ('wxyz' scalar first or "
+                            f"'xyzw' scalar last): refusing to guess")
+        return NUMBERED_QUAT if order == "wxyz" else ("q3", "q0", "q1", "q2")
+    _require(cols, ("qw", "qx", "qy", "qz"), path)
+    return ()
+
+
+def _omega_frame(env: str, cols: dict, sidecar: Sidecar, path: Path) -> str:
+    """Frame of the wx,wy,wz columns: the sidecar's ``angular_velocity_frame``; a quadrotor file with rates
+    must declare it (logs differ: PX4's vehicle_angular_velocity is body, some exports are world)."""
+    frame = sidecar.get("angular_velocity_frame")
+    if frame is None:
+        if env == "quadrotor" and "wx" in cols:
+            raise RispError(f"{path}: has columns wx,wy,wz but the sidecar does not say their frame: add "
+                            f"\"angular_velocity_frame\": \"body\" or \"world\"")
+        return "body"
+    return str(frame).lower()
+
+
+def _normalized_command(cols: dict, names: tuple[str, ...], sidecar: Sidecar, path: Path) -> np.ndarray:
+    """(N, 4) rotor commands in [0, 1]: u columns as they are, PWM mapped by pwm_range [min, max]."""
+    u = np.stack([cols[c] for c in names], 1)
+    if names[0].startswith("pwm"):
+        lo, hi = (float(v) for v in sidecar.get("pwm_range", [1000, 2000]))
+        u = (u - lo) / (hi - lo)
+    bad = np.flatnonzero((u < -0.05).any(1) | (u > 1.05).any(1))
+    if bad.size:
+        c = names[int(np.argmax((u[bad[0]] < -0.05) | (u[bad[0]] > 1.05)))]
+        raise RispError(f"{path}: column {c} at data row {bad[0] + 1} is outside the normalised range [0, 1]"
+                        + (" after pwm_range" if names[0].startswith("pwm") else "") + "; check the actuator declaration")
+    return u
+
+
+def _delayed(t: np.ndarray, u: np.ndarray, sidecar: Sidecar) -> np.ndarray:
+    """Commands as the rotors see them: u(t − d) for the sidecar's ``actuator_delay`` d [s] (linear
+    interpolation between samples, the first sample held before the start)."""
+    d = float(sidecar.get("actuator_delay", 0.0) or 0.0)
+    if d == 0.0:
+        return u
+    return np.stack([np.interp(t - d, t, u[:, i]) for i in range(u.shape[1])], 1)
+
+
+def quat_to_matrix_np(q: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) rotation matrices (body -> world) of scalar-first unit quaternions (N, 4)."""
+    w, x, y, z = q.T
+    return np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+                     np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+                     np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
 
 
 def load_measured(paths, env: str, overrides: dict | None = None, limit: int | None = None) -> list[Trajectory]:

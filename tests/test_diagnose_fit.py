@@ -89,3 +89,19 @@ def test_decision_rule():
     assert decide(base, [good, weak], [pair]).cause == "wind+air_drag"
     pair_marginal = _score("wind+air_drag", 9990.0, 4, 1.0)
     assert decide(base, [good, weak], [pair_marginal]).cause == "wind"
+
+
+def test_wind_bounds_scale_with_weight_and_bound_values_are_flagged():
+    """Issue 12: a 15.9 N wind on a 2.6 kg vehicle was clipped at a fixed ±15 N bound without a word."""
+    from risp_tasks.diagnose.candidates import build_model
+    from risp_tasks.diagnose.select import bound_flag
+    from risp_tasks.measured import Sidecar
+
+    sc = Sidecar("quadrotor", {"env": "quadrotor", "mass": 2.6}, "test")
+    model, _ = build_model("quadrotor", ("wind",), sc, 0.01)
+    i = model.free.index("wind.fx")
+    limit = 1.5 * 2.6 * 9.81  # plausible ±0.5·m·g widened by its width
+    assert float(model.upper[i]) == pytest.approx(limit, rel=1e-6) and float(model.lower[i]) == pytest.approx(-limit, rel=1e-6)
+    assert bound_flag(model, "wind.fx", 15.9) == {}
+    assert bound_flag(model, "wind.fx", float(model.upper[i]))["at_bound"] == "upper"
+    assert bound_flag(model, "wind.fx", float(model.lower[i]))["at_bound"] == "lower"

@@ -9,7 +9,7 @@ import pytest
 from diagnose_helpers import assert_recovered, run_case
 from risp_tasks.diagnose.candidates import effect_names
 
-QUAD_EFFECTS = ("rotor_drag", "air_drag", "wind", "motor_lag", "ground_effect")
+QUAD_EFFECTS = ("rotor_drag", "air_drag", "wind", "motor_lag", "ground_effect", "ground_effect_centre")
 
 
 def test_library_is_the_simulators():

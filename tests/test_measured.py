@@ -124,7 +124,8 @@ def test_quadrotor_thrust_units(tmp_path):
     n = len(cols["t"])
     for i in range(4):
         cols[f"f{i}"] = np.full(n, 7357.5)  # grams-force mistaken for newtons
-    sidecar = {"env": "quadrotor", "mass": 3.0, "arm_length": 0.3, "rotor_layout": "+", "gravity": 9.81}
+    sidecar = {"env": "quadrotor", "mass": 3.0, "arm_length": 0.3, "rotor_layout": "+", "gravity": 9.81,
+               "angular_velocity_frame": "body"}
     p = _write(tmp_path, cols, sidecar=sidecar)
     with pytest.raises(RispError, match=r"column f0 reaches 7357.5 N.*newtons"):
         load_measured([str(p)], "quadrotor")
@@ -146,3 +147,116 @@ def test_cli_reports_one_line_error(tmp_path):
     lines = [ln for ln in res.output.strip().splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("Error: ") and "'side' = 104.8" in lines[0]
     assert not (tmp_path / "out").exists()
+
+
+# ------------------------------------------------------------------------------------------------
+# conventions of real logs declared in the sidecar (issue 12) and hostile files (issue 13)
+# ------------------------------------------------------------------------------------------------
+QUAD = {"env": "quadrotor", "mass": 3.0, "angular_velocity_frame": "body"}
+
+
+def _quad_cols(n=40):
+    cols, omega = _rotation_trajectory(n)
+    for i in range(4):
+        cols[f"f{i}"] = np.full(n, 7.4)
+    return cols, omega
+
+
+def _reorder(cols, names):
+    return {k: cols[k] for k in names}
+
+
+def test_quaternion_order_scalar_last_and_numbered(tmp_path):
+    cols, _ = _quad_cols()
+    ref = load_measured([str(_write(tmp_path, cols, QUAD, "ref.csv"))], "quadrotor")[0].quat
+    last = _reorder(cols, [k for k in cols if k != "qw"] + ["qw"])  # header ...,qx,qy,qz,qw read by name
+    assert list(last).index("qw") > list(last).index("qz")
+    got = load_measured([str(_write(tmp_path, last, {**QUAD, "quaternion_order": "xyzw"}, "last.csv"))], "quadrotor")[0]
+    assert np.allclose(got.quat, ref)
+    with pytest.raises(RispError, match=r"header lists qx,qy,qz,qw but the sidecar says quaternion_order 'wxyz'"):
+        load_measured([str(_write(tmp_path, last, {**QUAD, "quaternion_order": "wxyz"}, "clash.csv"))], "quadrotor")
+    numbered = {("q" + str((["qx", "qy", "qz", "qw"].index(k)))) if k in ("qx", "qy", "qz", "qw") else k: v
+                for k, v in last.items()}  # q0..q3 = x, y, z, w
+    with pytest.raises(RispError, match=r"columns q0\.\.q3 without a sidecar 'quaternion_order'.*refusing to guess"):
+        load_measured([str(_write(tmp_path, numbered, QUAD, "num.csv"))], "quadrotor")
+    got = load_measured([str(_write(tmp_path, numbered, {**QUAD, "quaternion_order": "xyzw"}, "num2.csv"))], "quadrotor")[0]
+    assert np.allclose(got.quat, ref)
+
+
+def test_angular_velocity_frame(tmp_path):
+    cols, omega_body = _quad_cols()
+    bare = {k: v for k, v in QUAD.items() if k != "angular_velocity_frame"}
+    with pytest.raises(RispError, match=r"has columns wx,wy,wz but the sidecar does not say their frame"):
+        load_measured([str(_write(tmp_path, cols, bare, "a.csv"))], "quadrotor")
+    # a rotation about a fixed axis has equal body and world rates; use a world-frame vector that is not
+    tr = load_measured([str(_write(tmp_path, cols, QUAD, "b.csv"))], "quadrotor")[0]
+    from risp_tasks.measured import quat_to_matrix_np
+
+    R = quat_to_matrix_np(tr.quat)
+    w_body = np.tile([0.3, -1.0, 2.0], (len(tr.t), 1))
+    w_world = np.einsum("nij,nj->ni", R, w_body)
+    cols.update(wx=w_world[:, 0], wy=w_world[:, 1], wz=w_world[:, 2])
+    got = load_measured([str(_write(tmp_path, cols, {**QUAD, "angular_velocity_frame": "world"}, "c.csv"))], "quadrotor")[0]
+    assert np.allclose(got.omega, w_body, atol=1e-9)
+
+
+def test_pwm_actuator_delay_and_layout_keys(tmp_path):
+    cols, _ = _quad_cols()
+    n = len(cols["t"])
+    for i in range(4):
+        cols.pop(f"f{i}")
+        cols[f"pwm{i}"] = 1000 + 500 * np.linspace(0.2, 0.8, n)
+    side = {**QUAD, "actuator": "pwm", "pwm_range": [1000, 1500], "rotor_layout": "x", "arm_length": 0.16}
+    with pytest.raises(RispError, match=r"'hover_throttle' is required with actuator 'pwm'"):
+        load_measured([str(_write(tmp_path, cols, side, "p.csv"))], "quadrotor")
+    side["hover_throttle"] = 0.5
+    tr = load_measured([str(_write(tmp_path, cols, side, "p.csv"))], "quadrotor")[0]
+    assert tr.thrust is None and np.allclose(tr.command[:, 0], np.linspace(0.2, 0.8, n))
+    dt = tr.dt
+    tr2 = load_measured([str(_write(tmp_path, cols, {**side, "actuator_delay": 2 * dt}, "d.csv"))], "quadrotor")[0]
+    assert np.allclose(tr2.command[5:, 0], tr.command[3:-2, 0]) and tr2.command[0, 0] == tr.command[0, 0]
+    cols["pwm2"][7] = 2000  # beyond pwm_range
+    with pytest.raises(RispError, match=r"column pwm2 at data row 8 is outside the normalised range"):
+        load_measured([str(_write(tmp_path, cols, side, "q.csv"))], "quadrotor")
+    with pytest.raises(RispError, match=r"'rotor_layout' = 'H'; choose one of \+, x"):
+        load_measured([str(_write(tmp_path, cols, {**side, "rotor_layout": "H"}, "r.csv"))], "quadrotor")
+
+
+def test_negative_out_of_range_value_keeps_its_sign(tmp_path):
+    cols, _ = _rotation_trajectory()
+    cols["z"] = np.full(len(cols["t"]), -1021.49)
+    with pytest.raises(RispError, match=r"column z reaches -1021\.49 at data row 1"):
+        load_measured([str(_write(tmp_path, cols))], "cube")
+
+
+def test_bom_binary_and_non_utf8_files(tmp_path):
+    cols, _ = _rotation_trajectory()
+    p = _write(tmp_path, cols)
+    bom = tmp_path / "bom.csv"
+    bom.write_bytes(b"\xef\xbb\xbf" + p.read_bytes())
+    (tmp_path / "bom.json").write_text(json.dumps(CUBE_SIDECAR))
+    assert np.allclose(load_measured([str(bom)], "cube")[0].t, cols["t"] - cols["t"][0])
+    binary = tmp_path / "bin.csv"
+    binary.write_bytes(bytes(range(256)) * 40)
+    (tmp_path / "bin.json").write_text(json.dumps(CUBE_SIDECAR))
+    with pytest.raises(RispError, match=r"bin\.csv: not a (UTF-8 text|text|readable) CSV"):
+        load_measured([str(binary)], "cube")
+    latin = tmp_path / "latin.csv"
+    latin.write_bytes(p.read_bytes().replace(b"t,x", "t\xb5,x".encode("latin-1"), 1))
+    (tmp_path / "latin.json").write_text(json.dumps(CUBE_SIDECAR))
+    with pytest.raises(RispError, match=r"latin\.csv: not a UTF-8 text CSV"):
+        load_measured([str(latin)], "cube")
+
+
+def test_large_file_read_in_chunks_equals_row_by_row(tmp_path, monkeypatch):
+    import risp_tasks.measured as measured
+
+    cols, _ = _rotation_trajectory(n=1003)
+    p = _write(tmp_path, cols)
+    monkeypatch.setattr(measured, "CHUNK_ROWS", 100)
+    fast = measured.read_csv_columns(p)
+    with open(p, newline="", encoding="utf-8-sig") as fh:
+        header = measured._read_header(fh, p)
+        slow = measured._validated_rows(__import__("csv").reader(fh), header, p)
+    assert all(np.array_equal(fast[h], slow[:, j]) for j, h in enumerate(header))
+    assert len(fast["t"]) == 1003

@@ -241,3 +241,62 @@ def test_bad_effect_param_and_inputs():
         QuadrotorSimulator(dt=0.0)
     with pytest.raises(RispError, match="unknown effect"):
         get_simulator("quadrotor", ("turbulence",))
+
+
+def test_ground_effect_centre_scales_total_thrust_without_torque():
+    sim = get_simulator("quadrotor", ("ground_effect_centre",))
+    p = sim.default_params(1)
+    k = p[0, -1].item()
+    z = 0.2
+    s0 = sim.default_state(1)
+    s0[:, 2] = z
+    s0[:, 3:7] = euler_to_quat(_t(0.0), _t(0.2), _t(0.1)).reshape(1, 4)  # tilted: the per-rotor variant would torque
+    S = sim.rollout(p, s0, sim.hover_actions(p, 1), 1)
+    z_hat = GROUND_Z_MIN + GROUND_Z_WIDTH * math.log1p(math.exp((z - GROUND_Z_MIN) / GROUND_Z_WIDTH))
+    factor = 1 + k * (ROTOR_RADIUS / (4 * z_hat)) ** 2
+    R2 = 1 - 2 * (s0[0, 4] ** 2 + s0[0, 5] ** 2)  # world z of the body z axis
+    assert S[0, 1, 9].item() == pytest.approx((G * factor * R2.item() - G) * DT, rel=1e-9)
+    assert torch.all(S[0, 1, 10:13] == 0)
+
+
+@pytest.mark.parametrize("layout, angle", [("+", 0.0), ("x", math.pi / 4)])
+def test_layout_and_arm_length_set_the_torques(layout, angle):
+    """Extra thrust δ on rotor 0 at L·(cos a, sin a): τ = (L sin a·δ, −L cos a·δ, s_0·k_m·δ)."""
+    L, delta = 0.16, 2.0
+    sim = QuadrotorSimulator(layout=layout, arm_length=L)
+    p = sim.default_params(1)
+    assert p[0, 1].item() == pytest.approx(default_inertia(MASS, L)[0])
+    u = sim.hover_actions(p, 1)
+    u[0, 0, 0] += delta / K_F
+    S = sim.rollout(p, sim.default_state(1), u, 1)
+    I = p[0, 1:4]
+    tau = _t([L * math.sin(angle) * delta, -L * math.cos(angle) * delta, K_M * delta])
+    assert torch.allclose(S[0, 1, 10:13], DT * tau / I, rtol=1e-9, atol=1e-15)
+    # the defaults are today's vehicle
+    base = QuadrotorSimulator()
+    assert base.arm_length == ARM_LENGTH and base.default_params(1)[0, 1].item() == pytest.approx(default_inertia()[0])
+    with pytest.raises(RispError, match="rotor layout 'h'"):
+        QuadrotorSimulator(layout="h")
+
+
+def test_translational_mode_closed_form_and_gradient():
+    """m·v̇ = k_f·c·R(q)e_z + m·g + F: a tilted attitude from the action tilts the thrust; wind adds a force."""
+    from risp_tasks.sims.quadrotor import QuadrotorTranslational, make_simulator
+
+    sim = make_simulator(("wind", "motor_lag"), mode="translational", dt=0.002)
+    assert isinstance(sim, QuadrotorTranslational) and sim.state_names == ("x", "y", "z", "vx", "vy", "vz", "f0")
+    p = sim.default_params(1)
+    p[0, sim.param_index("motor_lag.tau")] = 1e-3  # thrust state starts at the command: no lag effect
+    s0 = torch.zeros(1, 7, dtype=torch.float64)
+    s0[0, 2], s0[0, 6] = 1.0, MASS * G
+    q = euler_to_quat(_t(0.0), _t(0.1), _t(0.0)).reshape(1, 1, 4)
+    act = torch.cat([torch.full((1, 3, 1), MASS * G, dtype=torch.float64), q.expand(1, 3, 4)], -1)
+    S = sim.rollout(p, s0, act, 1)
+    R = 1 - 2 * (q[0, 0, 1] ** 2 + q[0, 0, 2] ** 2)
+    wind = p[0, 2:5]
+    a = (MASS * G * torch.stack([2 * (q[0, 0, 1] * q[0, 0, 3] + q[0, 0, 0] * q[0, 0, 2]),
+                                 2 * (q[0, 0, 2] * q[0, 0, 3] - q[0, 0, 0] * q[0, 0, 1]), R]) + wind) / MASS
+    a[2] -= G
+    assert torch.allclose(S[0, 1, 3:6], 0.002 * a, rtol=1e-9, atol=1e-12)
+    p.requires_grad_(True)
+    assert gradcheck(lambda pp: sim.rollout(pp, s0, act, 3), (p,), eps=1e-6, atol=1e-6)

@@ -134,6 +134,18 @@ def sim_actions(sim, traj: Trajectory, base_params: torch.Tensor | None = None) 
     """
     if sim.action_dim == 0:
         return None
+    if traj.command is not None:
+        # normalised rotor commands u ∈ [0, 1] are the simulator's action; its k_f (N per unit command,
+        # fitted: candidates.build_model) is the thrust map f = k_f·u (docs/measured-data.md §Conventions).
+        # The translational model's action is (collective, measured attitude quaternion).
+        if traj.command.shape[1] == 1:
+            # the attitude held over sample i is the midpoint one, normalise(q_i + q_{i+1}) (second order;
+            # the commands themselves are a zero-order hold)
+            q = traj.quat.copy()
+            q[:-1] = q[:-1] + traj.quat[1:]
+            q /= np.linalg.norm(q, axis=1, keepdims=True)
+            return np.concatenate([traj.command, q], 1)
+        return traj.command
     if traj.thrust is not None:
         f = traj.thrust
         p = base_params if base_params is not None else sim.default_params(1)[0]
@@ -245,7 +257,10 @@ class Observer:
             self.quat = all(n in names for n in _QUAT)
             self.i_att = [names.index(n) for n in (_QUAT if self.quat else _EULER)]
         else:
-            # generalised coordinates and their rates: one noise level per kind
+            # generalised coordinates and their rates: one noise level per kind; latent effect states
+            # (appended after the base state, e.g. a motor-lag thrust) are not observed
+            latent = {n for e in sim.spec.available_effects.values() for n in e.state_names}
+            names = [n for n in names if n not in latent]
             self.channels = tuple(names)
             rate = [i for i, n in enumerate(names) if _is_rate(n)]
             coord = [i for i in range(len(names)) if i not in rate]
@@ -262,7 +277,8 @@ class Observer:
     def error(self, pred: torch.Tensor, meas: torch.Tensor) -> torch.Tensor:
         """pred − meas per channel (..., C); attitude as the rotation vector 2·Im(q_meas* ⊗ q_pred)."""
         if not self.rigid:
-            return pred - meas
+            C = len(self.channels)
+            return pred[..., :C] - meas[..., :C]
         qp, qm = self.quaternion(pred), self.quaternion(meas)
         w1, x1, y1, z1 = qm[..., 0], -qm[..., 1], -qm[..., 2], -qm[..., 3]  # q_meas*
         w2, x2, y2, z2 = qp.unbind(-1)

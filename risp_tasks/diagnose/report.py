@@ -22,9 +22,20 @@ PLOTS = {
 }
 
 
+def _named(path: Path, write) -> None:
+    """Run ``write``; an OSError (disk full, permissions) is re-raised naming ``path``, not a temp name."""
+    try:
+        write()
+    except OSError as e:
+        raise OSError(e.errno, e.strerror or str(e), str(path)) from None
+
+
 def _savefig(fig, path: Path) -> None:
-    with atomic_write(path, "wb", suffix=".png") as f:
-        fig.savefig(f, format="png", dpi=110, bbox_inches="tight")
+    def write():
+        with atomic_write(path, "wb", suffix=".png") as f:
+            fig.savefig(f, format="png", dpi=110, bbox_inches="tight")
+
+    _named(path, write)
 
 
 def _json_default(o):
@@ -50,6 +61,29 @@ def _clean(o):
 # plots
 # ------------------------------------------------------------------------------------------------
 MAX_PLOTTED_CHANNELS = 6
+SMOOTH_SAMPLES = 11  # moving-average window of the smoothed residual curves
+
+
+def _robust_ylim(ax, *arrays) -> None:
+    """y limits from the 1st–99th percentiles (impact outliers must not flatten a few m/s² of friction)."""
+    y = np.concatenate([np.ravel(a) for a in arrays if a is not None and np.size(a)])
+    if y.size == 0:
+        return
+    lo, hi = np.percentile(y, [1, 99])
+    pad = 0.15 * (hi - lo) + 1e-12
+    ax.set_ylim(lo - pad, hi + pad)
+
+
+def _smooth(y: np.ndarray, n: int = SMOOTH_SAMPLES) -> np.ndarray:
+    """Centred moving average (shorter at the ends): measurement noise / Δ averages out, a bias stays."""
+    if len(y) < 3:
+        return y
+    n = min(n, len(y) if len(y) % 2 else len(y) - 1)
+    k = np.ones(n) / n
+    num = np.convolve(y, k, mode="same")
+    den = np.convolve(np.ones_like(y), k, mode="same")
+    return num / den
+MAX_OVERLAY_SAMPLES = 3000
 
 
 def _top_channels(accel: np.ndarray) -> list[int]:
@@ -74,14 +108,21 @@ def plot_residuals_time(path: Path, os_base, os_ext, names: tuple[str, str]) -> 
         ax = axes[row, 0]
         for j in trajs:
             m = os_base.traj == j
-            ax.plot(os_base.t[m], os_base.accel[m, c], lw=0.8, color="C3", alpha=0.8, label=names[0] if j == trajs[0] else None)
+            ax.plot(os_base.t[m], os_base.accel[m, c], lw=0.5, color="C3", alpha=0.25)
+            ax.plot(os_base.t[m], _smooth(os_base.accel[m, c]), lw=1.4, color="C3",
+                    label=f"{names[0]} ({SMOOTH_SAMPLES}-sample mean)" if j == trajs[0] else None)
             if os_ext is not None:
-                ax.plot(os_ext.t[m], os_ext.accel[m, c], lw=0.8, color="C0", alpha=0.8, label=names[1] if j == trajs[0] else None)
+                me = os_ext.traj == j
+                ax.plot(os_ext.t[me], os_ext.accel[me, c], lw=0.5, color="C0", alpha=0.25)
+                ax.plot(os_ext.t[me], _smooth(os_ext.accel[me, c]), lw=1.4, color="C0",
+                        label=f"{names[1]} ({SMOOTH_SAMPLES}-sample mean)" if j == trajs[0] else None)
         ax.set_ylabel(os_base.accel_names[c], fontsize=8)
         ax.axhline(0, color="k", lw=0.5)
+        _robust_ylim(ax, os_base.accel[:, c], None if os_ext is None else os_ext.accel[:, c])
     axes[0, 0].legend(fontsize=7, loc="upper right")
     axes[-1, 0].set_xlabel("time [s] (held-out trajectories, up to 3)")
-    fig.suptitle("one-step acceleration residuals a_meas − a_model (m/s², rad/s²)", fontsize=10)
+    fig.suptitle("one-step acceleration residuals a_meas − a_model (m/s², rad/s²); faint: raw, bold: moving mean; "
+                 "y: 1st–99th percentile", fontsize=9)
     _savefig(fig, path)
     plt.close(fig)
 
@@ -112,12 +153,17 @@ def plot_residuals_regressors(path: Path, os_base) -> None:
                 means = [y[idx == b].mean() for b in range(10) if np.any(idx == b)]
                 ax.plot(mids, means, "-o", ms=2.5, color="k", lw=1)
             ax.axhline(0, color="k", lw=0.4)
+            _robust_ylim(ax, y)
+            xl = np.percentile(x, [0.5, 99.5])
+            if xl[1] > xl[0]:
+                ax.set_xlim(xl[0] - 0.05 * (xl[1] - xl[0]), xl[1] + 0.05 * (xl[1] - xl[0]))
             ax.tick_params(labelsize=6)
             if row == A - 1:
                 ax.set_xlabel(name, fontsize=7)
             if r == 0:
                 ax.set_ylabel(os_base.accel_names[c], fontsize=7)
-    fig.suptitle("base-model one-step acceleration residuals vs candidate regressors (black: binned means)", fontsize=9)
+    fig.suptitle("base-model one-step acceleration residuals vs candidate regressors (black: binned means; "
+                 "axes: 1st–99th percentile)", fontsize=9)
     _savefig(fig, path)
     plt.close(fig)
 
@@ -130,6 +176,7 @@ def plot_gain(path: Path, base_ev, ext_ev, held_trajs, horizon: int) -> None:
     import matplotlib.pyplot as plt
 
     tr = max(held_trajs, key=lambda t: t.n)
+    tr = tr.slice(0, min(tr.n, MAX_OVERLAY_SAMPLES), "")  # a long log: its first part is plenty to look at
     H = max(1, min(horizon, tr.n - 1))
     series = {}
     for label, ev in (("base", base_ev), ("extended", ext_ev)):
@@ -169,23 +216,36 @@ def ev_name(ev) -> str:
 
 
 def plot_ranking(path: Path, report: dict) -> None:
+    """The decision: held-out ΔBIC vs base (left) and the noise-floor ratio ρ (right), thresholds dashed."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rows = [r for r in report["ranking"] if r["model"] != "base"]
+    rows = report["ranking"][::-1]
     if not rows:
         return
-    names = [r["model"] for r in rows][::-1]
-    vals = [r["delta_bic"] for r in rows][::-1]
-    fig, ax = plt.subplots(figsize=(7, 0.35 * len(rows) + 1.2))
-    ax.barh(names, vals, color=["C0" if v >= report["thresholds"]["delta_bic_min"] else "C7" for v in vals])
-    ax.axvline(report["thresholds"]["delta_bic_min"], color="k", ls="--", lw=0.8, label="ΔBIC threshold")
-    ax.set_xscale("symlog")
-    ax.set_xlabel("held-out ΔBIC vs base (larger is better)")
-    ax.legend(fontsize=7)
-    ax.set_title(f"cause: {report['cause']}", fontsize=10)
+    th = report["thresholds"]
+    names = [r["model"] for r in rows]
+    dbic = [r["delta_bic"] for r in rows]
+    rho = [r["noise_floor_ratio"] if r["noise_floor_ratio"] is not None else float("nan") for r in rows]
+    sel = report.get("selected_model")
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 0.35 * len(rows) + 1.4), sharey=True)
+    beat = [d >= th["delta_bic_min"] and r["rss_reduction"] >= th["min_rss_reduction"] for d, r in zip(dbic, rows)]
+    a1.barh(names, dbic, color=["C0" if b else "C7" for b in beat],
+            edgecolor=["k" if n == sel else "none" for n in names])
+    a1.axvline(th["delta_bic_min"], color="k", ls="--", lw=0.8, label=f"ΔBIC = {th['delta_bic_min']:g}")
+    a1.set_xscale("symlog")
+    a1.set_xlabel("held-out ΔBIC vs base (larger is better)")
+    a1.legend(fontsize=7)
+    a2.barh(names, rho, color=["C2" if v <= th["noise_floor_ratio_max"] else "C3" for v in rho],
+            edgecolor=["k" if n == sel else "none" for n in names])
+    a2.axvline(th["noise_floor_ratio_max"], color="k", ls="--", lw=0.8, label=f"ρ = {th['noise_floor_ratio_max']:g}")
+    a2.axvline(1.0, color="k", lw=0.5)
+    a2.set_xscale("log")
+    a2.set_xlabel("held-out RSS / noise floor ρ (≈ 1: only noise left)")
+    a2.legend(fontsize=7)
+    fig.suptitle(f"cause: {report['cause']} (selected: {sel}, outlined); blue/green: passes, grey/red: fails", fontsize=9)
     _savefig(fig, path)
     plt.close(fig)
 
@@ -205,9 +265,11 @@ def markdown(report: dict) -> str:
     L.append(f"**Cause: `{report['cause']}`** — {report['reason']}.\n")
     if report["parameters"]:
         L.append("## Fitted parameters (model `" + report["selected_model"] + "`)\n")
-        L.append("| parameter | value | ± 1σ | unit |\n|---|---|---|---|")
+        L.append("| parameter | value | ± 1σ (robust) | unit | note |\n|---|---|---|---|---|")
         for n, p in report["parameters"].items():
-            L.append(f"| {n} | {_fmt(p['value'])} | {_fmt(p['std'], 2)} | {p['unit']} |")
+            note = f"**at its {p['at_bound']} limit {p['limit']:.4g}**: the fit is bounded, not determined" \
+                if p.get("at_bound") else ""
+            L.append(f"| {n} | {_fmt(p['value'])} | {_fmt(p['std'], 2)} | {p['unit']} | {note} |")
         L.append("")
     L.append("## Held-out error: base vs `" + report["compared_model"] + "`\n")
     L.append("| quantity | group | base | extended | gain |\n|---|---|---|---|---|")
@@ -217,6 +279,8 @@ def markdown(report: dict) -> str:
         for grp in be[key]:
             unit = unit_of(grp) if key != "one_step_acceleration" else ("m/s²" if grp == "acceleration" else "rad/s²")
             L.append(f"| {label} | {grp} [{unit}] | {_fmt(be[key][grp])} | {_fmt(ee[key][grp])} | {g[key][grp]:+.1%} |")
+    L.append(f"| rollout error / noise σ (RMS over channels) | all | {_fmt(be['rollout_normalized'])} | "
+             f"{_fmt(ee['rollout_normalized'])} | {g['rollout_normalized']:+.1%} |")
     L.append(f"| normalised held-out RSS | all | {_fmt(be['normalized_rss'])} | {_fmt(ee['normalized_rss'])} | {g['normalized_rss']:+.1%} |")
     L.append(f"| residual / noise floor ρ | all | {_fmt(be['noise_floor_ratio'], 3)} | {_fmt(ee['noise_floor_ratio'], 3)} | |\n")
     L.append("## Ranking (held-out BIC)\n")
@@ -226,6 +290,13 @@ def markdown(report: dict) -> str:
     t = report["thresholds"]
     L.append(f"\nThresholds: ΔBIC ≥ {t['delta_bic_min']:g} and RSS reduction ≥ {t['min_rss_reduction']:.0%} to beat a model; "
              f"ρ ≤ {t['noise_floor_ratio_max']:g} counts as explained (docs/diagnose.md).\n")
+    deps = report.get("residual_dependence") or []
+    if deps:
+        L.append("## Remaining dependence of the selected model's held-out residual (docs/diagnose.md §6)\n")
+        L.append("| regressor | channel | p (Bonferroni) | η² | significant |\n|---|---|---|---|---|")
+        for d in deps[:5]:
+            L.append(f"| {d['regressor']} | {d['channel']} | {d['p_value']:.2g} | {d['eta2']:.3f} | {'yes' if d['significant'] else 'no'} |")
+        L.append("")
     if report["candidate_parameters"]:
         L.append("## Fitted parameters of every candidate\n")
         L.append("| model | parameter | value | ± 1σ |\n|---|---|---|---|")
@@ -238,7 +309,15 @@ def markdown(report: dict) -> str:
     L.append(f"- {len(report['data']['files'])} file(s), {report['data']['samples']} samples, Δ = {report['data']['sample_interval_s']:.5g} s; sidecar: {report['data']['sidecar']}")
     L.append(f"- split by {s['mode']} (seed {s['seed']}): fitting {', '.join(s['fit'])}; held out {', '.join(s['held_out'])}")
     n = report["noise"]
-    L.append("- estimated measurement noise (1σ): " + ", ".join(f"{k} {_fmt(v, 3)} {unit_of(k)}" for k, v in n.items()))
+    nm = report.get("noise_model") or {}
+    L.append(f"- measurement noise (1σ), {nm.get('source', 'estimated')}: "
+             + ", ".join(f"{k} {_fmt(v, 3)} {unit_of(k)}" for k, v in n.items()))
+    if nm.get("time_correlated") and not nm.get("declared_groups"):
+        L.append("- **the estimated noise looks time-correlated** (lag-1 AR(1) fit of the smoothing residuals: "
+                 + ", ".join(f"{k} {v:.2f}" for k, v in nm["lag1_correlation_estimate"].items())
+                 + "): filtered data, or motion too fast for the 7-sample smoother. σ and ρ assume white noise and "
+                   "are then only indicative; declare the sensor noise in the sidecar (`measurement_noise`, "
+                   "`measurement_noise_correlation`) where it is known (docs/diagnose.md §4).")
     f = report["fit"]
     L.append(f"- multiple shooting: segments of {f['horizon_samples']} samples, {f['substeps_per_sample']} simulator step(s) of {f['sim_dt_s']:.4g} s per sample")
     L.append(f"- runtime {report['runtime_s']:.1f} s\n")
@@ -252,14 +331,16 @@ def write_report(report: dict, cfg, evaluated, base_ev, ext_ev, fit_trajs, held_
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     if cfg.plots:
-        os_b = one_step(base_ev.fit.model.sim, base_ev.obs, base_ev.fit.params, held_trajs, base_ev.k)
+        cap = dict(max_samples=10 * cfg.max_segments, seed=cfg.seed)
+        os_b = one_step(base_ev.fit.model.sim, base_ev.obs, base_ev.fit.params, held_trajs, base_ev.k, **cap)
         os_e = None
         if ext_ev is not base_ev:
-            os_e = one_step(ext_ev.fit.model.sim, ext_ev.obs, ext_ev.fit.params, held_trajs, ext_ev.k)
+            os_e = one_step(ext_ev.fit.model.sim, ext_ev.obs, ext_ev.fit.params, held_trajs, ext_ev.k, **cap)
         plot_residuals_time(out / PLOTS["residuals_time"], os_b, os_e, ("base", ext_ev.fit.model.name))
         plot_residuals_regressors(out / PLOTS["residuals_regressors"], os_b)
         plot_gain(out / PLOTS["gain"], base_ev, ext_ev, held_trajs, report["base_error"]["rollout_horizon_samples"])
         plot_ranking(out / PLOTS["ranking"], report)
         report["plots"] = {k: str(out / v) for k, v in PLOTS.items()}
-    write_text_atomic(out / "report.json", json.dumps(_clean(report), indent=2, default=_json_default))
-    write_text_atomic(out / "report.md", markdown(report))
+    text = json.dumps(_clean(report), indent=2, default=_json_default)
+    _named(out / "report.json", lambda: write_text_atomic(out / "report.json", text))
+    _named(out / "report.md", lambda: write_text_atomic(out / "report.md", markdown(report)))

@@ -65,10 +65,12 @@ def regressors(sim, trajs: list[Trajectory], seg: Segments) -> dict[str, np.ndar
                 lowest = tr.pos[i, 2] - half * np.abs(R[2]).sum()
                 r["lowest corner z [m]"] = float(lowest)
                 r["contact"] = float(lowest < 0.005)
-        if tr.thrust is not None:
-            r["total thrust [N]"] = float(tr.thrust[i].sum())
-            prev = tr.thrust[max(i - 1, 0)].sum()
-            r["thrust rate [N/s]"] = float((tr.thrust[i].sum() - prev) / tr.dt)
+        cmd, unit = (tr.thrust, "N") if tr.thrust is not None else (tr.command, "1")
+        if cmd is not None:
+            label = "thrust" if unit == "N" else "command"
+            r[f"total {label} [{unit}]"] = float(cmd[i].sum())
+            prev = cmd[max(i - 1, 0)].sum()
+            r[f"{label} rate [{unit}/s]"] = float((cmd[i].sum() - prev) / tr.dt)
         if tr.pos is None:
             if j not in cache:
                 a = sim_actions(sim, tr)
@@ -83,9 +85,15 @@ def regressors(sim, trajs: list[Trajectory], seg: Segments) -> dict[str, np.ndar
     return {k: np.asarray(v) for k, v in out.items()}
 
 
-def one_step(sim, obs: Observer, params: torch.Tensor, trajs: list[Trajectory], k: int) -> OneStep:
-    """One-step prediction errors from every measured sample (SI units)."""
-    seg = make_segments(sim, trajs, horizon=1, k=k, stride=1)
+def _rng(seed: int, salt: int) -> np.random.Generator:
+    return np.random.default_rng(np.random.SeedSequence([int(seed), 4, salt]))
+
+
+def one_step(sim, obs: Observer, params: torch.Tensor, trajs: list[Trajectory], k: int,
+             max_samples: int | None = None, seed: int = 0) -> OneStep:
+    """One-step prediction errors from every measured sample (SI units); at most ``max_samples`` (a seeded
+    subset, the same for every model of one run) so that scoring a huge log stays bounded."""
+    seg = make_segments(sim, trajs, horizon=1, k=k, stride=1, max_segments=max_samples, rng=_rng(seed, 0))
     with torch.no_grad():
         pred = predict(sim, params, seg)
         err = obs.error(pred[:, 1], seg.meas[:, 1]).numpy()
@@ -119,13 +127,17 @@ def accel_rms(obs: Observer, os_: OneStep) -> dict[str, float]:
     return out
 
 
-def rollout_error(sim, obs: Observer, params: torch.Tensor, trajs: list[Trajectory], k: int, horizon: int) -> dict[str, float]:
-    """RMS error per group after ``horizon`` open-loop samples from every non-overlapping segment start."""
-    seg = make_segments(sim, trajs, horizon=horizon, k=k, stride=horizon)
+def rollout_error(sim, obs: Observer, params: torch.Tensor, trajs: list[Trajectory], k: int, horizon: int,
+                  sigma=1.0, max_segments: int | None = None, seed: int = 0) -> dict:
+    """Error after ``horizon`` open-loop samples from every non-overlapping segment start (at most
+    ``max_segments``, a seeded subset): RMS per group (SI units, ``groups``) and the RMS over all channels
+    in units of each channel's noise σ (``normalized``)."""
+    seg = make_segments(sim, trajs, horizon=horizon, k=k, stride=horizon, max_segments=max_segments,
+                        rng=_rng(seed, 1))
     with torch.no_grad():
         pred = predict(sim, params, seg)
         err = obs.error(pred[:, -1], seg.meas[:, -1]).numpy()
-    return group_rms(obs, err)
+    return {"groups": group_rms(obs, err), "normalized": float(np.sqrt(np.mean((err / sigma) ** 2)))}
 
 
 def unit_of(group: str) -> str:

@@ -6,8 +6,11 @@ Method, statistics and thresholds: docs/diagnose.md.
 
 from __future__ import annotations
 
+import tempfile
 import time
 from dataclasses import asdict, dataclass
+
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -18,9 +21,15 @@ from risp_data.errors import RispError
 from ..measured import Trajectory, load_measured
 from . import candidates as cands
 from .adapter import Observer, calibrate_floor
-from .fit import FitConfig, FitResult, channel_sigma, estimate_noise, fit_model, make_segments
+from .fit import FitConfig, FitResult, channel_sigma, fit_model, make_segments, noise_model
 from .residuals import accel_rms, group_rms, one_step, rollout_error
-from .select import RHO_MAX, Score, decide, held_out_score, noise_floor
+from .dependence import residual_dependence
+from .select import (RHO_MAX, Score, bound_flag, check_dependence, decide, held_out_score, noise_floor,
+                     runner_up_note)
+
+
+#: Held-out one-step residuals are scored on at most this many × --max-segments samples (a seeded subset).
+ONE_STEP_PER_SEGMENT = 10
 
 
 @dataclass(frozen=True)
@@ -78,6 +87,8 @@ class Evaluated:
     score: Score
     k: int
     obs: Observer
+    seg_held: object = None
+    sigma: torch.Tensor | None = None
 
 
 def _segments(model, trajs, cfg: DiagnoseConfig, k: int, salt: int):
@@ -85,7 +96,8 @@ def _segments(model, trajs, cfg: DiagnoseConfig, k: int, salt: int):
     return make_segments(model.sim, trajs, cfg.horizon, k, max_segments=cfg.max_segments, rng=rng, params=model.base)
 
 
-def evaluate_model(effects: tuple[str, ...], fit_trajs, held_trajs, cfg: DiagnoseConfig, noise, bar=None) -> Evaluated:
+def evaluate_model(effects: tuple[str, ...], fit_trajs, held_trajs, cfg: DiagnoseConfig, noise, bar=None,
+                   phi: dict | None = None) -> Evaluated:
     sidecar = fit_trajs[0].sidecar
     model, k = cands.build_model(cfg.env, effects, sidecar, fit_trajs[0].dt)
     obs = Observer(model.sim)
@@ -100,21 +112,26 @@ def evaluate_model(effects: tuple[str, ...], fit_trajs, held_trajs, cfg: Diagnos
     fit = fit_model(model, obs, seg_fit, sigma, FitConfig(horizon=cfg.horizon, max_segments=cfg.max_segments,
                                                           max_iters=cfg.max_iters), progress)
     score = held_out_score(fit, obs, seg_held, sigma)
-    score.noise_rss = noise_floor(fit, obs, seg_held, sigma, noise, seed=cfg.seed)
+    score.noise_rss = noise_floor(fit, obs, seg_held, sigma, noise, seed=cfg.seed, phi=phi)
     score.rho = score.rss / max(score.noise_rss, 1e-300)
-    return Evaluated(fit, score, k, obs)
+    return Evaluated(fit, score, k, obs, seg_held, sigma)
 
 
 def errors(ev: Evaluated, held_trajs, cfg: DiagnoseConfig) -> dict:
     """Held-out one-step residuals and multi-step rollout error of a fitted model (SI units)."""
     sim, params = ev.fit.model.sim, ev.fit.params
-    os_ = one_step(sim, ev.obs, params, held_trajs, ev.k)
+    os_ = one_step(sim, ev.obs, params, held_trajs, ev.k, max_samples=ONE_STEP_PER_SEGMENT * cfg.max_segments,
+                   seed=cfg.seed)
     H_r = cfg.rollout_horizon or 3 * cfg.horizon
     H_r = min(H_r, min(tr.n for tr in held_trajs) - 1)
+    sigma = ev.sigma.numpy() if ev.sigma is not None else 1.0
+    roll = rollout_error(sim, ev.obs, params, held_trajs, ev.k, H_r, sigma=sigma, max_segments=cfg.max_segments,
+                         seed=cfg.seed)
     return {
         "one_step": group_rms(ev.obs, os_.error),
         "one_step_acceleration": accel_rms(ev.obs, os_),
-        "rollout": rollout_error(sim, ev.obs, params, held_trajs, ev.k, H_r),
+        "rollout": roll["groups"],
+        "rollout_normalized": roll["normalized"],
         "rollout_horizon_samples": int(H_r),
         "rollout_horizon_s": float(H_r * held_trajs[0].dt),
         "normalized_rss": ev.score.rss,
@@ -128,6 +145,8 @@ def gain(base: dict, ext: dict) -> dict:
     for key in ("one_step", "one_step_acceleration", "rollout"):
         out[key] = {g: (1.0 - ext[key][g] / base[key][g]) if base[key][g] > 0 else 0.0 for g in base[key]}
     out["normalized_rss"] = 1.0 - ext["normalized_rss"] / base["normalized_rss"] if base["normalized_rss"] > 0 else 0.0
+    out["rollout_normalized"] = 1.0 - ext["rollout_normalized"] / base["rollout_normalized"] \
+        if base["rollout_normalized"] > 0 else 0.0
     return out
 
 
@@ -153,6 +172,21 @@ def diagnose(cfg: DiagnoseConfig) -> dict:
         torch.set_num_threads(threads)
 
 
+def check_out(out: str | None) -> None:
+    """Fail before hours of fitting when the output folder cannot be created or written (one line)."""
+    if out is None:
+        return
+    path = Path(out)
+    try:
+        if path.exists() and not path.is_dir():
+            raise RispError(f"{path}: --out exists and is not a folder")
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=path, prefix=".write-test-"):
+            pass
+    except OSError as e:
+        raise RispError(f"{e.filename or path}: cannot write the report there ({e.strerror})") from None
+
+
 def _diagnose(cfg: DiagnoseConfig) -> dict:
     t0 = time.perf_counter()
     torch.manual_seed(int(cfg.seed))  # nothing below draws from it; set so that stray use is reproducible
@@ -161,10 +195,11 @@ def _diagnose(cfg: DiagnoseConfig) -> dict:
     if cfg.horizon < 1:
         raise RispError(f"--horizon must be at least 1, got {cfg.horizon}")
     cands.check_supported(cfg.env, trajs[0].sidecar)
+    check_out(cfg.out)  # after the input checks (a bad input leaves no folder), before the long fits
     trajs, floor = calibrate_floor(trajs, cfg.floor_offset)
     fit_trajs, held_trajs, split = split_trajectories(trajs, cfg.held_out, cfg.seed)
 
-    library = cands.effect_names(cfg.env)
+    library = cands.effect_names(cfg.env, trajs[0].sidecar)
     if cfg.effects is not None:
         unknown = [e for e in cfg.effects if e not in library]
         if unknown:
@@ -172,14 +207,16 @@ def _diagnose(cfg: DiagnoseConfig) -> dict:
         library = tuple(cfg.effects)
 
     base_model, _ = cands.build_model(cfg.env, (), fit_trajs[0].sidecar, fit_trajs[0].dt)
-    noise = estimate_noise(base_model.sim, fit_trajs)
+    sc = fit_trajs[0].sidecar
+    noise, phi, noise_info = noise_model(base_model.sim, fit_trajs, declared=sc.get("measurement_noise"),
+                                         declared_phi=float(sc.get("measurement_noise_correlation", 0.0)))
 
     n_total = 1 + len(library) + len(cands.pair_candidates(list(library), cfg.pairs_top))
     bar = tqdm(total=n_total, desc="diagnose: fitting models", disable=not cfg.progress, leave=False)
     evaluated: dict[str, Evaluated] = {}
 
     def run(effects):
-        ev = evaluate_model(effects, fit_trajs, held_trajs, cfg, noise, bar)
+        ev = evaluate_model(effects, fit_trajs, held_trajs, cfg, noise, bar, phi)
         evaluated[ev.fit.model.name] = ev
         bar.update(1)
         return ev
@@ -192,6 +229,11 @@ def _diagnose(cfg: DiagnoseConfig) -> dict:
 
     decision = decide(base.score, [s.score for s in singles], [p.score for p in pairs])
     chosen = evaluated[decision.selected.name]
+    # no confident wrong names: the selected model's held-out residual must not depend on a regressor
+    dependence = residual_dependence(chosen.fit, chosen.obs, chosen.sigma, held_trajs, cfg.horizon, chosen.k, cfg.seed,
+                                     phi=max(phi.values(), default=0.0))
+    decision = check_dependence(decision, dependence)
+    decision, runner_up = runner_up_note(decision, [ev.score for ev in evaluated.values()])
     ext_for_gain = chosen if decision.selected.name != "base" else (
         evaluated[decision.best_candidate.name] if decision.best_candidate is not None else base)
 
@@ -206,7 +248,8 @@ def _diagnose(cfg: DiagnoseConfig) -> dict:
             eff = sim.spec.available_effects[e]
             for p, u in zip(eff.param_names, eff.units or ("",) * len(eff.param_names)):
                 units[f"{e}.{p}"] = u
-        return {n: {"value": v, "std": ev.fit.stds.get(n, float("nan")), "unit": units.get(n, "")}
+        return {n: {"value": v, "std": ev.fit.stds.get(n, float("nan")), "unit": units.get(n, ""),
+                    **bound_flag(ev.fit.model, n, v)}
                 for n, v in ev.fit.values.items()}
 
     report = {
@@ -219,10 +262,13 @@ def _diagnose(cfg: DiagnoseConfig) -> dict:
         "candidate_parameters": {name: params_of(ev) for name, ev in evaluated.items() if ev.fit.model.effects},
         "fixed_parameters": {n: float(v) for n, v in zip(base.fit.model.sim.param_names, base.fit.model.base)},
         "ranking": ranking,
+        "residual_dependence": [d.as_dict() for d in dependence[:10]],
+        "runner_up": runner_up,
         "base_error": base_err,
         "extended_error": ext_err,
         "gain": gain(base_err, ext_err),
         "noise": noise,
+        "noise_model": noise_info,
         "thresholds": {"delta_bic_min": 10.0, "min_rss_reduction": 0.05, "noise_floor_ratio_max": RHO_MAX},
         "split": split,
         "seed": int(cfg.seed),
@@ -239,5 +285,8 @@ def _diagnose(cfg: DiagnoseConfig) -> dict:
     if cfg.out is not None:
         from .report import write_report
 
-        write_report(report, cfg, evaluated, base, ext_for_gain, fit_trajs, held_trajs)
+        try:
+            write_report(report, cfg, evaluated, base, ext_for_gain, fit_trajs, held_trajs)
+        except OSError as e:  # disk full, permissions: nothing half-written (atomic writes), one line
+            raise RispError(f"{e.filename or cfg.out}: cannot write the report ({e.strerror})") from None
     return report

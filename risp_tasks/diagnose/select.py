@@ -69,16 +69,31 @@ def held_out_score(fit: FitResult, obs: Observer, seg: Segments, sigma: torch.Te
     return Score(fit.model.name, fit.model.effects, k, rss, n, n_eff, bic)
 
 
-def _perturb(obs: Observer, states: torch.Tensor, noise: dict[str, float], gen: torch.Generator) -> torch.Tensor:
-    """Add white measurement noise of the estimated level to simulator states (..., X)."""
+def _noise(shape, phi: float, gen: torch.Generator) -> torch.Tensor:
+    """Unit-variance noise of ``shape`` (S, T, c): white, or AR(1) with lag-1 correlation φ along T (filtered
+    logs; fit.noise_model), stationary from the first sample."""
+    e = torch.randn(shape, generator=gen, dtype=DTYPE)
+    if phi <= 0 or len(shape) < 3:
+        return e
+    out = [e[:, 0]]
+    c = math.sqrt(1 - phi * phi)
+    for t in range(1, shape[1]):
+        out.append(phi * out[-1] + c * e[:, t])
+    return torch.stack(out, 1)
+
+
+def _perturb(obs: Observer, states: torch.Tensor, noise: dict[str, float], gen: torch.Generator,
+             phi: dict[str, float] | None = None) -> torch.Tensor:
+    """Add measurement noise of the estimated level (and lag-1 correlation) to simulator states (S, T, X)."""
+    phi = phi or {}
     out = states.clone()
     if not obs.rigid:
         for i, g in enumerate(obs.group_of_channel()):
-            out[..., i] += noise[g] * torch.randn(states.shape[:-1], generator=gen, dtype=DTYPE)
+            out[..., i] += noise[g] * _noise(states.shape[:-1] + (1,), phi.get(g, 0.0), gen)[..., 0]
         return out
     for idx, g in ((obs.i_pos, "position"), (obs.i_vel, "velocity"), (obs.i_om, "angular velocity")):
-        out[..., idx] += noise[g] * torch.randn(states.shape[:-1] + (3,), generator=gen, dtype=DTYPE)
-    d = noise["attitude"] * torch.randn(states.shape[:-1] + (3,), generator=gen, dtype=DTYPE)
+        out[..., idx] += noise[g] * _noise(states.shape[:-1] + (3,), phi.get(g, 0.0), gen)
+    d = noise["attitude"] * _noise(states.shape[:-1] + (3,), phi.get("attitude", 0.0), gen)
     if obs.quat:
         q = states[..., obs.i_att]
         dq = torch.cat([torch.ones_like(d[..., :1]), 0.5 * d], -1)
@@ -93,7 +108,7 @@ def _perturb(obs: Observer, states: torch.Tensor, noise: dict[str, float], gen: 
 
 
 def noise_floor(fit: FitResult, obs: Observer, seg: Segments, sigma: torch.Tensor, noise: dict[str, float],
-                seed: int, replicas: int = BOOTSTRAP_REPLICAS) -> float:
+                seed: int, replicas: int = BOOTSTRAP_REPLICAS, phi: dict[str, float] | None = None) -> float:
     """Held-out RSS expected from measurement noise alone if ``fit`` were the true model (bootstrap mean)."""
     gen = torch.Generator().manual_seed(int(seed))
     sim = fit.model.sim
@@ -101,7 +116,7 @@ def noise_floor(fit: FitResult, obs: Observer, seg: Segments, sigma: torch.Tenso
     with torch.no_grad():
         clean = predict(sim, fit.params, seg)  # (S, H+1, X)
         for _ in range(replicas):
-            noisy = _perturb(obs, clean, noise, gen)
+            noisy = _perturb(obs, clean, noise, gen, phi)
             fake = seg.with_states(consistent_start(sim, noisy[:, 0]), noisy)
             pred = predict(sim, fit.params, fake)
             e = robust(obs.error(pred[:, 1:], noisy[:, 1:]) / sigma)
@@ -154,3 +169,56 @@ def decide(base: Score, singles: list[Score], pairs: list[Score]) -> Decision:
     return Decision(chosen.name, chosen, chosen,
                     f"{chosen.name} beats the base model (ΔBIC = {chosen.delta_bic(base):.1f}, held-out RSS −"
                     f"{chosen.rss_reduction(base):.0%}) and leaves the residual at the noise floor (ρ = {chosen.rho:.2f})")
+
+
+def check_dependence(decision: Decision, dependence) -> Decision:
+    """A named cause (or ``none``) whose held-out residual still depends on a regressor becomes
+    ``unexplained`` with the regressor in the reason (risp_tasks.diagnose.dependence)."""
+    sig = [d for d in dependence if d.significant]
+    if not sig:
+        return decision
+    d = sig[0]
+    if decision.cause == "unexplained":  # already no name: say what the residual still depends on
+        return Decision("unexplained", decision.selected, decision.best_candidate,
+                        f"{decision.reason}; the held-out residual of {decision.selected.name} still depends on "
+                        f"{d.regressor} (channel {d.channel}: p = {d.p_value:.1e}, η² = {d.eta2:.2f})")
+    what = f"{decision.cause} lowers the residual" if decision.cause != "none" else "the base model reaches the noise floor"
+    return Decision("unexplained", decision.selected, decision.best_candidate,
+                    f"{what} ({decision.reason}), but its held-out residual still depends on {d.regressor} "
+                    f"(channel {d.channel}: p = {d.p_value:.1e}, η² = {d.eta2:.2f}): not a confident name")
+
+
+#: A fitted value within this fraction of the limits' span of a limit is reported as at its bound.
+AT_BOUND = 0.01
+
+
+def bound_flag(model, name: str, value: float) -> dict:
+    """{"at_bound": "lower"/"upper"} when a fitted parameter sits at (within 1 % of) a limit of its search
+    interval (the plausible range widened by its width; docs/diagnose.md §2), else {}."""
+    i = model.free.index(name)
+    lo, hi = float(model.lower[i]), float(model.upper[i])
+    span = hi - lo if math.isfinite(hi - lo) else abs(value) + 1.0
+    if math.isfinite(lo) and value - lo <= AT_BOUND * span:
+        return {"at_bound": "lower", "limit": lo}
+    if math.isfinite(hi) and hi - value <= AT_BOUND * span:
+        return {"at_bound": "upper", "limit": hi}
+    return {}
+
+
+def runner_up_note(decision: Decision, scores: list[Score]) -> tuple[Decision, dict | None]:
+    """A named cause whose nearest rival (a model that does not contain it) is within ΔBIC < DELTA_BIC_MIN
+    keeps its name — it is still the best — but the reason says the data hardly separate the two."""
+    if decision.cause in ("none", "unexplained"):
+        return decision, None
+    named = set(decision.selected.effects)
+    rivals = [sc for sc in scores if sc.effects and not named & set(sc.effects)]
+    if not rivals:
+        return decision, None
+    rival = min(rivals, key=lambda sc: sc.bic)
+    gap = rival.bic - decision.selected.bic
+    info = {"model": rival.name, "delta_bic_to_selected": gap}
+    if gap >= DELTA_BIC_MIN:
+        return decision, info
+    return Decision(decision.cause, decision.selected, decision.best_candidate,
+                    f"{decision.reason}; runner-up {rival.name} is only ΔBIC = {gap:.1f} behind (< {DELTA_BIC_MIN:g}): "
+                    f"these data hardly separate the two"), info

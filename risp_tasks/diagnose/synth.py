@@ -49,7 +49,7 @@ PERIODIC_PERIOD = 0.8  # s
 GENERIC_ACTION_AMPLITUDE = {"hand": (0.1, 0.4), "rod": (20.0, 60.0)}  # N·m per finger; N on the rod's centre
 
 QUAD_SIDECAR = {"env": "quadrotor", "mass": 3.0, "arm_length": 0.3, "rotor_layout": "+", "gravity": 9.81,
-                "yaw_torque_coefficient": 0.02}
+                "yaw_torque_coefficient": 0.02, "quaternion_order": "wxyz", "angular_velocity_frame": "body"}
 CUBE_SIDECAR = {"env": "cube", "side": 0.1048, "mass": 0.37, "gravity": 9.81}
 
 

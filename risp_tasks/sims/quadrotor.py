@@ -9,9 +9,11 @@ Full state (13, + 4 with ``motor_lag``), SI units:
     f0 f1 f2 f3  (motor_lag only) thrust of each rotor [N]
 
 Action (4): propeller commands u_i, smoothly clamped to [−500, 500]; rotor thrust f_i = k_f·u_i.
-Rotor i sits at ARM_LENGTH·(cos iπ/2, sin iπ/2, 0) ("+" layout, see risp_data.envs.quadrotor) and spins
-with sign s_i = (+1, −1, +1, −1); its drag produces the yaw torque s_i·k_m·f_i.  Integrator:
-semi-implicit (symplectic) Euler with dt = 0.01 s.
+Rotor i sits at L·(cos a_i, sin a_i, 0) and spins with sign s_i; its drag produces the yaw torque
+s_i·k_m·f_i.  Default: L = ARM_LENGTH = 0.3 m, "+" layout a_i = iπ/2 (see risp_data.envs.quadrotor),
+s = (+1, −1, +1, −1); the "x" layout has a_i = π/4 + iπ/2; ``arm_length``, ``layout``, ``rotor_angles``
+and ``spin`` are constructor options (real vehicles, docs/measured-data.md).  Integrator: semi-implicit
+(symplectic) Euler with dt = 0.01 s (``dt`` option; diagnose sub-steps it, docs/diagnose.md §Time step).
 """
 
 from __future__ import annotations
@@ -50,18 +52,29 @@ GROUND_Z_MIN = ROTOR_RADIUS / 4  # m: rotor height below which the ground-effect
 GROUND_Z_WIDTH = 0.01  # m: rounding width of that saturation
 
 
-def default_inertia(mass: float = MASS) -> tuple[float, float, float]:
+def default_inertia(mass: float = MASS, arm_length: float = ARM_LENGTH) -> tuple[float, float, float]:
     """Principal inertia (Ixx, Iyy, Izz) [kg m²]: a solid box of 0.6·m (half extents BODY_HALF_EXTENTS)
-    plus four point motors of 0.1·m at the rotor hubs (ARM_LENGTH from the centre, in the body plane)."""
+    plus four point motors of 0.1·m at the rotor hubs (``arm_length`` from the centre, in the body plane;
+    the same for "+" and "x": Σ m y² over four hubs on a circle is 2·m·L² for any symmetric layout)."""
     a, b, c = BODY_HALF_EXTENTS
     mb, mm = BODY_MASS_FRACTION * mass, (1 - BODY_MASS_FRACTION) / 4 * mass
-    arm = 2 * mm * ARM_LENGTH**2  # two motors on the axis perpendicular to the rotation axis
+    arm = 2 * mm * arm_length**2  # two motors on the axis perpendicular to the rotation axis
     return (mb / 3 * (b * b + c * c) + arm, mb / 3 * (a * a + c * c) + arm, mb / 3 * (a * a + b * b) + 2 * arm)
 
 
 def hover_command(mass, k_f=K_F):
     """u_h = m·g / (4·k_f): the command that holds the quadrotor still out of ground effect (docs §2.2)."""
     return mass * GRAVITY / (4 * k_f)
+
+
+#: Rotor azimuths a_i [rad] of the named layouts (rotor i at L·(cos a_i, sin a_i, 0), counter-clockwise from +x).
+LAYOUTS = {"+": tuple(i * math.pi / 2 for i in range(4)), "x": tuple(math.pi / 4 + i * math.pi / 2 for i in range(4))}
+
+
+def ground_factor(k, z, radius=ROTOR_RADIUS):
+    """1 + k·(R / (4·ẑ))², ẑ = z_min + softplus(z − z_min) (Cheeseman–Bennett, smoothly floored height)."""
+    z_hat = GROUND_Z_MIN + torch.nn.functional.softplus(z - GROUND_Z_MIN, beta=1.0 / GROUND_Z_WIDTH, threshold=40.0)
+    return 1.0 + k * (radius / (4.0 * z_hat)) ** 2
 
 
 STATE_NAMES = ("x", "y", "z", "qw", "qx", "qy", "qz", "vx", "vy", "vz", "wx", "wy", "wz")
@@ -86,6 +99,11 @@ EFFECTS = {
     "ground_effect": Effect(
         "ground_effect", ("k",), (1.0,), ((0.0, 2.0),),
         "thrust scaled by 1 + k·(R_rotor / (4·ẑ_i))² near the floor z = 0 (ẑ_i: smoothly floored rotor height)",
+        bounds=((0.0, _INF),), units=("1",)),
+    "ground_effect_centre": Effect(
+        "ground_effect_centre", ("k",), (1.0,), ((0.0, 2.0),),
+        "total thrust scaled by 1 + k·(R_rotor / (4·ẑ))² with ẑ the (smoothly floored) height of the centre; "
+        "no torque (the variant of ground_effect where the whole vehicle sees one cushion)",
         bounds=((0.0, _INF),), units=("1",)),
 }
 
@@ -119,16 +137,46 @@ class _Consts:
     wind: torch.Tensor | None  # (B, 3)
     lag_alpha: torch.Tensor | None  # (B, 1) = 1 − exp(−h/τ)
     ground_k: torch.Tensor | None  # (B, 1)
+    ground_centre_k: torch.Tensor | None  # (B, 1)
     rotor_pos: torch.Tensor  # (3, 4) rotor hubs in the body frame (ground-effect heights)
 
 
 class QuadrotorSimulator(Simulator):
-    """Differentiable quadrotor (docs/models.md §2). ``dt`` may be overridden (default 0.01 s)."""
+    """Differentiable quadrotor (docs/models.md §2).
 
-    def __init__(self, effects: tuple[str, ...] | list[str] = (), dt: float = DT):
+    Options (defaults = the rendered vehicle): ``dt`` [s]; ``arm_length`` L [m]; ``layout`` "+" or "x";
+    ``rotor_angles`` (4 azimuths [rad], overrides ``layout``) and ``spin`` (4 signs s_i) for vehicles
+    whose motor numbering differs (e.g. PX4's quad-X).  The default inertia follows L.
+    """
+
+    def __init__(self, effects: tuple[str, ...] | list[str] = (), dt: float = DT, arm_length: float = ARM_LENGTH,
+                 layout: str = "+", rotor_angles: tuple[float, ...] | None = None, spin: tuple[float, ...] = SPIN,
+                 thrust_quadratic: bool = False):
         if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
             raise RispError(f"dt must be a positive number of seconds, got {dt!r}")
-        self.spec = dataclasses.replace(SPEC, dt=float(dt))
+        if not (isinstance(arm_length, (int, float)) and math.isfinite(arm_length) and arm_length > 0):
+            raise RispError(f"arm_length must be a positive number of metres, got {arm_length!r}")
+        if rotor_angles is None:
+            if str(layout).lower() not in LAYOUTS:
+                raise RispError(f"rotor layout {layout!r} is not known; choose '+' or 'x' (or give rotor_angles)")
+            rotor_angles = LAYOUTS[str(layout).lower()]
+        if len(rotor_angles) != 4 or len(spin) != 4 or any(abs(abs(float(x)) - 1) > 1e-9 for x in spin):
+            raise RispError(f"rotor_angles and spin need 4 entries each (spin ±1), got {rotor_angles!r}, {spin!r}")
+        self.arm_length = float(arm_length)
+        self.rotor_angles = tuple(float(a) for a in rotor_angles)
+        self.spin = tuple(float(x) for x in spin)
+        defaults = SPEC.base_param_defaults
+        if self.arm_length != ARM_LENGTH:
+            defaults = (MASS, *default_inertia(MASS, self.arm_length), K_F, K_M)
+        self.spec = dataclasses.replace(SPEC, dt=float(dt), base_param_defaults=defaults)
+        if thrust_quadratic:
+            # a quadratic thrust map f = k_f·u + k_f2·u² (normalised commands); k_f2 is appended so that the
+            # other parameters keep their positions
+            self.spec = dataclasses.replace(
+                self.spec, base_param_names=SPEC.base_param_names + ("k_f2",), base_param_defaults=defaults + (0.0,),
+                base_param_bounds=SPEC.base_param_bounds + ((-_INF, _INF),),
+                base_param_ranges=SPEC.base_param_ranges + ((-0.05, 0.05),), base_param_units=SPEC.base_param_units + ("N",))
+        self.thrust_quadratic = bool(thrust_quadratic)
         super().__init__(effects)
 
     # -- layout ---------------------------------------------------------------------------------
@@ -157,13 +205,14 @@ class QuadrotorSimulator(Simulator):
         mass = params[:, 0:1]
         inertia = params[:, 1:4]
         k_m = params[:, 5:6]
-        L = torch.full((B, 2), ARM_LENGTH, dtype=params.dtype, device=params.device)
-        s = SPIN
-        mix = torch.tensor([[0.0, -1.0, s[0]], [1.0, 0.0, s[1]], [0.0, 1.0, s[2]], [-1.0, 0.0, s[3]]],
+        L = torch.full((B, 2), self.arm_length, dtype=params.dtype, device=params.device)
+        angles = self.rotor_angles
+        # torque of rotor i about the centre: r_i × (0, 0, f_i) = L·(sin a_i, −cos a_i)·f_i, yaw s_i·k_m·f_i
+        clean = lambda v: 0.0 if abs(v) < 1e-12 else v  # noqa: E731  (exact zeros for the "+" layout)
+        mix = torch.tensor([[clean(math.sin(a)), clean(-math.cos(a)), s] for a, s in zip(angles, self.spin)],
                            dtype=like.dtype, device=like.device)
-        angles = [i * math.pi / 2 for i in range(4)]
-        rotor_pos = torch.tensor([[ARM_LENGTH * math.cos(a) for a in angles],
-                                  [ARM_LENGTH * math.sin(a) for a in angles],
+        rotor_pos = torch.tensor([[self.arm_length * math.cos(a) for a in angles],
+                                  [self.arm_length * math.sin(a) for a in angles],
                                   [ROTOR_HEIGHT] * 4], dtype=like.dtype, device=like.device)
 
         def eff(name):
@@ -186,15 +235,19 @@ class QuadrotorSimulator(Simulator):
             wind=eff("wind"),
             lag_alpha=None if tau is None else -torch.expm1(-self.dt / tau),
             ground_k=eff("ground_effect"),
+            ground_centre_k=eff("ground_effect_centre"),
             rotor_pos=rotor_pos,
         )
 
-    @staticmethod
-    def _commanded_thrust(params: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-        """k_f · clamp_s(u) (docs §2.2), for any leading shape of ``actions`` (B, ..., 4)."""
+    def _commanded_thrust(self, params: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """k_f · clamp_s(u) (docs §2.2) [+ k_f2 · clamp_s(u)² with ``thrust_quadratic``], for any leading
+        shape of ``actions`` (B, ..., 4)."""
         u = soft_clamp(actions, -COMMAND_LIMIT, COMMAND_LIMIT, CLAMP_WIDTH)
-        k_f = params[:, 4].reshape((-1,) + (1,) * (actions.ndim - 1))
-        return k_f * u
+        shape = (-1,) + (1,) * (actions.ndim - 1)
+        f = params[:, 4].reshape(shape) * u
+        if self.thrust_quadratic:
+            f = f + params[:, 6].reshape(shape) * u * u
+        return f
 
     @staticmethod
     def _advance(c: _Consts, p, q, v, w, f_state, f_cmd):
@@ -210,13 +263,14 @@ class QuadrotorSimulator(Simulator):
             f = f_cmd
         if c.ground_k is not None:
             z_rotor = p[:, 2:3] + (qq @ const("R_row2", q)) @ c.rotor_pos  # (B, 4) world heights of the hubs
-            z_hat = GROUND_Z_MIN + torch.nn.functional.softplus(
-                z_rotor - GROUND_Z_MIN, beta=1.0 / GROUND_Z_WIDTH, threshold=40.0)
-            f = f * (1.0 + c.ground_k * (ROTOR_RADIUS / (4.0 * z_hat)) ** 2)
+            f = f * ground_factor(c.ground_k, z_rotor)
+        total = f.sum(1, keepdim=True)
+        if c.ground_centre_k is not None:
+            total = total * ground_factor(c.ground_centre_k, p[:, 2:3])
 
         # Linear acceleration: thrust along the body z axis, gravity and the enabled external forces.
         z_body = qq @ const("R_col2", q)  # (B, 3)
-        force = f.sum(1, keepdim=True) * z_body
+        force = total * z_body
         if c.rotor_drag is not None:
             R = (qq @ const("R", q)).unflatten(-1, (3, 3))
             v_body = (v.unsqueeze(1) @ R).squeeze(1)  # Rᵀ v
@@ -265,6 +319,93 @@ class QuadrotorSimulator(Simulator):
         return torch.cat([s0.unsqueeze(1), later], 1)
 
 
-def make_simulator(effects: tuple[str, ...] = (), **options) -> QuadrotorSimulator:
-    """The quadrotor simulator with the named effects; ``options``: dt (s)."""
+def make_simulator(effects: tuple[str, ...] = (), mode: str = "full", **options):
+    """The quadrotor simulator with the named effects; ``options``: dt (s), arm_length (m), layout ("+"/"x"),
+    rotor_angles (rad), spin (±1 each).  ``mode="translational"``: :class:`QuadrotorTranslational` (dt only)."""
+    if mode == "translational":
+        return QuadrotorTranslational(effects, dt=options.get("dt", DT))
+    if mode != "full":
+        raise RispError(f"quadrotor mode {mode!r} is not known; choose 'full' or 'translational'")
     return QuadrotorSimulator(effects, **options)
+
+
+# ------------------------------------------------------------------------------------------------
+# translational mode: collective thrust with the attitude taken from the data (docs/models.md §2)
+# ------------------------------------------------------------------------------------------------
+TRANSLATIONAL_EFFECTS = ("rotor_drag", "air_drag", "wind", "motor_lag", "ground_effect_centre")
+TRANSLATIONAL_SPEC = SimulatorSpec(
+    env="quadrotor",
+    dt=DT,
+    state_names=("x", "y", "z", "vx", "vy", "vz"),
+    base_param_names=("mass", "k_f"),
+    base_param_defaults=(MASS, 1.0),
+    action_dim=5,
+    available_effects={k: (dataclasses.replace(EFFECTS[k], state_names=("f0",)) if k == "motor_lag" else EFFECTS[k])
+                       for k in TRANSLATIONAL_EFFECTS},
+    base_param_bounds=(_POS, _POS),
+    base_param_ranges=((2.8, 3.2), (0.5, 2.0)),
+    base_param_units=("kg", "N"),
+)
+
+
+class QuadrotorTranslational(Simulator):
+    """Translational dynamics only, as much of the multirotor aerodynamics literature models them:
+
+        m·v̇ = k_f·c·g_e(z)·R(q)·e_z + m·g + F_effects(v, R),    ṗ = v
+
+    State (6, + the collective thrust with ``motor_lag``): x y z vx vy vz [, f0].  Action (5): the collective
+    command c (newtons with k_f = 1, or a normalised throttle with a fitted k_f) and the measured attitude
+    quaternion (qw, qx, qy, qz), both held over the step.  Effects: rotor_drag (body-frame linear drag
+    with R from the action), air_drag, wind, motor_lag (on the collective), ground_effect_centre.  Integrator:
+    semi-implicit Euler with step ``dt``.
+    """
+
+    spec = TRANSLATIONAL_SPEC
+
+    def __init__(self, effects: tuple[str, ...] | list[str] = (), dt: float = DT):
+        if not (isinstance(dt, (int, float)) and math.isfinite(dt) and dt > 0):
+            raise RispError(f"dt must be a positive number of seconds, got {dt!r}")
+        self.spec = dataclasses.replace(TRANSLATIONAL_SPEC, dt=float(dt))
+        super().__init__(effects)
+
+    def to_env_state(self, states: torch.Tensor) -> torch.Tensor:
+        raise RispError("the translational quadrotor model has no attitude state to render")
+
+    def _eff(self, params, name):
+        if name not in self.effects:
+            return None
+        i = self.param_index(f"{name}.{EFFECTS[name].param_names[0]}")
+        return params[:, i:i + len(EFFECTS[name].param_names)]
+
+    def step(self, params: torch.Tensor, state: torch.Tensor, action: torch.Tensor | None, t: int) -> torch.Tensor:
+        h = self.dt
+        p, v = state[:, 0:3], state[:, 3:6]
+        cmd = params[:, 1:2] * action[:, 0:1]
+        q = normalize_quat(action[:, 1:5])
+        qq = quat_outer(q)
+        tau = self._eff(params, "motor_lag")
+        if tau is not None:
+            f = state[:, 6:7] + (-torch.expm1(-h / tau)) * (cmd - state[:, 6:7])
+        else:
+            f = cmd
+        thrust = f
+        k_ge = self._eff(params, "ground_effect_centre")
+        if k_ge is not None:
+            thrust = thrust * ground_factor(k_ge, p[:, 2:3])
+        force = thrust * (qq @ const("R_col2", q))
+        drag = self._eff(params, "rotor_drag")
+        if drag is not None:
+            R = (qq @ const("R", q)).unflatten(-1, (3, 3))
+            v_body = (v.unsqueeze(1) @ R).squeeze(1)
+            force = force - (R @ (drag * v_body).unsqueeze(-1)).squeeze(-1)
+        c = self._eff(params, "air_drag")
+        if c is not None:
+            force = force - c * torch.sqrt((v * v).sum(1, keepdim=True) + AIR_DRAG_EPS**2) * v
+        wind = self._eff(params, "wind")
+        if wind is not None:
+            force = force + wind
+        g = torch.tensor([0.0, 0.0, -GRAVITY], dtype=v.dtype, device=v.device)
+        v_new = v + h * (force / params[:, 0:1] + g)
+        p_new = p + h * v_new
+        parts = [p_new, v_new] + ([f] if tau is not None else [])
+        return torch.cat(parts, 1)

@@ -1,0 +1,50 @@
+"""diagnose's OS failures are one `Error:` line naming the file (issue 13): an --out that cannot be a folder,
+and a disk that fills while the report is written (nothing half-written is left)."""
+
+from __future__ import annotations
+
+import errno
+
+import pytest
+from click.testing import CliRunner
+
+from risp_tasks.cli import cli
+from risp_tasks.diagnose.synth import SynthConfig, make_synthetic
+
+
+@pytest.fixture(scope="module")
+def flights(tmp_path_factory):
+    d = tmp_path_factory.mktemp("io") / "d"
+    make_synthetic(SynthConfig(env="quadrotor", seed=3, n_traj=2, samples=120, effect="wind"), d)
+    return d
+
+
+def _run(data, out, *extra):
+    return CliRunner().invoke(cli, ["diagnose", str(data), "--env", "quadrotor", "--out", str(out), "--effects", "wind",
+                                    "--pairs-top", "0", "--max-iters", "3", "--quiet", *extra])
+
+
+def _one_error_line(res):
+    lines = [ln for ln in res.output.strip().splitlines() if ln.strip()]
+    assert res.exit_code != 0 and len(lines) == 1 and lines[0].startswith("Error: "), res.output
+    return lines[0]
+
+
+def test_out_under_a_file_is_one_line_before_fitting(flights, tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    line = _one_error_line(_run(flights, blocker / "report"))
+    assert str(blocker) in line and "cannot write the report" in line
+
+
+def test_disk_full_while_writing_the_report(flights, tmp_path, monkeypatch):
+    import risp_tasks.diagnose.report as report
+
+    def full(path, text):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(report, "write_text_atomic", full)
+    out = tmp_path / "rep"
+    line = _one_error_line(_run(flights, out, "--no-plots"))
+    assert "report.json" in line and "No space left on device" in line
+    assert not list(out.glob("report.*"))
