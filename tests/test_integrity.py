@@ -499,7 +499,7 @@ def _children(pid):
     return out
 
 
-def _kill_a_child_when_running(proc, wait_for, timeout=300):
+def _kill_a_child_when_running(proc, wait_for, timeout=300, settle=0.3):
     import signal
     import time
 
@@ -507,7 +507,7 @@ def _kill_a_child_when_running(proc, wait_for, timeout=300):
     while time.time() < deadline and proc.poll() is None:
         kids = [c for c in _children(proc.pid) if wait_for(c)]
         if kids:
-            time.sleep(0.3)  # let it start working
+            time.sleep(settle)  # let it start working
             try:
                 os.kill(kids[0], signal.SIGKILL)
                 return True
@@ -545,8 +545,10 @@ def test_a_killed_dataloader_worker_is_one_line(data, tmp_path):
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
     killed = 0
     for _ in range(5):  # a worker killed after its last batch of an epoch goes unnoticed: kill the next one
+        # settle=0: with one torch thread a tiny epoch (and its worker's life) lasts well under 0.3 s
         killed += _kill_a_child_when_running(proc, lambda c: not any(w in _cmdline(c) for w in ("forkserver",
-                                                                                               "resource_tracker")))
+                                                                                               "resource_tracker")),
+                                             settle=0.0)
         try:
             proc.wait(timeout=10)
             break
@@ -555,6 +557,6 @@ def test_a_killed_dataloader_worker_is_one_line(data, tmp_path):
     if proc.poll() is None:
         proc.kill()
     _, err = proc.communicate(timeout=600)
-    assert killed, "no DataLoader worker to kill"
+    assert killed, "no DataLoader worker to kill: " + err[-2000:]
     assert proc.returncode == 1 and "Traceback" not in err, err[-3000:]
     assert err.strip().splitlines()[-1].startswith("Error: a data-loading worker process died"), err[-1000:]

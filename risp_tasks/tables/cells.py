@@ -69,7 +69,7 @@ def optimise_states(cfg, env, images: torch.Tensor, init: torch.Tensor, loss_nam
 
 def estimation(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> dict:
     from risp_data.envs import get_environment
-    from risp_train.evaluate import per_image_error, state_differences
+    from risp_train.evaluate import per_image_error, state_differences, summarize_groups
 
     env, m = get_environment(env_name), get_method(method)
     images, true = load_images(art.test_shards(env_name, repeat))
@@ -98,7 +98,8 @@ def estimation(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> 
     diff = state_differences(pred.numpy(), true.numpy(), env.state_names)
     e = per_image_error(diff, "l1")
     return {"value": float(e.mean()), "std_images": float(e.std()), "n": n, "metric": "l1",
-            "per_dim_mae": np.abs(diff).mean(0).tolist(), "state_names": list(env.state_names), **info}
+            "per_dim_mae": np.abs(diff).mean(0).tolist(), "state_names": list(env.state_names),
+            "groups": summarize_groups(env_name, pred.numpy(), true.numpy()), **info}  # metres, degrees, …
 
 
 # ------------------------------------------------------------------------------------------ tasks
