@@ -202,7 +202,7 @@ def _write_summary(out: Path, cfg: DemoConfig, log: list[dict]) -> None:
             lines.append(f"- {pname} = {p['value']:.4g} ± {p['std']:.2g}{unit}")
         rollout = (rep.get("gain") or {}).get("rollout", {})
         if rollout:
-            lines.append("- held-out open-loop rollout error reduction: "
+            lines.append("- held-out open-loop rollout error, 1 − extended/base (positive: the extended model is better): "
                          + ", ".join(f"{k} {100 * v:+.0f} %" for k, v in rollout.items()))
         lines.append("")
     (out / "README.md").write_text("\n".join(lines))
