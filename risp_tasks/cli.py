@@ -93,7 +93,7 @@ def _task_options(f):
         click.option("--camera", default=None, help="camera JSON (intrinsics, extrinsics) replacing the environment's"),
         click.option("--mesh", default=None, help="vehicle mesh file (not supported yet)"),
         click.option("--spp", type=int, default=4, show_default=True, help="samples per pixel of the differentiable renderer"),
-        click.option("--threads", type=int, default=1, show_default=True, help="torch threads"),
+        click.option("--threads", type=int, default=1, show_default=True, help="torch threads (0: one per available CPU)"),
         click.option("--no-plots", is_flag=True, help="skip the PNG plots"),
         click.option("--quiet", is_flag=True, help="no progress bar"),
     ]

@@ -172,18 +172,20 @@ def fit(cfg: TrainConfig, *, resume: bool = False, progress: bool = True,
     (``cfg.threads``; 0: the CPUs left after the data workers, risp_data.threads) and gives the caller's
     setting back when it returns.
     """
+    device = resolve_device(cfg.device)  # before anything is written: a bad --device leaves no run folder
     dist_info = init_distributed()
     before = torch.get_num_threads()
     threads = set_torch_threads(cfg.threads, workers=cfg.workers,
                                 processes=int(os.environ.get("LOCAL_WORLD_SIZE", str(dist_info.world_size))))
     try:
-        return _fit(cfg, dist_info, threads, resume=resume, progress=progress, stop_after_step=stop_after_step,
+        return _fit(cfg, dist_info, threads, device=device, resume=resume, progress=progress,
+                    stop_after_step=stop_after_step,
                     overwrite=overwrite, allow_incomplete=allow_incomplete)
     finally:
         torch.set_num_threads(before)
 
 
-def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, resume: bool, progress: bool,
+def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, device: torch.device, resume: bool, progress: bool,
          stop_after_step: int | None, overwrite: bool, allow_incomplete: bool) -> str:
     from risp_data.envs import get_environment
 
@@ -234,7 +236,6 @@ def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, resume: bool, progr
 
     model_cfg = ModelConfig(out_dim=env.target_dim, width=cfg.width, blocks=cfg.blocks,
                             stem=stem_for_resolution(shards.resolution) if cfg.stem == "auto" else cfg.stem)
-    device = resolve_device(cfg.device)
     net = build_model(model_cfg, cfg.seed).to(device)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=total_steps)

@@ -257,3 +257,11 @@ def test_fit_sets_its_thread_count_and_gives_it_back(shards, tmp_path):
     assert after == 2  # …and the caller's setting is back
     assert torch.load(path, weights_only=True)["threads"] == 1
     assert json.load(open(tmp_path / "t" / "config.json"))["threads"] == 1
+
+
+@pytest.mark.parametrize("args, message", [(["--threads", "-1"], "--threads"), (["--device", "tpu:x"], "unknown --device")])
+def test_fit_refuses_bad_threads_or_device_before_writing(shards, tmp_path, args, message):
+    out = tmp_path / "run"
+    r = CliRunner().invoke(cli, ["fit", shards["train"], "--out", str(out), "--quiet", *args])
+    assert r.exit_code != 0 and message in r.output, r.output
+    assert not out.exists()  # nothing written

@@ -48,7 +48,7 @@ def tracked_rollout(ctx: Context, params: torch.Tensor, s0: torch.Tensor, ref_p:
     per frame.  Returns (environment states (n, S), commands (n, 4)); differentiable w.r.t. ref_p."""
     from risp_data.envs.quadrotor import ARM_LENGTH
 
-    from ..diagnose.synth import _quad_controller
+    from ..sims.quadrotor_control import tracking_thrusts
 
     sim = ctx.sim
     mass = float(params[0, sim.param_index("mass")])
@@ -56,7 +56,7 @@ def tracked_rollout(ctx: Context, params: torch.Tensor, s0: torch.Tensor, ref_p:
     k_m, k_f = float(params[0, sim.param_index("k_m")]), float(params[0, sim.param_index("k_f")])
     s, states, commands = s0, [s0], []
     for i in range(len(ref_p)):
-        u = _quad_controller(s, ref_p[i:i + 1], ref_v[i:i + 1], mass, inertia, k_m, ARM_LENGTH) / k_f
+        u = tracking_thrusts(s, ref_p[i:i + 1], ref_v[i:i + 1], mass, inertia, k_m, ARM_LENGTH) / k_f
         commands.append(u[0])
         if i == len(ref_p) - 1:
             break

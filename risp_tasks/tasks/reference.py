@@ -94,7 +94,7 @@ def _motion(sim, params, n, k, fps, rng):
     if sim.env == "quadrotor":
         from risp_data.envs.quadrotor import ARM_LENGTH
 
-        from ..diagnose.synth import _quad_controller
+        from ..sims.quadrotor_control import tracking_thrusts
 
         low, high = np.asarray(env.state_low[:3]), np.asarray(env.state_high[:3])
         centre, half = (low + high) / 2, (high - low) / 2
@@ -112,7 +112,7 @@ def _motion(sim, params, n, k, fps, rng):
         states, thrusts = [s], []
         with torch.no_grad():
             for i in range(n):
-                f = _quad_controller(s, ref_p[i:i + 1], ref_v[i:i + 1], mass, inertia, k_m, ARM_LENGTH)
+                f = tracking_thrusts(s, ref_p[i:i + 1], ref_v[i:i + 1], mass, inertia, k_m, ARM_LENGTH)
                 thrusts.append(f[0])
                 if i == n - 1:
                     break

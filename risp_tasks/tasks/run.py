@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from risp_data.errors import RispError
+from risp_data.threads import set_torch_threads
 
 from . import TASKS
 from .config import TaskConfig
@@ -64,7 +65,7 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
         raise RispError(f"unknown task {cfg.task!r}; choose one of: {', '.join(TASKS)}")
     out = cfg.out or default_out(cfg)
     check_free(out)
-    torch.set_num_threads(max(1, cfg.threads))
+    set_torch_threads(cfg.threads)  # one shared rule (risp_data.threads): 0 = the machine's CPUs
     started = time.perf_counter()
     model_path, model_line = resolve_model(cfg)
     echo(model_line)
