@@ -35,9 +35,12 @@ def cli():
 @click.option("--jacobian-path", default="fast", show_default=True,
               help="fast (merged colour tangents, emitter-split primal) or legacy (one tangent pass per psi; "
                    "kept for one release). Same J to float32 rounding (docs/rendering.md).")
+@click.option("--full-jacobian", is_flag=True,
+              help="Store all three channels of every dI/dpsi_j (default: a material colour's own channel only, "
+                   "where the other two are exactly zero; docs/formats.md).")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def render(env, n, out, fmt, resolution, spp, domain, seed, workers, shard_size, executor, no_jacobian, variant,
-           jacobian_path, quiet):
+           jacobian_path, full_jacobian, quiet):
     """Render N samples of ENV into shards under OUT (resumable: rerun to complete missing shards)."""
     from .errors import RispError
     from .generate import RenderJob, run_job
@@ -64,6 +67,7 @@ def render(env, n, out, fmt, resolution, spp, domain, seed, workers, shard_size,
         jacobian=not no_jacobian,
         variant=variant,
         jacobian_path=jacobian_path,
+        compact_jacobian=not full_jacobian,
     )
     t0 = time.perf_counter()
     stats: dict = {}

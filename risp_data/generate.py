@@ -40,7 +40,8 @@ from .shards.manifest import (
 )
 from .shards.sample import Sample
 from .shards.writer import FORMATS, write_shard
-from .shards.zarr_store import ZARR_DIR, array_shapes, create_store, mark_complete_shards
+from .shards.layout import storage_block
+from .shards.zarr_store import ZARR_DIR, create_store, manifest_shapes, mark_complete_shards
 
 EXECUTORS = ("local", "ray")
 LOCK_FILE = ".lock"
@@ -65,6 +66,7 @@ class RenderJob:
     jacobian: bool = True
     variant: str | None = None
     jacobian_path: str = "fast"  # risp_data.render.JACOBIAN_PATHS; "legacy" kept for one release (issue 9)
+    compact_jacobian: bool = True  # own-channel storage where exact (risp_data.shards.layout); False: all 3
 
     @property
     def num_shards(self) -> int:
@@ -272,9 +274,10 @@ def render_shard(job: RenderJob, shard_index: int, renderer, on_sample: Callable
 
 def new_manifest(job: RenderJob, variant: str) -> dict[str, Any]:
     from .envs import get_environment
-    from .psi import psi_manifest
+    from .psi import own_channels, psi_manifest
 
     env = get_environment(job.env)
+    psi = psi_manifest(job.env, job.domain)  # the folder domain's ranges and units, what J is w.r.t.
     return {
         "format": FORMAT_NAME,
         "format_version": FORMAT_VERSION,
@@ -290,7 +293,8 @@ def new_manifest(job: RenderJob, variant: str) -> dict[str, Any]:
         "seed": job.seed,
         "seed_scheme": SEED_SCHEME,
         "formats": list(job.formats),
-        "psi": psi_manifest(job.env, job.domain),  # the folder domain's ranges and units, what J is w.r.t.
+        "psi": psi,
+        "jacobian_storage": storage_block(psi["names"], own_channels(job.env), job.compact_jacobian and job.jacobian),
         "state_names": list(env.state_names),
         "state_low": [float(v) for v in env.state_low],
         "state_high": [float(v) for v in env.state_high],
@@ -312,7 +316,7 @@ def _check_writable(folder: str) -> None:
 
 
 def _zarr_store_ok(folder: str, manifest: dict[str, Any]) -> bool:
-    shapes = array_shapes(1, 1, 1, 1, manifest["jacobian"])
+    shapes = manifest_shapes(manifest, n=1, resolution=1)
     return all(os.path.exists(os.path.join(folder, ZARR_DIR, name, "zarr.json")) for name in shapes) and os.path.exists(
         os.path.join(folder, ZARR_DIR, "zarr.json")
     )
@@ -336,7 +340,7 @@ def _shard_files(manifest: dict[str, Any], shard_index: int) -> list[str]:
 
     rels = [shard_name(shard_index)] if "wds" in manifest["formats"] else []
     if "zarr" in manifest["formats"]:
-        shapes = array_shapes(1, 1, 1, 1, manifest["jacobian"])
+        shapes = manifest_shapes(manifest, n=1, resolution=1)
         rels += [shard_file("", name, shard_index, len(shape)) for name, shape in shapes.items()]
     return rels
 
@@ -572,6 +576,9 @@ def _run_locked(job: RenderJob, variant: str, progress: bool, log: Callable[[str
     from tqdm import tqdm
 
     manifest = prepare_folder(job, variant, log)
+    layout = (manifest.get("jacobian_storage") or {}).get("layout", "full")
+    if manifest["shards"] and layout != new_manifest(job, variant)["jacobian_storage"]["layout"]:
+        log(f"{job.out} stores Jacobians in the {layout} layout: its missing shards keep that layout")
     done = {r["index"] for r in manifest["shards"]}
     todo = [i for i in range(job.num_shards) if i not in done]
     if done:

@@ -9,6 +9,7 @@ import numpy as np
 
 from .errors import RispError
 from .shards import load_manifest
+from .shards.layout import channel_map
 from .shards.reader import complete_indices, read_samples
 from .atomic import atomic_write
 
@@ -71,6 +72,18 @@ def _folder_bytes(folder: str) -> int:
     return total
 
 
+def _storage_line(m: dict) -> str:
+    """The Jacobian layout (docs/formats.md): which ψ keep only their own channel, and fall-back samples."""
+    if not m["jacobian"]:
+        return "none (--no-jacobian)"
+    own = {n: c for n, c in channel_map(m).items() if c != "RGB"}
+    if not own:
+        return "full (all three channels of every psi)"
+    fallback = sum(len(r.get("jacobian_fallback", {})) for r in m["shards"])
+    return (f"own-channel for {', '.join(f'{n}:{c}' for n, c in own.items())}; "
+            f"{fallback} sample(s) kept in full (other channels not exactly 0)")
+
+
 def summarize(folder: str, m: dict) -> str:
     """Human-readable manifest summary (one fact per line)."""
     c = m["counts"]
@@ -81,6 +94,7 @@ def summarize(folder: str, m: dict) -> str:
         f"samples      {c['complete_samples']}/{m['n']} complete in {c['complete_shards']}/{m['num_shards']} shards "
         f"of {m['shard_size']}{'' if m['complete'] else '  (INCOMPLETE: rerun render to resume)'}",
         f"formats      {', '.join(m['formats'])}",
+        f"J storage    {_storage_line(m)}",
         f"seed         {m['seed']}",
         f"state        {', '.join(m['state_names'])}",
         "psi          name                 nominal      low     high",

@@ -179,6 +179,13 @@ def psi_manifest(env: str, domain: str) -> dict:
     }
 
 
+def own_channels(env: str) -> dict[str, str]:
+    """ψ whose ∂I/∂ψ_j lives in one colour channel only, and that channel: the material colours
+    ``object_<c>`` and ``floor_<c>`` (each scales one channel of a reflectance, and the ``rgb`` variant never
+    mixes channels).  Shards store only that channel where a sample shows it exact (risp_data.shards.layout)."""
+    return {s.name: s.name[-1].upper() for s in psi_specs(env) if s.name.startswith(("object_", "floor_"))}
+
+
 def psi_names(env: str) -> tuple[str, ...]:
     return tuple(s.name for s in psi_specs(env))
 

@@ -21,6 +21,7 @@ from click.testing import CliRunner
 
 from risp_data.cli import cli
 from risp_data.shards import ZarrDataset, iter_wds, load_manifest
+from tests.shard_helpers import scale_stored_jacobian
 
 TINY = ["--env", "cube", "--res", "8", "--spp", "2", "--quiet"]
 
@@ -99,22 +100,17 @@ def test_inspect_prints_summary_and_writes_png(rendered, tmp_path):
 
 
 def test_verify_passes_then_fails_on_tampered_jacobian(tmp_path):
-    import zarr
-
     out = tmp_path / "v"
     _ok(_render(out, n=2, shard_size=2))
     r = _ok(CliRunner().invoke(cli, ["verify", str(out), "--samples", "2"]))
-    assert "checksums: 5 shard files ok" in r.output and "FAIL" not in r.output
+    # one tar + the zarr shard files of images, jacobian_planes, jacobian_rest, states, psi
+    assert "checksums: 6 shard files ok" in r.output and "FAIL" not in r.output
     # tamper one psi's stored Jacobian of sample 1 (zarr is what verify reads when present) ...
     m = load_manifest(str(out))
-    j = m["psi"]["names"].index("light_intensity")
-    arr = zarr.open_array(str(out / "data.zarr" / "jacobians"), mode="r+")
-    block = arr[0:2]
-    block[1, j] *= 1.5
-    arr[0:2] = block
+    rel = scale_stored_jacobian(str(out), [1], "light_intensity", 1.5)
     # ... the file no longer matches its checksum: verify names it
     r = CliRunner().invoke(cli, ["verify", str(out), "--samples", "2"])
-    _error_line(r, "data.zarr/jacobians/c/0/0/0/0/0")
+    _error_line(r, rel)
     # ... and with a manifest that agrees with the bytes (as if the writer had stored a wrong J),
     # the central-difference check catches it
     from risp_data.shards.manifest import file_record, save_manifest

@@ -11,6 +11,7 @@ from click.testing import CliRunner
 
 from risp_data.envs import ENV_NAMES
 from risp_data.psi import DOMAINS, JACOBIAN_MEANING, psi_manifest, psi_specs, sample_rendering
+from tests.shard_helpers import scale_stored_jacobian
 
 
 def _inside(value: float, intervals) -> bool:
@@ -77,8 +78,6 @@ def test_target_folder_manifest_lists_target_ranges(tmp_path):
 def test_verify_default_tolerance_catches_a_jacobian_off_by_half_a_percent(tmp_path):
     """The old default (0.05) let a 0.5 % wrong J through; the new one (1e-3, docs/cli-data.md) fails it,
     while the untouched folder passes at the new default."""
-    import zarr
-
     from risp_data.cli import cli
     from risp_data.shards import load_manifest
     from risp_data.shards.manifest import file_record, save_manifest
@@ -91,11 +90,7 @@ def test_verify_default_tolerance_catches_a_jacobian_off_by_half_a_percent(tmp_p
     ok = verify_folder(VerifyConfig(str(out), samples=2, progress=False))
     assert not ok.failures and max(ok.rel_error) < TOL / 10, ok.rel_error
     m = load_manifest(str(out))
-    j = m["psi"]["names"].index("object_g")
-    arr = zarr.open_array(str(out / "data.zarr" / "jacobians"), mode="r+")
-    block = arr[0:2]
-    block[:, j] *= 1.005
-    arr[0:2] = block
+    scale_stored_jacobian(str(out), [0, 1], "object_g", 1.005)
     rec = m["shards"][0]
     rec["files"] = {rel: file_record(str(out), rel) for rel in rec["files"]}
     save_manifest(str(out), m)

@@ -27,7 +27,7 @@ from ..atomic import atomic_write
 MANIFEST = "manifest.json"
 MARKER_DIR = "complete"
 FORMAT_NAME = "risp-shards"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: jacobian_storage (own-channel Jacobians); folders of version 1 store J in full
 # Fields that define what a folder holds; resuming with any of them different is refused.
 IDENTITY_FIELDS = (
     "env",

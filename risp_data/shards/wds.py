@@ -4,7 +4,8 @@ Per sample ``sNNNNNNNN`` the tar holds, in this order (members sorted by key, th
 
     sNNNNNNNN.image.exr      float32 RGB EXR (ZIP compression), channels R, G, B
     sNNNNNNNN.jacobian.exr   one multi-channel float32 EXR; channel group ``<psi_name>`` = ∂I/∂ψ_j
-                             (channels ``<psi_name>.R/G/B``); absent in --no-jacobian shards
+                             (channels ``<psi_name>.R/G/B``, or only the own channel ``<psi_name>.<c>``
+                             where the json's ``jacobian_channels`` says so); absent in --no-jacobian shards
     sNNNNNNNN.json           metadata (env, domain, index, seed, render_seed, names, aux, resolution,
                              spp, member_sha256: the sha256 of every other member of the sample)
     sNNNNNNNN.psi.npy        (K,) float64, np.save(allow_pickle=False)
@@ -26,6 +27,7 @@ import numpy as np
 
 from ..errors import RispError
 from .manifest import load_manifest
+from .layout import RGB, is_compact
 from .sample import Sample
 from ..atomic import atomic_write
 
@@ -61,19 +63,38 @@ def decode_exr(data: bytes) -> dict[str, np.ndarray]:
         return {k: np.asarray(v.pixels, dtype=np.float32) for k, v in f.channels().items()}
 
 
-def encode_jacobian(jacobian: np.ndarray, psi_names: list[str]) -> bytes:
-    """The (K, H, W, 3) stack as one EXR with channel group ``<psi_name>`` per ψ_j."""
+def encode_jacobian(jacobian: np.ndarray, psi_names: list[str], channels: dict[str, str] | None = None) -> bytes:
+    """The (K, H, W, 3) stack as one EXR: per ψ_j a channel group ``<psi_name>.RGB``, or the single channel
+    ``<psi_name>.<c>`` where ``channels[psi_name] = c`` (own-channel storage; the caller checked that the
+    other two channels are +0.0: risp_data.shards.layout.sample_channels)."""
     if jacobian.shape[0] != len(psi_names):
         raise ValueError(f"jacobian has {jacobian.shape[0]} slices for {len(psi_names)} psi names")
-    return encode_exr({f"{name}.RGB": jacobian[j] for j, name in enumerate(psi_names)})
+    channels = channels or {}
+    out = {}
+    for j, name in enumerate(psi_names):
+        c = channels.get(name, RGB)
+        out[f"{name}.{c}"] = jacobian[j] if c == RGB else jacobian[j][..., RGB.index(c)]
+    return encode_exr(out)
 
 
-def decode_jacobian(data: bytes, psi_names: list[str]) -> np.ndarray:
+def decode_jacobian(data: bytes, psi_names: list[str], channels: dict[str, str] | None = None) -> np.ndarray:
+    """The full (K, H, W, 3) stack of a Jacobian EXR; ``channels`` (the sample's json ``jacobian_channels``,
+    absent in old samples: all ``"RGB"``) says which channels each ψ stored, the others are +0.0."""
     groups = decode_exr(data)
-    missing = [n for n in psi_names if f"{n}.RGB" not in groups]
+    channels = channels or {}
+    keys = [f"{n}.{channels.get(n, RGB)}" for n in psi_names]
+    missing = [k for k in keys if k not in groups]
     if missing:
         raise ValueError(f"jacobian EXR lacks channel group(s) {', '.join(missing)}")
-    return np.stack([groups[f"{n}.RGB"] for n in psi_names])
+    first = groups[keys[0]]
+    jac = np.zeros((len(psi_names), *first.shape[:2], 3), np.float32)
+    for j, (name, key) in enumerate(zip(psi_names, keys)):
+        c = channels.get(name, RGB)
+        if c == RGB:
+            jac[j] = groups[key]
+        else:
+            jac[j, ..., RGB.index(c)] = groups[key]
+    return jac
 
 
 # ------------------------------------------------------------------------------------------ writing
@@ -85,31 +106,38 @@ def _npy_bytes(a: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def sample_members(sample: Sample) -> dict[str, bytes]:
-    """The tar members of one sample, keyed by extension (without the key)."""
+def sample_members(sample: Sample, stored: dict[str, str] | None = None) -> dict[str, bytes]:
+    """The tar members of one sample, keyed by extension (without the key); ``stored``: the channels this
+    sample stores per ψ (risp_data.shards.layout.sample_channels; None: all three, no json field)."""
+    meta = dict(sample.meta)
     members = {
         "image.exr": encode_exr({"RGB": sample.image}),
         "psi.npy": _npy_bytes(sample.psi),
         "state.npy": _npy_bytes(sample.state),
     }
     if sample.jacobian is not None:
-        members["jacobian.exr"] = encode_jacobian(sample.jacobian, sample.meta["psi_names"])
+        if stored and is_compact(stored):
+            meta["jacobian_channels"] = dict(stored)
+        members["jacobian.exr"] = encode_jacobian(sample.jacobian, list(meta["psi_names"]), stored)
     # EXR and .npy carry no checksum of their own: the json records one per member, so a flipped
     # byte fails on read instead of decoding to wrong pixels.
-    meta = dict(sample.meta, member_sha256={k: hashlib.sha256(v).hexdigest() for k, v in sorted(members.items())})
+    meta = dict(meta, member_sha256={k: hashlib.sha256(v).hexdigest() for k, v in sorted(members.items())})
     members["json"] = json.dumps(meta, sort_keys=True, allow_nan=False).encode()
     return members
 
 
-def write_wds_shard(folder: str, shard_index: int, samples: list[Sample]) -> str:
-    """Write one tar shard under a temporary name and rename it into place; returns its relative path."""
+def write_wds_shard(folder: str, shard_index: int, samples: list[Sample],
+                    stored: list[dict[str, str] | None] | None = None) -> str:
+    """Write one tar shard under a temporary name and rename it into place; returns its relative path.
+    ``stored[i]``: the channels sample i stores per ψ (None: all three)."""
     rel = shard_name(shard_index)
     path = os.path.join(folder, rel)
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with atomic_write(path, "wb", suffix=".tar") as f:
         with tarfile.open(fileobj=f, mode="w", format=tarfile.USTAR_FORMAT) as tar:
-            for sample in sorted(samples, key=lambda s: s.index):
-                for ext, data in sorted(sample_members(sample).items()):
+            stored = stored or [None] * len(samples)
+            for sample, kept in sorted(zip(samples, stored), key=lambda p: p[0].index):
+                for ext, data in sorted(sample_members(sample, kept).items()):
                     info = tarfile.TarInfo(f"{sample.key}.{ext}")
                     info.size = len(data)
                     info.mtime = MTIME
@@ -150,7 +178,7 @@ def decode_wds_sample(sample: dict[str, Any], jacobian: bool = True) -> dict[str
         psi = np.load(io.BytesIO(sample["psi.npy"]), allow_pickle=False)
         jac = None
         if jacobian and "jacobian.exr" in sample:
-            jac = decode_jacobian(sample["jacobian.exr"], list(meta["psi_names"]))
+            jac = decode_jacobian(sample["jacobian.exr"], list(meta["psi_names"]), meta.get("jacobian_channels"))
         if state.shape != (len(meta["state_names"]),) or psi.shape != (len(meta["psi_names"]),):
             raise ValueError(f"state/psi shapes {state.shape}/{psi.shape} disagree with the names in its json")
     except RispError:

@@ -4,7 +4,11 @@ Arrays (float32 images and Jacobians, float64 states and ψ), each sharded along
 one zarr shard = one shard task = ``shard_size`` samples, and one inner chunk per sample:
 
     images     (N, H, W, 3)      dimension_names (sample, y, x, channel)
-    jacobians  (N, K, H, W, 3)   dimension_names (sample, psi, y, x, channel)   [absent with --no-jacobian]
+    jacobians  (N, K, H, W, 3)   dimension_names (sample, psi, y, x, channel)   [full layout]
+    jacobian_planes (N, P, H, W) dimension_names (sample, plane, y, x)          [own-channel layout: the
+    jacobian_rest   (N, R, H, W) dimension_names (sample, plane, y, x)           stored / other planes,
+                                 attribute ``planes`` = [[ψ name, channel], …] per plane]
+    (no Jacobian array with --no-jacobian)
     states     (N, S)            dimension_names (sample, state)
     psi        (N, K)            dimension_names (sample, psi)
 
@@ -22,12 +26,15 @@ from typing import Any
 import numpy as np
 
 from ..errors import RispError
+from .layout import channel_map, from_planes, is_compact, plane_lists, to_planes
 from .manifest import load_manifest
 
 ZARR_DIR = "data.zarr"
 _DIMS = {
     "images": ("sample", "y", "x", "channel"),
     "jacobians": ("sample", "psi", "y", "x", "channel"),
+    "jacobian_planes": ("sample", "plane", "y", "x"),
+    "jacobian_rest": ("sample", "plane", "y", "x"),
     "states": ("sample", "state"),
     "psi": ("sample", "psi"),
 }
@@ -35,20 +42,30 @@ _RUNTIME = {"write_empty_chunks": True}  # a shard file always exists once writt
 # Integrity (docs/formats.md, "Integrity guarantees"): each shard file is written atomically by zarr (temp
 # ``*.partial`` + rename), and a shard's ``states`` file is removed first and written last, so a plain zarr
 # reader never sees a sample whose state row is finite while another of its arrays is unwritten or stale.
-WRITE_ORDER = ("jacobians", "images", "psi", "states")
+WRITE_ORDER = ("jacobians", "jacobian_planes", "jacobian_rest", "images", "psi", "states")
+PLANE_ARRAYS = ("jacobian_planes", "jacobian_rest")
 COMPLETE_ATTR = "complete_shards"  # root attribute: indices of the shards listed in the manifest
 
 
-def array_shapes(n: int, resolution: int, k: int, s: int, jacobian: bool) -> dict[str, tuple[int, ...]]:
-    shapes = {
-        "images": (n, resolution, resolution, 3),
-        "jacobians": (n, k, resolution, resolution, 3),
-        "states": (n, s),
-        "psi": (n, k),
-    }
-    if not jacobian:
-        del shapes["jacobians"]
+def array_shapes(n: int, resolution: int, psi_names: list[str], s: int, jacobian: bool,
+                 channels: dict[str, str] | None = None) -> dict[str, tuple[int, ...]]:
+    """Shapes of the store's arrays; ``channels`` (risp_data.shards.layout) picks the Jacobian layout."""
+    shapes = {"images": (n, resolution, resolution, 3)}
+    if jacobian and channels and is_compact(channels):
+        for name, planes in zip(PLANE_ARRAYS, plane_lists(psi_names, channels)):
+            shapes[name] = (n, len(planes), resolution, resolution)
+    elif jacobian:
+        shapes["jacobians"] = (n, len(psi_names), resolution, resolution, 3)
+    shapes.update(states=(n, s), psi=(n, len(psi_names)))
     return shapes
+
+
+def manifest_shapes(manifest: dict[str, Any], n: int | None = None, resolution: int | None = None):
+    """:func:`array_shapes` of a folder's manifest (``n``/``resolution`` overridable: only names and ranks
+    matter to some callers)."""
+    return array_shapes(manifest["n"] if n is None else n, manifest["resolution"] if resolution is None else resolution,
+                        list(manifest["psi"]["names"]), len(manifest["state_names"]), manifest["jacobian"],
+                        channel_map(manifest))
 
 
 def create_store(folder: str, manifest: dict[str, Any]) -> None:
@@ -58,15 +75,20 @@ def create_store(folder: str, manifest: dict[str, Any]) -> None:
 
     psi_names = list(manifest["psi"]["names"])
     state_names = list(manifest["state_names"])
+    channels = channel_map(manifest)
     root_attrs = {
         k: manifest[k] for k in ("env", "domain", "resolution", "spp", "variant", "seed", "n", "shard_size")
     }
-    root_attrs.update(psi_names=psi_names, state_names=state_names, risp_format=manifest["format"])
+    root_attrs.update(psi_names=psi_names, state_names=state_names, risp_format=manifest["format"],
+                      jacobian_channels=channels)
     root_attrs[COMPLETE_ATTR] = []
     root = zarr.open_group(os.path.join(folder, ZARR_DIR), mode="w", attributes=root_attrs)
-    shapes = array_shapes(manifest["n"], manifest["resolution"], len(psi_names), len(state_names), manifest["jacobian"])
-    for name, shape in shapes.items():
-        dtype = "float32" if name in ("images", "jacobians") else "float64"
+    planes = dict(zip(PLANE_ARRAYS, plane_lists(psi_names, channels)))
+    for name, shape in manifest_shapes(manifest).items():
+        dtype = "float32" if name in ("images", "jacobians", *PLANE_ARRAYS) else "float64"
+        attrs = {"psi_names": psi_names, "state_names": state_names}
+        if name in planes:
+            attrs["planes"] = planes[name]
         root.create_array(
             name,
             shape=shape,
@@ -76,7 +98,7 @@ def create_store(folder: str, manifest: dict[str, Any]) -> None:
             compressors=ZstdCodec(level=3, checksum=True),
             fill_value=float("nan"),
             dimension_names=_DIMS[name],
-            attributes={"psi_names": psi_names, "state_names": state_names},
+            attributes=attrs,
         )
 
 
@@ -85,10 +107,18 @@ def shard_file(folder: str, name: str, shard_index: int, ndim: int) -> str:
     return f"{ZARR_DIR}/{name}/c/" + "/".join([str(shard_index)] + ["0"] * (ndim - 1))
 
 
-def write_zarr_shard(folder: str, shard_index: int, start: int, arrays: dict[str, np.ndarray | None]) -> list[str]:
-    """Write one whole shard of every array (``arrays`` from :func:`stack_samples`); returns relative paths."""
+def write_zarr_shard(folder: str, shard_index: int, start: int, arrays: dict[str, np.ndarray | None],
+                     psi_names: list[str], channels: dict[str, str] | None = None) -> list[str]:
+    """Write one whole shard of every array (``arrays`` from :func:`stack_samples`); with an own-channel
+    ``channels`` map (the manifest's, the store's layout) the (n, K, H, W, 3) ``jacobians`` are written as
+    the planes of ``jacobian_planes`` and ``jacobian_rest``; returns relative paths."""
     import zarr
 
+    arrays = dict(arrays)
+    if channels and is_compact(channels) and arrays.get("jacobians") is not None:
+        jac = arrays.pop("jacobians")
+        for name, planes in zip(PLANE_ARRAYS, plane_lists(psi_names, channels)):
+            arrays[name] = to_planes(jac, psi_names, planes)
     opened = {name: zarr.open_array(os.path.join(folder, ZARR_DIR, name), mode="r+", config=_RUNTIME)
               for name in WRITE_ORDER if arrays.get(name) is not None}
     rels = {name: shard_file(folder, name, shard_index, arr.ndim) for name, arr in opened.items()}
@@ -147,6 +177,8 @@ class ZarrDataset:
         self._offsets = np.cumsum([0] + [b - a for a, b, _ in self._ranges])
         self.psi_names = list(m["psi"]["names"])
         self.state_names = list(m["state_names"])
+        # samples whose off-channel planes are not all +0.0 (risp_data.shards.writer): only they read jacobian_rest
+        self._fallback = {int(i) for rec in m["shards"] for i in rec.get("jacobian_fallback", {})}
 
     def _open(self) -> dict:
         import zarr
@@ -184,6 +216,8 @@ class ZarrDataset:
             self._arrays = self._open()
         out = {}
         for name, arr in self._arrays.items():
+            if name == "jacobian_rest" and g not in self._fallback:  # exact sample: its rest is all +0.0
+                continue
             try:
                 out[name] = np.asarray(arr[g])
             except Exception as e:
@@ -195,6 +229,9 @@ class ZarrDataset:
             rel = shard_file(self.folder, "states", shard, 2)
             raise RispError(f"zarr shard file {os.path.join(self.folder, rel)}: sample {g} is unwritten (NaN) "
                             "although the manifest lists its shard; rerun the render command to repair it")
+        if "jacobian_planes" in out:  # own-channel layout: the stored planes (+ the rest where not exact)
+            planes = [(out.pop(n), list(self._arrays[n].attrs["planes"])) for n in PLANE_ARRAYS if n in out]
+            out["jacobians"] = from_planes(planes, self.psi_names)
         m = self.manifest
         meta = {k: m[k] for k in ("env", "domain", "resolution", "spp", "seed", "variant")}
         meta.update(index=g, state_names=self.state_names, psi_names=self.psi_names)
