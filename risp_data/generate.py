@@ -461,6 +461,29 @@ def prepare_folder(job: RenderJob, variant: str, log: Callable[[str], None] = pr
 _WORKER: dict[str, Any] = {}
 
 
+# What every render worker imports before it renders (torch for the environments' meshes, the shard writers).
+# A fork server imports them once; each worker is a fork of it (start-up, docs/PERFORMANCE.md).  mitsuba and
+# drjit are not among them: they start threads, and a worker sets up its own LLVM (init_mitsuba) after the fork.
+WORKER_PRELOAD = ("torch", "risp_data.envs", "risp_data.psi", "risp_data.shards.writer", "zarr", "webdataset",
+                  "OpenEXR", "risp_data.generate")
+
+
+def worker_context():
+    """The render pool's multiprocessing context: a fork server that has done WORKER_PRELOAD's imports (once,
+    single-threaded, so forking it is safe), started now so that those imports overlap the parent's own set-up;
+    ``spawn`` where there is no fork server (each worker then imports everything itself)."""
+    import multiprocessing as mp
+
+    if "forkserver" not in mp.get_all_start_methods():
+        return mp.get_context("spawn")
+    from multiprocessing import forkserver
+
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload(list(WORKER_PRELOAD))
+    forkserver.ensure_running()  # returns at once; the server imports in the background
+    return ctx
+
+
 def _worker_init(job: RenderJob, threads: int, progress_queue) -> None:
     import torch
 
@@ -482,10 +505,9 @@ def _run_inline(job, todo, on_record, bar):
 
 
 def _run_pool(job, todo, on_record, bar):
-    import multiprocessing as mp
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
-    ctx = mp.get_context("spawn")
+    ctx = worker_context()
     q = ctx.Queue()
     workers = min(job.workers, len(todo))
     threads = max(1, (os.cpu_count() or 1) // workers)
@@ -561,6 +583,8 @@ def run_job(job: RenderJob, progress: bool = True, log: Callable[[str], None] = 
     """
     from .mitsuba_setup import init_mitsuba
 
+    if job.executor == "local" and isinstance(job.workers, int) and job.workers > 1:
+        worker_context()  # start the pool's fork server first: its imports overlap validation and set-up
     validate_job(job)
     if job.executor == "ray":
         _require_ray()  # fail before anything is written

@@ -143,7 +143,7 @@ def test_determinism_across_shard_size_and_workers(rendered, tmp_path):
     a = _samples(rendered)
     _ok(_render(tmp_path / "b", n=5, shard_size=3))
     _assert_same(a, _samples(tmp_path / "b"))
-    _ok(_render(tmp_path / "c", n=5, shard_size=2, workers=2))  # spawn process pool
+    _ok(_render(tmp_path / "c", n=5, shard_size=2, workers=2))  # process pool (fork server)
     _assert_same(a, _samples(tmp_path / "c"))
     for rec_a, rec_c in zip(load_manifest(str(rendered))["shards"], load_manifest(str(tmp_path / "c"))["shards"]):
         assert rec_a["start"] == rec_c["start"]

@@ -499,13 +499,13 @@ def _children(pid):
     return out
 
 
-def _kill_a_child_when_running(proc, wait_for, timeout=300, settle=0.3):
+def _kill_a_child_when_running(proc, wait_for, timeout=300, settle=0.3, children=_children):
     import signal
     import time
 
     deadline = time.time() + timeout
     while time.time() < deadline and proc.poll() is None:
-        kids = [c for c in _children(proc.pid) if wait_for(c)]
+        kids = [c for c in children(proc.pid) if wait_for(c)]
         if kids:
             time.sleep(settle)  # let it start working
             try:
@@ -524,13 +524,25 @@ def _cmdline(pid):
         return ""
 
 
+def _pool_workers(pid):
+    """The render pool's worker processes: forks of the job's fork server (risp_data.generate.worker_context),
+    or the job's own multiprocessing children where it spawns them; never the fork server or resource tracker."""
+    out = []
+    for c in _children(pid):
+        cmd = _cmdline(c)
+        if "forkserver" in cmd:
+            out += _children(c)
+        elif "multiprocessing" in cmd and "resource_tracker" not in cmd:
+            out.append(c)
+    return out
+
+
 def test_a_killed_render_worker_is_one_line_and_the_job_resumes(tmp_path):
     out = tmp_path / "pool"
     cmd = [sys.executable, "-m", "risp_data", "render", "--env", "cube", "--n", "24", "--res", "16", "--spp", "1",
            "--shard-size", "2", "--workers", "2", "--quiet", "--out", str(out)]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
-    killed = _kill_a_child_when_running(proc, lambda c: "multiprocessing" in _cmdline(c)
-                                        and "resource_tracker" not in _cmdline(c))
+    killed = _kill_a_child_when_running(proc, lambda c: True, children=_pool_workers)
     _, err = proc.communicate(timeout=600)
     assert killed, "no pool worker to kill"
     assert proc.returncode == 1 and "Traceback" not in err, err[-3000:]
