@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from tasks_helpers import RES, shared_model, shared_video
+from tasks_helpers import RES, shared_model, shared_video, vehicle_obj
 
 pytest.importorskip("av")
 pytestmark = pytest.mark.timeout(600)
@@ -131,7 +131,8 @@ def test_imitate_as_written_uses_the_most_recent_run(quad, tmp_path, monkeypatch
 
 @pytest.mark.slow
 def test_long_quadrotor_imitation_with_camera_json_and_tracking_init(quad, tmp_path):
-    """Paper Sec. 5.5 style: 144 frames at 10 Hz, a camera JSON that is not the environment's camera, actions
+    """Paper Sec. 5.5 style: 144 frames at 10 Hz, a camera JSON that is not the environment's camera, the vehicle
+    mesh from a file (--mesh; tests/test_tasks_mesh.py checks it is what is drawn), actions
     initialised by the tracking controller along the estimated path (closer to it than hover), then refined."""
     from risp_tasks.tasks.reference import ReferenceConfig, make_reference
 
@@ -140,12 +141,13 @@ def test_long_quadrotor_imitation_with_camera_json_and_tracking_init(quad, tmp_p
     cam.write_text(json.dumps({"intrinsics": {"width": 64, "height": 64, "fx": 60.0},
                                "extrinsics": {"origin": [0.3, -2.0, 2.6], "target": [0.0, 0.0, 1.1], "up": [0, 0, 1]}}))
     video = str(tmp_path / "long.mp4")
+    mesh = vehicle_obj(tmp_path)
     make_reference(ReferenceConfig(env="quadrotor", out=video, frames=144, resolution=RES, spp=1, camera=str(cam),
-                                   seed=5, progress=False))
+                                   mesh=mesh, seed=5, progress=False))
     truth = json.load(open(_stem(video) + ".truth.json"))
     assert len(truth["env_states"]) == 144
-    runs = {init: _run("imitate", video, tmp_path / init, model=model, camera=str(cam), init=init, iterations=3,
-                       plots=False) for init in ("default", "track")}
+    runs = {init: _run("imitate", video, tmp_path / init, model=model, camera=str(cam), mesh=mesh, init=init,
+                       iterations=3, plots=False) for init in ("default", "track")}
     assert runs["track"]["loss"][0] < 0.5 * runs["default"]["loss"][0]
     assert runs["track"]["final_loss"] < runs["track"]["loss"][0], runs["track"]["loss"]
     assert np.asarray(runs["track"]["estimates"]["actions"]).shape == (144, 4)

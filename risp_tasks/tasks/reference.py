@@ -36,6 +36,7 @@ class ReferenceConfig:
     params: str | None = None  # JSON object {name: value}
     effect: str | None = None  # NAME or NAME:v1,v2,...
     camera: str | None = None
+    mesh: str | None = None  # vehicle mesh file (quadrotor; docs/tasks.md §Vehicle mesh)
     seed: int = 0
     progress: bool = True
 
@@ -148,12 +149,13 @@ def make_reference(cfg: ReferenceConfig) -> dict:
     from risp_data.psi import sample_rendering
     from risp_data.render import Renderer
 
-    from ..video import write_video
-    from .inputs import read_camera, write_actions
+    from ..video import sha256_file, write_video
+    from .inputs import read_camera, render_environment, write_actions
     from .simulate import timeline
 
     if cfg.frames < 2 or not cfg.fps > 0 or cfg.resolution < 2:
         raise RispError("--frames must be >= 2, --fps > 0 and --resolution >= 2")
+    drawn = render_environment(cfg.env, cfg.mesh)
     rng = np.random.default_rng(cfg.seed)
     effect, effect_values = _parse_effect(cfg.effect, cfg.env)
     sim, k = timeline(cfg.env, cfg.fps, (effect,) if effect else ())
@@ -161,7 +163,7 @@ def make_reference(cfg: ReferenceConfig) -> dict:
     full, actions = _motion(sim, params, cfg.frames, k, cfg.fps, rng)
     env_states = sim.to_env_state(full).numpy()
     look = sample_rendering(cfg.env, cfg.domain, rng)
-    renderer = Renderer(cfg.env, cfg.domain, cfg.resolution, cfg.spp)
+    renderer = Renderer(drawn, cfg.domain, cfg.resolution, cfg.spp)
     if cfg.camera:
         from risp_data.diff_render import set_camera
 
@@ -178,7 +180,8 @@ def make_reference(cfg: ReferenceConfig) -> dict:
              "sim_states": full.numpy().tolist() if len(sim.state_names) <= 64 else None,
              "actions": None if actions is None else np.asarray(actions).tolist(),
              "look": {"domain": cfg.domain, "psi": look.psi.tolist(), "aux": look.aux},
-             "frame_seeds": frame_seeds.tolist()}
+             "frame_seeds": frame_seeds.tolist(),
+             "mesh": None if cfg.mesh is None else {"path": cfg.mesh, "sha256": sha256_file(cfg.mesh)}}
     if actions is not None:
         write_actions(actions_path(cfg.out), cfg.env, actions, cfg.fps)
         truth["actions_path"] = actions_path(cfg.out)
