@@ -76,8 +76,11 @@ def _task_options(f):
         click.option("--runs", default="runs", show_default=True, help="where to look for the most recent model"),
         click.option("--env", type=click.Choice(ENV_NAMES), default=None, help="expected environment (default: the model's)"),
         click.option("--out", default=None, help="result folder (default results/<task>-<video>-seed<seed>)"),
-        click.option("--loss", type=click.Choice(("render", "state", "oracle", "pixelwise")), default="state",
-                     show_default=True, help="render: N(render(sim)) vs N(video); state: sim vs N(video); oracle: vs --truth"),
+        click.option("--loss", type=click.Choice(("render", "state", "oracle", "pixelwise", "perceptual")), default="state",
+                     show_default=True, help="render: N(render(sim)) vs N(video); state: sim vs N(video); oracle: vs "
+                     "--truth; pixelwise: render(sim) vs video; perceptual: F(render(sim)) vs F(video)"),
+        click.option("--perceptual-weights", default=None, help="local torchvision vgg16 state dict for --loss "
+                     "perceptual (default: the built-in filter bank)"),
         click.option("--init", type=click.Choice(("default", "random", "track")), default="default", show_default=True,
                      help="initial guess (track: tracking controller along the estimated path, quadrotor imitate)"),
         click.option("--optimizer", type=click.Choice(("rmsprop", "adam", "sgd")), default="rmsprop", show_default=True),

@@ -83,7 +83,7 @@ def test_task_lowers_its_loss(quad, tmp_path, task, loss, extra):
         assert e["parameter_error_final"]["mass"] < e["parameter_error_initial"]["mass"]
 
 
-@pytest.mark.parametrize("loss", ["render", "pixelwise"])
+@pytest.mark.parametrize("loss", ["render", "pixelwise", "perceptual"])
 def test_render_losses_differentiate_through_renderer_and_network(quad, tmp_path, loss):
     """The image losses run end to end and their gradient reaches the actions.  (Lowering the loss is not
     asserted: at 16×16 with a one-epoch network and Mitsuba 3.9.1's incomplete silhouette gradients
@@ -93,6 +93,34 @@ def test_render_losses_differentiate_through_renderer_and_network(quad, tmp_path
     a0, a1 = np.asarray(r["initial"]["actions"]), np.asarray(r["estimates"]["actions"])
     assert np.isfinite(r["loss"]).all() and np.abs(a1 - a0).max() > 1e-3
     assert r["timings"]["sections_s"]["rendering"] > 0
+    if loss == "perceptual":
+        assert r["info"]["perceptual_extractor"] == "filterbank"
+
+
+def test_perceptual_loss_is_the_feature_distance(quad):
+    """make_loss("perceptual") = mean (F(R(s)) − F(I))², F the filter bank: zero for the frames R(s) itself
+    rendered, equal to the hand-computed feature distance for other frames, and it differs from pixelwise."""
+    import torch
+
+    from risp_data.diff_render import StateRenderer
+    from risp_data.envs import get_environment
+    from risp_tasks.tasks.features import feature_extractor
+    from risp_tasks.tasks.loop import make_loss
+
+    env = get_environment("quadrotor")
+    renderer = StateRenderer("quadrotor", resolution=RES, spp=1)
+    s = torch.tensor([[0.0, 0.0, 1.15, 0.2, 0.0, 0.0], [0.05, -0.05, 1.1, -0.4, 0.1, 0.0]], dtype=torch.float64)
+    F = feature_extractor(None)
+    with torch.no_grad():
+        own = renderer(s, seed=0)
+        other = renderer(s.flip(0), seed=0)
+        loss = make_loss("perceptual", env, [0, 1], None, None, own, renderer=renderer, features=F)
+        assert float(loss(s)) == pytest.approx(0.0, abs=1e-12)
+        loss = make_loss("perceptual", env, [0, 1], None, None, other, renderer=renderer, features=F)
+        expected = ((F(own) - F(other)) ** 2).mean()
+        assert float(loss(s)) == pytest.approx(float(expected), rel=1e-5) and float(expected) > 0
+        pixel = make_loss("pixelwise", env, [0, 1], None, None, other, renderer=renderer)
+        assert float(pixel(s)) != pytest.approx(float(expected), rel=1e-2)
 
 
 def test_control_reaches_towards_pictured_state(quad, tmp_path):

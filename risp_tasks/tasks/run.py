@@ -80,6 +80,11 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
 
     env = get_environment(env_name)
     drawn = render_environment(env_name, cfg.mesh)  # what the renderer draws (a bad mesh: one line, no work done)
+    features = None
+    if cfg.loss == "perceptual":  # F of the perceptual loss (a bad weights file: one line, no work done)
+        from .features import feature_extractor
+
+        features = feature_extractor(cfg.perceptual_weights)
     frames, keep, n_source, fps, video_sha = _reference(cfg, predictor.resolution)
     sim, k = timeline(env_name, fps) if cfg.task != "estimate" else (get_simulator(env_name), 1)
     frames_t = torch.from_numpy(frames)
@@ -99,7 +104,7 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
     loss_frames = problem.frames if problem.frames is not None else keep
 
     renderer = None
-    if cfg.loss in ("render", "pixelwise") or cfg.plots:
+    if cfg.loss in ("render", "pixelwise", "perceptual") or cfg.plots:
         from risp_data.diff_render import StateRenderer, set_camera
         from risp_data.psi import nominal_rendering
 
@@ -117,7 +122,7 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
         truth_targets = env.state_to_target(truth_states)
     timer = Timer()
     loss = make_loss(cfg.loss, env, loss_frames, predicted_targets.double(), truth_targets, frames_t,
-                     predictor=predictor, renderer=renderer, timer=timer)
+                     predictor=predictor, renderer=renderer, timer=timer, features=features)
     with torch.no_grad():
         initial_states = problem.states().detach().clone()
         initial_estimates = problem.estimates()
@@ -136,6 +141,8 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
                     "seconds_per_iteration": history["seconds_per_iteration"], "sections_s": timer.seconds},
         "versions": versions(), "info": problem.info,
     }
+    if features is not None:
+        result["info"] = {**problem.info, "perceptual_extractor": features.name}
     result["errors"] = _errors(cfg, env, sim, truth, keep, loss_frames, initial_states, final_states, predicted,
                                initial_estimates, result["estimates"])
     folder = ResultFolder(out)
