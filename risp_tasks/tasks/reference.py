@@ -5,7 +5,7 @@ the ``target`` domain with one random look (risp_data.psi.sample_rendering) by t
 integrator, and write the video, ``<stem>.truth.json`` (states, parameters, actions, look, seed — read by no
 solver) and, for actuated systems, ``<stem>.actions.csv`` (the known commands, one row per frame).
 
-Motions: quadrotor — a geometric tracking controller follows a random smooth path inside the sampled flight
+Motions: quadrotor — a geometric tracking controller with an integral term follows a random smooth path inside the sampled flight
 volume (its per-frame thrusts are the actions); cube — a toss (random pose, velocity and spin); hand — random
 smooth finger torques; rod — a sinusoidal vertical force on its centre.
 """
@@ -22,6 +22,12 @@ import torch
 
 from risp_data.atomic import write_text_atomic
 from risp_data.errors import RispError
+
+
+# The reference flights' controller: tracking_thrusts' PD law (a_des = KP·e_p + 3·e_v) plus an integral term
+# KI·∫e_p dt, as real flight controllers have: a steady disturbance (a hidden wind) is compensated by the commands
+# instead of pushing the vehicle out of the sampled flight volume (s³ + 3s² + KP·s + KI is stable for KI < 3·KP).
+KP, KI = 4.0, 2.0
 
 
 @dataclass(frozen=True)
@@ -111,9 +117,12 @@ def _motion(sim, params, n, k, fps, rng):
         inertia = params[0, [sim.param_index(n_) for n_ in ("Ixx", "Iyy", "Izz")]]
         k_m, k_f = float(params[0, sim.param_index("k_m")]), float(params[0, sim.param_index("k_f")])
         states, thrusts = [s], []
+        integral = torch.zeros(1, 3, dtype=torch.float64)  # ∫ (p_ref − p) dt: the flight controller's I term
         with torch.no_grad():
             for i in range(n):
-                f = tracking_thrusts(s, ref_p[i:i + 1], ref_v[i:i + 1], mass, inertia, k_m, ARM_LENGTH)
+                integral += (ref_p[i:i + 1] - s[:, :3]) / fps
+                f = tracking_thrusts(s, ref_p[i:i + 1] + (KI / KP) * integral, ref_v[i:i + 1], mass, inertia, k_m,
+                                     ARM_LENGTH)
                 thrusts.append(f[0])
                 if i == n - 1:
                     break
