@@ -94,7 +94,7 @@ def _one_mesh(mesh, path: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def read_vehicle_mesh(path: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """A vehicle mesh file as body-frame parts {part: (V (N, 3) float64, F (M, 3) int64)} (docs/tasks.md §Mesh).
+    """A vehicle mesh file as body-frame parts {part: (V (N, 3) float64, F (M, 3) int64)} (docs/tasks.md §Vehicle mesh).
 
     Body frame as above: metres, origin at the centre of mass, x forward (rotor 0), z the thrust axis.  A file
     with named objects (OBJ ``o``/``g``, glTF nodes) keeps them as parts; parts named ``rotor_front``,
