@@ -21,7 +21,8 @@ import numpy as np
 import torch
 
 from .artifacts import Artifacts
-from .methods import feature_extractor, get_method
+from ..tasks.features import feature_extractor
+from .methods import get_method
 
 # ------------------------------------------------------------------------------------------ estimation
 

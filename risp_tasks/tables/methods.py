@@ -9,7 +9,7 @@ Every method is one :class:`Method` value; the cells read its fields and never b
 * ``random``       — one seeded draw from the sampling distribution (states: the environment's sampler;
                      parameters: uniform in the paper's range; actions: x ~ U(−1, 1)) — no optimisation.
 * ``pixelwise``    — ∇Sim: ‖R(s) − I‖² through risp_data.diff_render, rendered in the train domain's nominal look.
-* ``perceptual``   — ‖F(R(s)) − F(I)‖² with F a convolutional feature extractor (:func:`feature_extractor`).
+* ``perceptual``   — ‖F(R(s)) − F(I)‖² with F a convolutional feature extractor (risp_tasks.tasks.features.feature_extractor).
 * ``ours-no-grad`` — RISP's loss ‖N(R(s)) − N(I)‖² with N trained with ``--reg none``.
 * ``ours``         — the same with N trained with the table's regularizer (``TableConfig.reg``, default the
                      paper's surrogate).
@@ -49,6 +49,3 @@ def get_method(name: str) -> Method:
         raise RispError(f"unknown method {name!r}; choose one of: {', '.join(METHODS)}")
     return METHOD_SPECS[name]
 
-
-# the perceptual loss's extractors live with the tasks' losses (tables depend on tasks, not the reverse)
-from ..tasks.features import FilterBank, VGGBlock, feature_extractor  # noqa: E402,F401
