@@ -23,7 +23,7 @@ from typing import Callable
 
 import numpy as np
 
-from .envs import get_environment
+from .envs import Environment, get_environment
 from .envs.materials import FIXED_MATERIALS  # RGB reflectances of the non-ψ materials
 from .errors import RispError
 from .prb_passes import forward_materials, sample_per_emitter
@@ -153,9 +153,10 @@ class _Binding:
 class Renderer:
     """Render images and Jacobian stacks J = [∂I/∂ψ_1 … ∂I/∂ψ_K] of one environment in one domain."""
 
-    def __init__(self, env: str, domain: str = "train", resolution: int = 64, spp: int = 16,
+    def __init__(self, env: str | Environment, domain: str = "train", resolution: int = 64, spp: int = 16,
                  variant: str | None = None, jacobian_path: str = "fast"):
-        self.env = get_environment(env)
+        # a name, or an Environment object (e.g. the quadrotor with a vehicle mesh from a file)
+        self.env = env if isinstance(env, Environment) else get_environment(env)
         _check_domain(domain)
         if jacobian_path not in JACOBIAN_PATHS:
             raise RispError(f"unknown Jacobian path {jacobian_path!r}; choose one of: {', '.join(JACOBIAN_PATHS)}")
@@ -169,7 +170,7 @@ class Renderer:
         self.spp = int(spp)
         self.settings = DOMAIN_SETTINGS[domain]
         self.variant = init_mitsuba(variant)
-        self.specs = psi_specs(env)
+        self.specs = psi_specs(self.env.name)
         self.psi_names: tuple[str, ...] = tuple(s.name for s in self.specs)
         import drjit as dr
         import mitsuba as mi

@@ -76,8 +76,11 @@ def _task_options(f):
         click.option("--runs", default="runs", show_default=True, help="where to look for the most recent model"),
         click.option("--env", type=click.Choice(ENV_NAMES), default=None, help="expected environment (default: the model's)"),
         click.option("--out", default=None, help="result folder (default results/<task>-<video>-seed<seed>)"),
-        click.option("--loss", type=click.Choice(("render", "state", "oracle", "pixelwise")), default="state",
-                     show_default=True, help="render: N(render(sim)) vs N(video); state: sim vs N(video); oracle: vs --truth"),
+        click.option("--loss", type=click.Choice(("render", "state", "oracle", "pixelwise", "perceptual")), default="state",
+                     show_default=True, help="render: N(render(sim)) vs N(video); state: sim vs N(video); oracle: vs "
+                     "--truth; pixelwise: render(sim) vs video; perceptual: F(render(sim)) vs F(video)"),
+        click.option("--perceptual-weights", default=None, help="local torchvision vgg16 state dict for --loss "
+                     "perceptual (default: the built-in filter bank)"),
         click.option("--init", type=click.Choice(("default", "random", "track")), default="default", show_default=True,
                      help="initial guess (track: tracking controller along the estimated path, quadrotor imitate)"),
         click.option("--optimizer", type=click.Choice(("rmsprop", "adam", "sgd")), default="rmsprop", show_default=True),
@@ -91,7 +94,7 @@ def _task_options(f):
         click.option("--actions", default=None, help="actions CSV (t + f0..f3 [N] / u0.. ; one row per frame)"),
         click.option("--truth", default=None, help="ground-truth JSON (oracle loss, error report)"),
         click.option("--camera", default=None, help="camera JSON (intrinsics, extrinsics) replacing the environment's"),
-        click.option("--mesh", default=None, help="vehicle mesh file (not supported yet)"),
+        click.option("--mesh", default=None, help="quadrotor vehicle mesh (OBJ/PLY/STL/glTF, metres, body frame) to render"),
         click.option("--spp", type=int, default=4, show_default=True, help="samples per pixel of the differentiable renderer"),
         click.option("--threads", type=int, default=1, show_default=True, help="torch threads (0: one per available CPU)"),
         click.option("--no-plots", is_flag=True, help="skip the PNG plots"),
@@ -166,14 +169,15 @@ def control(target, **kw):
 @click.option("--params", default=None, help="JSON object of simulator parameters (default: random in the paper's ranges)")
 @click.option("--effect", default=None, help="hidden effect NAME or NAME:v1,v2,… (e.g. wind:3,0,0)")
 @click.option("--camera", default=None, help="camera JSON replacing the environment's camera")
+@click.option("--mesh", default=None, help="quadrotor vehicle mesh (OBJ/PLY/STL/glTF, metres, body frame)")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--quiet", is_flag=True)
-def make_video(env, out, frames, fps, resolution, spp, domain, params, effect, camera, seed, quiet):
+def make_video(env, out, frames, fps, resolution, spp, domain, params, effect, camera, mesh, seed, quiet):
     """Simulate ENV and render a reference video with a random look, plus <out>.truth.json and <out>.actions.csv."""
     from risp_tasks.tasks.reference import ReferenceConfig, make_reference
 
     cfg = ReferenceConfig(env=env, out=out, frames=frames, fps=fps, resolution=resolution, spp=spp, domain=domain,
-                          params=params, effect=effect, camera=camera, seed=seed, progress=not quiet)
+                          params=params, effect=effect, camera=camera, mesh=mesh, seed=seed, progress=not quiet)
     truth = make_reference(cfg)
     click.echo(f"wrote {out} ({frames} frames, {resolution}×{resolution}, {fps:g} fps), ground truth {truth['truth_path']}")
 

@@ -99,6 +99,17 @@ def test_camera_json_with_missing_keys(quad, tmp_path):
     assert "cam2.json" in line and "not valid JSON" in line
 
 
+def test_perceptual_weights_file_missing_or_not_vgg(quad, tmp_path):
+    model, video = quad
+    line = _invoke(["imitate", video, "--model", model, "--loss", "perceptual", "--perceptual-weights",
+                    str(tmp_path / "vgg.pth")], tmp_path)
+    assert "vgg.pth" in line and "perceptual weights file not found" in line
+    (tmp_path / "junk.pth").write_bytes(b"not a state dict")
+    line = _invoke(["imitate", video, "--model", model, "--loss", "perceptual", "--perceptual-weights",
+                    str(tmp_path / "junk.pth")], tmp_path)
+    assert "junk.pth" in line and "not a torchvision vgg16 state dict" in line
+
+
 def test_cube_has_no_actions_to_imitate(tmp_path_factory, tmp_path):
     model = shared_model(tmp_path_factory, "cube")
     video = shared_video(tmp_path_factory, "cube")

@@ -21,11 +21,8 @@ import numpy as np
 import torch
 
 from .artifacts import Artifacts
-from .methods import feature_extractor, get_method
-
-PENDING_PERCEPTUAL = ("pending: risp_tasks.tasks.loop.make_loss has no perceptual mode (the tasks need a hook for "
-                      "a custom image loss)")
-
+from ..tasks.features import feature_extractor
+from .methods import get_method
 
 # ------------------------------------------------------------------------------------------ estimation
 
@@ -53,14 +50,8 @@ def optimise_states(cfg, env, images: torch.Tensor, init: torch.Tensor, loss_nam
     renderer = StateRenderer(env.name, resolution=cfg.resolution, spp=cfg.spp)
     states = init.detach().clone().to(torch.float32).requires_grad_(True)
     frames = list(range(len(images)))
-    if loss_name == "pixelwise":
-        loss = make_loss("pixelwise", env, frames, None, None, images, renderer=renderer)
-    else:
-        features = feature_extractor(cfg.perceptual_weights)
-        goal = features(images)
-
-        def loss(s):
-            return ((features(renderer(s, seed=0)) - goal) ** 2).mean()
+    features = feature_extractor(cfg.perceptual_weights) if loss_name == "perceptual" else None
+    loss = make_loss(loss_name, env, frames, None, None, images, renderer=renderer, features=features)
     problem = Problem(variables={"states": states}, states=lambda: states, estimates=dict)
     optimize(problem, loss, optimizer="rmsprop", lr=cfg.lr, momentum=0.5, iterations=cfg.iterations, timer=Timer(),
              progress=False)
@@ -116,34 +107,39 @@ def _task_run(cfg, art: Artifacts, task: str, env_name: str, method: str, repeat
     # every method needs a network: the tasks read the initial state from N(first two frames); the
     # non-network methods use the `ours` network for that only
     model = art.network(env_name, m.network or "reg")
-    loss = {None: "state", "render": "render", "pixelwise": "pixelwise", "oracle": "oracle"}[m.loss]
+    loss = {None: "state", "render": "render", "pixelwise": "pixelwise", "perceptual": "perceptual",
+            "oracle": "oracle"}[m.loss]
     init = "default" if m.name == "average" else "random"  # optimisers start at the seeded random guess
     iterations = 0 if m.loss is None else cfg.iterations
     with tempfile.TemporaryDirectory(dir=art.root) as tmp:
         tcfg = TaskConfig(task=task, video=video or ref["video"], out=os.path.join(tmp, "result"), model=model,
                           loss=loss, init=init, iterations=iterations, seed=cfg.seed + repeat,
                           actions=None if task == "control" else ref["actions"], truth=truth or ref["truth"],
+                          perceptual_weights=cfg.perceptual_weights if m.loss == "perceptual" else None,
                           spp=cfg.spp, plots=False, progress=False, **task_kw)
         return run_task(tcfg, echo=lambda *_: None)
 
 
+def _extractor(result: dict) -> dict:
+    """{"extractor": F's name} for a perceptual run (report.py names the extractor a table used), else {}."""
+    name = result.get("info", {}).get("perceptual_extractor")
+    return {"extractor": name} if name else {}
+
+
 def sysid(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> dict:
-    if method == "perceptual":
-        return {"na": PENDING_PERCEPTUAL}
     result = _task_run(cfg, art, "sysid", env_name, method, repeat)
     errors = result["errors"]["parameter_error_final"]
     return {"value": float(np.mean(list(errors.values()))), "errors": errors, "metric": "abs parameter error",
-            "estimates": result["estimates"]["parameters"], "final_loss": result["final_loss"]}
+            "estimates": result["estimates"]["parameters"], "final_loss": result["final_loss"], **_extractor(result)}
 
 
 def imitation(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> dict:
     if env_name == "cube":
         return {"na": "the cube has no actions"}
-    if method == "perceptual":
-        return {"na": PENDING_PERCEPTUAL}
     result = _task_run(cfg, art, "imitate", env_name, method, repeat)
     return {"value": float(result["errors"]["state_rmse_final"]), "metric": "state RMSE",
-            "initial": result["errors"].get("state_rmse_initial"), "final_loss": result["final_loss"]}
+            "initial": result["errors"].get("state_rmse_initial"), "final_loss": result["final_loss"],
+            **_extractor(result)}
 
 
 def control(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> dict:
@@ -161,8 +157,6 @@ def control(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> dic
 
     if env_name == "cube":
         return {"na": "the cube has no actions"}
-    if method == "perceptual":
-        return {"na": PENDING_PERCEPTUAL}
     ref = art.video(env_name, repeat)
     with open(ref["truth"]) as f:
         truth = json.load(f)
@@ -189,7 +183,7 @@ def control(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> dic
         reached = frame_states(sim, params, s0, actions, horizon + 1, steps_per_frame(sim, truth["fps"]))[-1]
     diff = state_differences(reached.numpy()[None], goal[None], sim_env_names(env_name))
     return {"value": float(np.abs(diff).mean()), "metric": "l1", "reached": reached.tolist(), "goal": goal.tolist(),
-            "final_loss": result["final_loss"]}
+            "final_loss": result["final_loss"], **_extractor(result)}
 
 
 def sim_env_names(env_name: str) -> tuple[str, ...]:

@@ -96,7 +96,7 @@ def markdown(report: dict) -> str:
     else:
         lines += ["", f"- `ours`: network trained with the `{report['ours_regularizer']}` regularizer "
                       f"(risp-train preset `{cfg['train_preset']}`); `ours-no-grad`: `--reg none`.",
-                  "- `perceptual` feature extractor: " + (f"`{report['perceptual_extractor']}` (risp_tasks/tables/methods.py)."
+                  "- `perceptual` feature extractor: " + (f"`{report['perceptual_extractor']}` (risp_tasks/tasks/features.py)."
                                                           if report["perceptual_extractor"] else "not used in this table.")]
     from .sampling import SAMPLING_FRAMES
 

@@ -6,7 +6,7 @@ from dataclasses import asdict, dataclass
 
 from risp_data.errors import RispError
 
-LOSSES: tuple[str, ...] = ("render", "state", "oracle", "pixelwise")
+LOSSES: tuple[str, ...] = ("render", "state", "oracle", "pixelwise", "perceptual")
 INITS: tuple[str, ...] = ("default", "random", "track")
 
 
@@ -15,7 +15,9 @@ class TaskConfig:
     """One task run.  ``loss``: ``render`` — ‖N(render(sim(θ))) − N(reference)‖² (the paper's loss, through
     network, renderer and simulator); ``state`` — ‖sim states − N(reference)‖², no rendering in the loop;
     ``oracle`` — against the ground-truth states of ``truth`` (evaluation only); ``pixelwise`` — ∇Sim's
-    ‖render(sim(θ)) − reference images‖² in the train domain's nominal look (a baseline)."""
+    ‖render(sim(θ)) − reference images‖² in the train domain's nominal look (a baseline); ``perceptual`` —
+    ‖F(render(sim(θ))) − F(reference images)‖² with F from ``perceptual_weights`` or the built-in filter bank
+    (risp_tasks.tasks.features; a baseline)."""
 
     task: str
     video: str  # video file, PNG folder, or (control) a target PNG
@@ -39,6 +41,7 @@ class TaskConfig:
     mesh: str | None = None  # vehicle mesh file (quadrotor) replacing the built-in one
     initial_state: str | None = None  # control: JSON with the initial simulator state
     horizon: int = 10  # control: frames to reach the target
+    perceptual_weights: str | None = None  # local torchvision vgg16 state dict for --loss perceptual
     spp: int = 4  # samples per pixel of the differentiable renderer (render/pixelwise losses)
     threads: int = 1
     progress: bool = True

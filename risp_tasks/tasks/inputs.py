@@ -156,6 +156,20 @@ def read_camera(path: str) -> Camera:
     return Camera(origin=tuple(vecs["origin"]), target=tuple(vecs["target"]), up=tuple(vecs["up"]), fov=fov)
 
 
+def render_environment(env: str, mesh: str | None):
+    """The environment the renderer draws: ``env`` itself, or with ``--mesh`` the quadrotor with the vehicle mesh
+    from the file (docs/tasks.md §Vehicle mesh; only the quadrotor takes one)."""
+    from risp_data.envs import get_environment
+
+    if mesh is None:
+        return get_environment(env)
+    if env != "quadrotor":
+        raise RispError(f"{mesh}: --mesh replaces the quadrotor's vehicle mesh; the {env} takes none")
+    from risp_data.envs.quadrotor import make_environment
+
+    return make_environment(mesh)
+
+
 def read_truth(path: str) -> dict:
     data = read_json(path, "ground-truth")
     if "env_states" not in data:

@@ -4,6 +4,7 @@
     L_state(θ)     = mean_t ‖τ(s_t(θ)) − N(I_t)‖²      no rendering in the loop (the paper's real-world pipeline)
     L_oracle(θ)    = mean_t ‖τ(s_t(θ)) − τ(s*_t)‖²     ground-truth states (evaluation only)
     L_pixelwise(θ) = mean_t ‖R(s_t(θ)) − I_t‖²         ∇Sim's image loss (a baseline)
+    L_perceptual(θ) = mean_t ‖F(R(s_t(θ))) − F(I_t)‖²   a feature loss (a baseline; F: risp_tasks.tasks.features)
 
 s_t(θ): the simulated environment state at kept frame t; τ: the environment's state → network-target map
 (x, y, z, sin/cos of angles, …); N: the frozen network; R: the differentiable renderer in the train domain's
@@ -50,9 +51,10 @@ class Problem:
 
 
 def make_loss(mode: str, env, keep: list[int], ref_targets: torch.Tensor | None, truth_targets: torch.Tensor | None,
-              ref_images: torch.Tensor | None, predictor=None, renderer=None, timer: Timer | None = None
-              ) -> Callable[[torch.Tensor], torch.Tensor]:
-    """loss(states (n_source, S)) -> scalar for one of the modes above, on the frames ``keep``."""
+              ref_images: torch.Tensor | None, predictor=None, renderer=None, timer: Timer | None = None,
+              features=None) -> Callable[[torch.Tensor], torch.Tensor]:
+    """loss(states (n_source, S)) -> scalar for one of the modes above, on the frames ``keep``; ``features``: F of
+    the perceptual mode (a frozen torch module, images (B, H, W, 3) -> (B, D))."""
     timer = timer or Timer()
 
     def target_error(pred_targets, goal):
@@ -78,6 +80,17 @@ def make_loss(mode: str, env, keep: list[int], ref_targets: torch.Tensor | None,
                 images = renderer(s[keep], seed=0)
             return ((images - ref_images) ** 2).mean().to(s.dtype)
         return pixel_loss
+    if mode == "perceptual":
+        with torch.no_grad():
+            goal = features(ref_images)  # F(I_t), once
+
+        def perceptual_loss(s):
+            with timer.section("rendering"):
+                images = renderer(s[keep], seed=0)
+            with timer.section("network"):
+                f = features(images)
+            return ((f - goal) ** 2).mean().to(s.dtype)
+        return perceptual_loss
     raise RispError(f"unknown loss {mode!r}")
 
 

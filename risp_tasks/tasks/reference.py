@@ -5,7 +5,7 @@ the ``target`` domain with one random look (risp_data.psi.sample_rendering) by t
 integrator, and write the video, ``<stem>.truth.json`` (states, parameters, actions, look, seed — read by no
 solver) and, for actuated systems, ``<stem>.actions.csv`` (the known commands, one row per frame).
 
-Motions: quadrotor — a geometric tracking controller follows a random smooth path inside the sampled flight
+Motions: quadrotor — a geometric tracking controller with an integral term follows a random smooth path inside the sampled flight
 volume (its per-frame thrusts are the actions); cube — a toss (random pose, velocity and spin); hand — random
 smooth finger torques; rod — a sinusoidal vertical force on its centre.
 """
@@ -24,6 +24,12 @@ from risp_data.atomic import write_text_atomic
 from risp_data.errors import RispError
 
 
+# The reference flights' controller: tracking_thrusts' PD law (a_des = KP·e_p + 3·e_v) plus an integral term
+# KI·∫e_p dt, as real flight controllers have: a steady disturbance (a hidden wind) is compensated by the commands
+# instead of pushing the vehicle out of the sampled flight volume (s³ + 3s² + KP·s + KI is stable for KI < 3·KP).
+KP, KI = 4.0, 2.0
+
+
 @dataclass(frozen=True)
 class ReferenceConfig:
     env: str
@@ -36,6 +42,7 @@ class ReferenceConfig:
     params: str | None = None  # JSON object {name: value}
     effect: str | None = None  # NAME or NAME:v1,v2,...
     camera: str | None = None
+    mesh: str | None = None  # vehicle mesh file (quadrotor; docs/tasks.md §Vehicle mesh)
     seed: int = 0
     progress: bool = True
 
@@ -110,9 +117,12 @@ def _motion(sim, params, n, k, fps, rng):
         inertia = params[0, [sim.param_index(n_) for n_ in ("Ixx", "Iyy", "Izz")]]
         k_m, k_f = float(params[0, sim.param_index("k_m")]), float(params[0, sim.param_index("k_f")])
         states, thrusts = [s], []
+        integral = torch.zeros(1, 3, dtype=torch.float64)  # ∫ (p_ref − p) dt: the flight controller's I term
         with torch.no_grad():
             for i in range(n):
-                f = tracking_thrusts(s, ref_p[i:i + 1], ref_v[i:i + 1], mass, inertia, k_m, ARM_LENGTH)
+                integral += (ref_p[i:i + 1] - s[:, :3]) / fps
+                f = tracking_thrusts(s, ref_p[i:i + 1] + (KI / KP) * integral, ref_v[i:i + 1], mass, inertia, k_m,
+                                     ARM_LENGTH)
                 thrusts.append(f[0])
                 if i == n - 1:
                     break
@@ -148,12 +158,13 @@ def make_reference(cfg: ReferenceConfig) -> dict:
     from risp_data.psi import sample_rendering
     from risp_data.render import Renderer
 
-    from ..video import write_video
-    from .inputs import read_camera, write_actions
+    from ..video import sha256_file, write_video
+    from .inputs import read_camera, render_environment, write_actions
     from .simulate import timeline
 
     if cfg.frames < 2 or not cfg.fps > 0 or cfg.resolution < 2:
         raise RispError("--frames must be >= 2, --fps > 0 and --resolution >= 2")
+    drawn = render_environment(cfg.env, cfg.mesh)
     rng = np.random.default_rng(cfg.seed)
     effect, effect_values = _parse_effect(cfg.effect, cfg.env)
     sim, k = timeline(cfg.env, cfg.fps, (effect,) if effect else ())
@@ -161,7 +172,7 @@ def make_reference(cfg: ReferenceConfig) -> dict:
     full, actions = _motion(sim, params, cfg.frames, k, cfg.fps, rng)
     env_states = sim.to_env_state(full).numpy()
     look = sample_rendering(cfg.env, cfg.domain, rng)
-    renderer = Renderer(cfg.env, cfg.domain, cfg.resolution, cfg.spp)
+    renderer = Renderer(drawn, cfg.domain, cfg.resolution, cfg.spp)
     if cfg.camera:
         from risp_data.diff_render import set_camera
 
@@ -178,7 +189,8 @@ def make_reference(cfg: ReferenceConfig) -> dict:
              "sim_states": full.numpy().tolist() if len(sim.state_names) <= 64 else None,
              "actions": None if actions is None else np.asarray(actions).tolist(),
              "look": {"domain": cfg.domain, "psi": look.psi.tolist(), "aux": look.aux},
-             "frame_seeds": frame_seeds.tolist()}
+             "frame_seeds": frame_seeds.tolist(),
+             "mesh": None if cfg.mesh is None else {"path": cfg.mesh, "sha256": sha256_file(cfg.mesh)}}
     if actions is not None:
         write_actions(actions_path(cfg.out), cfg.env, actions, cfg.fps)
         truth["actions_path"] = actions_path(cfg.out)

@@ -15,7 +15,8 @@ from risp_data.threads import set_torch_threads
 from . import TASKS
 from .config import TaskConfig
 from .context import Context
-from .inputs import latest_model, load_model, read_actions, read_camera, read_reference, read_truth
+from .inputs import (latest_model, load_model, read_actions, read_camera, read_reference, read_truth,
+                     render_environment)
 from .loop import Timer, make_loss, optimize
 from .results import ResultFolder, check_free, plot_loss, plot_trajectories, save_strip, versions
 
@@ -78,6 +79,12 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
     from .simulate import timeline
 
     env = get_environment(env_name)
+    drawn = render_environment(env_name, cfg.mesh)  # what the renderer draws (a bad mesh: one line, no work done)
+    features = None
+    if cfg.loss == "perceptual":  # F of the perceptual loss (a bad weights file: one line, no work done)
+        from .features import feature_extractor
+
+        features = feature_extractor(cfg.perceptual_weights)
     frames, keep, n_source, fps, video_sha = _reference(cfg, predictor.resolution)
     sim, k = timeline(env_name, fps) if cfg.task != "estimate" else (get_simulator(env_name), 1)
     frames_t = torch.from_numpy(frames)
@@ -90,8 +97,6 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
         file_actions = read_actions(cfg.actions, env_name, n_source)
     truth = read_truth(cfg.truth) if cfg.truth else None
     camera = read_camera(cfg.camera) if cfg.camera else None
-    if cfg.mesh is not None:
-        raise RispError("--mesh: custom vehicle meshes are not supported yet (docs/tasks.md)")
     ctx = Context(cfg=cfg, env=env, sim=sim, predictor=predictor, frames=frames_t, keep=keep, n_source=n_source,
                   fps=fps, k=k, predicted=predicted.double(), predicted_targets=predicted_targets.double(),
                   file_actions=file_actions, truth=truth, rng=np.random.default_rng(cfg.seed))
@@ -99,10 +104,12 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
     loss_frames = problem.frames if problem.frames is not None else keep
 
     renderer = None
-    if cfg.loss in ("render", "pixelwise") or cfg.plots:
+    if cfg.loss in ("render", "pixelwise", "perceptual") or cfg.plots:
         from risp_data.diff_render import StateRenderer, set_camera
+        from risp_data.psi import nominal_rendering
 
-        renderer = StateRenderer(env_name, resolution=predictor.resolution, spp=cfg.spp)
+        renderer = StateRenderer(drawn, resolution=predictor.resolution, spp=cfg.spp,
+                                 config=nominal_rendering(env_name, "train"))
         if camera is not None:
             set_camera(renderer.renderer, camera)
     truth_targets = None
@@ -115,7 +122,7 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
         truth_targets = env.state_to_target(truth_states)
     timer = Timer()
     loss = make_loss(cfg.loss, env, loss_frames, predicted_targets.double(), truth_targets, frames_t,
-                     predictor=predictor, renderer=renderer, timer=timer)
+                     predictor=predictor, renderer=renderer, timer=timer, features=features)
     with torch.no_grad():
         initial_states = problem.states().detach().clone()
         initial_estimates = problem.estimates()
@@ -134,6 +141,8 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
                     "seconds_per_iteration": history["seconds_per_iteration"], "sections_s": timer.seconds},
         "versions": versions(), "info": problem.info,
     }
+    if features is not None:
+        result["info"] = {**problem.info, "perceptual_extractor": features.name}
     result["errors"] = _errors(cfg, env, sim, truth, keep, loss_frames, initial_states, final_states, predicted,
                                initial_estimates, result["estimates"])
     folder = ResultFolder(out)
