@@ -51,8 +51,13 @@ class StateRenderer:
         import mitsuba as mi
 
         self._mi, self._dr = mi, dr
+        from .flat_projective import register
+
+        register()
         settings = self.renderer.settings
-        props = {"type": integrator, "max_depth": settings.max_depth, "guiding": "none"}
+        # the "_flat" variant: Mitsuba's integrator with a primary-visibility boundary term that is right for
+        # our flat-shaded meshes (risp_data/flat_projective.py)
+        props = {"type": integrator + "_flat", "max_depth": settings.max_depth, "guiding": "none"}
         if integrator == "prb_projective":
             props["rr_depth"] = settings.rr_depth
         self.integrator = mi.load_dict(props)
