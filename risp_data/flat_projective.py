@@ -33,14 +33,16 @@ from __future__ import annotations
 import numpy as np
 
 
-def edge_table(V: np.ndarray, F: np.ndarray, viewpoint: np.ndarray, crease_cos: float = 1 - 1e-6):
+def edge_table(V: np.ndarray, F: np.ndarray, viewpoint: np.ndarray, crease_cos: float = 1 - 1e-6,
+               creases: bool = True):
     """The primary-visibility discontinuity edges of one triangle mesh seen from ``viewpoint``.
 
     Returns (dedge_in, dedge_out, crease, weight): for every discontinuity edge the directed edge (3·face +
     k) of the face whose radiance is f_in, that of the other face (crease edges; = dedge_in otherwise), a
     crease flag, and the edge's angular length from the viewpoint (sampling weight).  Silhouette edges (one
     front-, one back-facing face) are given on their front-facing face, open edges on their only face, and
-    crease edges (both faces front-facing, normals differing) on either face.
+    crease edges (both faces front-facing, normals differing) on either face (``creases=False``: none, the
+    edges that cast shadows from a point light at ``viewpoint``).
     """
     V = np.asarray(V, np.float64).reshape(-1, 3)
     F = np.asarray(F, np.int64).reshape(-1, 3)
@@ -58,7 +60,7 @@ def edge_table(V: np.ndarray, F: np.ndarray, viewpoint: np.ndarray, crease_cos: 
     open_edge = (opp < 0) & front[fa]
     pair = (opp >= 0) & (d < opp)  # each shared edge once
     sil = pair & (front[fa] != front[fb])
-    crease = pair & front[fa] & front[fb] & (np.einsum("ij,ij->i", n[fa], n[fb]) < crease_cos)
+    crease = pair & front[fa] & front[fb] & (np.einsum("ij,ij->i", n[fa], n[fb]) < crease_cos) & creases
     keep = open_edge | sil | crease
     dedge_in = np.where(sil & ~front[fa], opp, d)[keep]
     dedge_out = np.where(crease, opp, d)[keep]
@@ -132,7 +134,7 @@ class FlatEdgesMixin:
         block.put(pos=sensor_ds.uv, wavelengths=wavelengths, value=derivative * dr.rcp(mi.ScalarFloat(spp)),
                   weight=0, alpha=1, active=active)
         film.put_block(block)
-        return film.develop()
+        return film.develop() + self._render_point_light_shadows(scene, sensor, sampler, spp, shapes)
 
     def _shade(self, scene, sampler, ss, ray, active):
         """Radiance leaving the face of ``ss`` at ``ss.p`` towards the camera (primal)."""
@@ -177,6 +179,145 @@ class FlatEdgesMixin:
         L_face = self._shade(scene, sampler, ss_out, ray_bg, visible & is_crease)
         ΔL = L_in - dr.select(is_crease, L_face, L_bg)
         return dr.select(visible, ΔL * weight, 0), wavelengths
+
+
+    def _render_point_light_shadows(self, scene, sensor, sampler, spp, shapes):
+        """Boundary term (1) of shadow edges cast by point lights and seen directly by the camera.
+
+        For an edge of a mesh that is a silhouette seen from the light at L, the shadow boundary passes through
+        q, the first hit of the ray from L through the edge point p beyond p.  Across it the camera sees the
+        light's direct contribution at q switch on and off: ΔL = f(q, ω_cam, ω_L) · I / |L − q|² (lit minus
+        shadowed).  q moves with p (and with the receiver, if that moves): q(θ) is the differentiable
+        intersection of the line L + t (p(θ) − L) with the receiver, so ∂q/∂θ comes from Mitsuba's
+        Möller–Trumbore intersection.  The point is sampled on the edge (pdf per unit length pdf_p); along the
+        shadow curve its density is pdf_p / |∂q/∂s| with ∂q/∂s = λ (e − (p − L)(e·n_r)/((p − L)·n_r)), the
+        central projection's derivative along the edge direction e (λ = |q − L| / |p − L|, n_r the receiver
+        normal).  Then the estimator is Mitsuba's: ΔL (∂q/∂θ · n) / pdf · J with n ⟂ (view ray, curve tangent)
+        pointing into the shadow.  Mitsuba's projective integrators cannot produce this term (a boundary ray
+        never hits a point light).
+        """
+        import drjit as dr
+        import mitsuba as mi
+
+        film = sensor.film()
+        aovs = self.aov_names()
+        out = dr.zeros(mi.TensorXf, (film.crop_size()[1], film.crop_size()[0], film.base_channels_count() + len(aovs)))
+        lights = [e for e in scene.emitters() if mi.has_flag(e.flags(), mi.EmitterFlags.DeltaPosition)]
+        for light in lights:
+            with dr.suspend_grad():
+                ds0, _ = light.sample_direction(dr.zeros(mi.Interaction3f), mi.Point2f(0))
+                L = np.array(dr.slice(dr.detach(ds0.p)), np.float64).ravel()
+                tables = []
+                for i, shape in enumerate(shapes):
+                    V = dr.detach(shape.vertex_positions_buffer()).numpy()
+                    F = shape.faces_buffer().numpy()
+                    din, _, _, w = edge_table(V, F, L, creases=False)
+                    tables.append((np.full(len(din), i, np.uint32), din, w))
+            shape_idx, din, w = [np.concatenate(c) for c in zip(*tables)]
+            if len(w) == 0 or w.sum() <= 0:
+                continue
+            out += self._shadow_splat(scene, sensor, sampler, spp, shapes, light, mi.Point3f(*[float(c) for c in L]), shape_idx, din, w)
+        return out
+
+    def _shadow_splat(self, scene, sensor, sampler, spp, shapes, light, L, shape_idx, din, w):
+        import drjit as dr
+        import mitsuba as mi
+
+        film = sensor.film()
+        aovs = self.aov_names()
+        distr = mi.DiscreteDistribution(mi.Float(w))
+        with dr.suspend_grad():
+            s2 = sampler.next_2d()
+            idx, pmf = distr.sample_pmf(s2.x)
+            shape = dr.gather(mi.ShapePtr, mi.ShapePtr(shapes), dr.gather(mi.UInt32, mi.UInt32(shape_idx), idx))
+            ss = shape.sample_precomputed_silhouette(L, dr.gather(mi.UInt32, mi.UInt32(din), idx), s2.y, pmf > 0)
+            active = (pmf > 0) & (ss.pdf > 0)
+            pdf_p = ss.pdf * pmf
+            # the light must reach p, and the ray must go on to hit a receiver q
+            to_p = ss.p - L
+            dist_p = dr.norm(to_p)
+            ray_l = mi.Ray3f(L, to_p / dist_p)
+            ray_l.maxt = dist_p * (1 - mi.math.ShadowEpsilon)
+            lit = ~scene.ray_test(ray_l, active)
+            ray_on = ss.spawn_ray()
+            pi = scene.ray_intersect_preliminary(ray_on, active=active & lit)
+            active &= lit & pi.is_valid()
+            si_q = pi.compute_surface_interaction(ray_on, mi.RayFlags.All, active)
+            q, n_r = si_q.p, si_q.n
+            # camera side: q visible and in the frustum; the receiver faces the camera
+            center = sensor.world_transform() @ mi.Point3f(0)
+            to_cam = center - q
+            dist_c = dr.norm(to_cam)
+            w_cam = to_cam / dist_c
+            active &= dr.dot(n_r, w_cam) * dr.dot(n_r, -ss.d) > 0  # camera and light on the same side of it
+            ray_c = si_q.spawn_ray(w_cam)
+            ray_c.maxt = dist_c * (1 - mi.math.ShadowEpsilon)
+            active &= ~scene.ray_test(ray_c, active)
+            it = dr.zeros(mi.Interaction3f)
+            it.p = q
+            sensor_ds, _ = sensor.sample_direction(it, mi.Point2f(0), active)
+            active &= sensor_ds.pdf != 0
+            # ΔL: the light's direct contribution at q towards the camera
+            wavelength_sample = sampler.next_1d() if mi.is_spectral else 0
+            wavelengths, wl_weight = sensor.sample_wavelengths(dr.zeros(mi.SurfaceInteraction3f), wavelength_sample,
+                                                               active)
+            si_q.wavelengths = wavelengths
+            si_q.wi = si_q.to_local(w_cam)
+            ds, light_val = light.sample_direction(si_q, mi.Point2f(0), active)
+            bsdf_val = si_q.bsdf().eval(mi.BSDFContext(), si_q, si_q.to_local(ds.d), active)
+            ΔL = dr.select(active, bsdf_val * light_val * wl_weight, 0)
+            # geometry of the shadow curve at q
+            lam = dr.norm(q - L) / dist_p
+            e = ss.silhouette_d
+            dq_ds = lam * (e - to_p * (dr.dot(e, n_r) / dr.dot(to_p, n_r)))
+            speed = dr.norm(dq_ds)
+            t_q = dq_ds / speed
+            n = dr.normalize(dr.cross(-w_cam, t_q))
+            into_shadow = -lam * (ss.n - to_p * (dr.dot(ss.n, n_r) / dr.dot(to_p, n_r)))
+            n = dr.select(dr.dot(n, into_shadow) < 0, -n, n)
+            pdf_q = pdf_p / speed
+            active &= (pdf_q > 0) & dr.isfinite(pdf_q)
+            ss_q = dr.zeros(mi.SilhouetteSample3f)
+            ss_q.p, ss_q.n, ss_q.silhouette_d, ss_q.d = q, n, t_q, -w_cam
+            J = self.proj_detail.sensor_jacobian(sensor, ss_q)
+
+            # keep the lanes that contribute: the attached intersection below is then well defined everywhere
+            keep = dr.compress(active)
+            if dr.width(keep) == 0:
+                return dr.zeros(mi.TensorXf, (film.crop_size()[1], film.crop_size()[0],
+                                              film.base_channels_count() + len(aovs)))
+            ss, pi = dr.gather(type(ss), ss, keep), dr.gather(type(pi), pi, keep)
+            ΔL, n = _take(ΔL, keep), _take(n, keep)
+            weight = dr.gather(mi.Float, J / pdf_q, keep)
+            lam = dr.gather(mi.Float, lam, keep)
+            uv = _take(sensor_ds.uv, keep)
+            wavelengths = _take(wavelengths, keep) if dr.width(wavelengths) > 1 else wavelengths
+
+        # ∂q/∂θ: the receiver hit of the line from L through the moving edge point (Möller–Trumbore attaches it)
+        si = dr.zeros(mi.SurfaceInteraction3f)
+        si.p = ss.p
+        si.prim_index = ss.prim_index
+        si.uv = ss.uv
+        p_att = ss.shape.differential_motion(dr.detach(si))
+        pi.t = lam
+        q_att = pi.compute_surface_interaction(mi.Ray3f(L, p_att - L), mi.RayFlags.All).p
+        derivative = ΔL * dr.dot(q_att, n) * weight
+
+        film.prepare(aovs)
+        block = film.create_block(normalize=True)
+        block.set_coalesce(block.coalesce() and spp >= 4)
+        block.put(pos=uv, wavelengths=wavelengths, value=derivative * dr.rcp(mi.ScalarFloat(spp)), weight=0, alpha=1)
+        film.put_block(block)
+        return film.develop()
+
+
+def _take(x, index):
+    """x[index] for a Dr.Jit array of 1 to 3 components (dr.gather takes flat sources for nested types)."""
+    import drjit as dr
+
+    if dr.depth_v(x) == 1:
+        return dr.gather(type(x), x, index)
+    return type(x)(*[dr.gather(type(x[k]), x[k], index) for k in range(len(x))])
 
 
 _REGISTERED = False
