@@ -40,7 +40,8 @@ class StateRenderer:
     """
 
     def __init__(self, env: str, resolution: int = 64, spp: int = 8, domain: str = "train",
-                 config: RenderConfig | None = None, integrator: str = "prb_projective", variant: str | None = None):
+                 config: RenderConfig | None = None, integrator: str = "prb_projective", variant: str | None = None,
+                 grad_max_depth: int = 2):
         if integrator not in INTEGRATORS:
             raise RispError(f"unknown differentiable integrator {integrator!r}; choose one of: {', '.join(INTEGRATORS)}")
         self.renderer = Renderer(env, domain=domain, resolution=resolution, spp=spp, variant=variant)
@@ -54,10 +55,12 @@ class StateRenderer:
         from .flat_projective import register
 
         register()
+        # primal: the data renderer's own integrator (same image expectation as the shards); gradients: the
+        # "_flat" variant of the projective integrator (risp_data/flat_projective.py: boundary terms right for
+        # flat-shaded meshes, point-light shadows), with paths of at most ``grad_max_depth`` segments
+        self.primal_integrator = self.renderer.integrator
         settings = self.renderer.settings
-        # the "_flat" variant: Mitsuba's integrator with a primary-visibility boundary term that is right for
-        # our flat-shaded meshes (risp_data/flat_projective.py)
-        props = {"type": integrator + "_flat", "max_depth": settings.max_depth, "guiding": "none"}
+        props = {"type": integrator + "_flat", "max_depth": min(settings.max_depth, grad_max_depth), "guiding": "none"}
         if integrator == "prb_projective":
             props["rr_depth"] = settings.rr_depth
         self.integrator = mi.load_dict(props)
@@ -83,6 +86,7 @@ class StateRenderer:
         """
         mi, dr = self._mi, self._dr
         params, scene, integrator, spp = self.renderer.params, self.renderer.scene, self.integrator, self.spp
+        primal_integrator = self.primal_integrator
         keys = self.renderer.mesh_keys
 
         def write(vertices: dict, grad: bool) -> list:
@@ -100,7 +104,7 @@ class StateRenderer:
         def primal(vertices: dict, seed: int):
             with dr.suspend_grad():
                 write(vertices, grad=False)
-                return mi.render(scene, params, integrator=integrator, seed=seed, spp=spp)
+                return mi.render(scene, params, integrator=primal_integrator, seed=seed, spp=spp)
 
         @dr.wrap(source="torch", target="drjit")
         def vjp(vertices: dict, grad_image, seed: int):
