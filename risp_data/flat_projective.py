@@ -73,6 +73,81 @@ def edge_table(V: np.ndarray, F: np.ndarray, viewpoint: np.ndarray, crease_cos: 
     return dedge_in.astype(np.uint32), dedge_out.astype(np.uint32), crease[keep], weight
 
 
+def intersection_segments(Vs: list, Fs: list, eps: float = 1e-9):
+    """Segments where triangles of the given meshes cross each other (parts that interpenetrate: a die's pips,
+    a hand's phalanges at the joints).  Pairs of triangles sharing a vertex of one mesh are skipped.
+
+    Returns (x0, x1 (K, 3) segment ends; sa, fa, sb, fb: mesh and face index of the two triangles; ba0, ba1,
+    bb0, bb1 (K, 2): barycentric (u, v) of the ends in triangle a and in triangle b)."""
+    T, owner, face, idx = [], [], [], []
+    for i, (V, F) in enumerate(zip(Vs, Fs)):
+        V = np.asarray(V, np.float64).reshape(-1, 3)
+        F = np.asarray(F, np.int64).reshape(-1, 3)
+        T.append(V[F])
+        owner.append(np.full(len(F), i))
+        face.append(np.arange(len(F)))
+        idx.append(F + sum(len(np.asarray(v).reshape(-1, 3)) for v in Vs[:i]))
+    T, owner, face, idx = (np.concatenate(c) for c in (T, owner, face, idx))
+    lo, hi = T.min(1), T.max(1)
+    i, j = np.triu_indices(len(T), 1)
+    ok = np.all((lo[i] <= hi[j]) & (lo[j] <= hi[i]), axis=1)
+    i, j = i[ok], j[ok]
+    shared = (idx[i][:, :, None] == idx[j][:, None, :]).any((1, 2))
+    i, j = i[~shared], j[~shared]
+    empty = np.zeros((0, 3))
+    if len(i) == 0:
+        return empty, empty, *([np.zeros(0, np.int64)] * 4), *([np.zeros((0, 2))] * 4)
+    A, B = T[i], T[j]
+
+    def plane(X):
+        n = np.cross(X[:, 1] - X[:, 0], X[:, 2] - X[:, 0])
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+        return n, np.einsum("kj,kj->k", n, X[:, 0])
+
+    def clip(X, n, c):
+        """The part of triangle X on the plane (n, c): the segment between its two crossing points."""
+        d = np.einsum("kvj,kj->kv", X, n) - c[:, None]
+        pts, count = np.zeros((len(X), 2, 3)), np.zeros(len(X), np.int64)
+        for a, b in ((0, 1), (1, 2), (2, 0)):
+            cross = (d[:, a] * d[:, b] < 0)
+            t = np.where(cross, d[:, a] / np.where(cross, d[:, a] - d[:, b], 1), 0)
+            p = X[:, a] + t[:, None] * (X[:, b] - X[:, a])
+            slot = np.minimum(count, 1)
+            m = cross & (count < 2)
+            pts[m, slot[m]] = p[m]
+            count += m
+        return pts, count == 2
+
+    nA, cA = plane(A)
+    nB, cB = plane(B)
+    segA, okA = clip(A, nB, cB)
+    segB, okB = clip(B, nA, cA)
+    t = np.cross(nA, nB)
+    tn = np.linalg.norm(t, axis=1)
+    ok = okA & okB & (tn > 1e-6)
+    t = t / np.maximum(tn, 1e-30)[:, None]
+    a0, a1 = np.einsum("kj,kj->k", segA[:, 0], t), np.einsum("kj,kj->k", segA[:, 1], t)
+    b0, b1 = np.einsum("kj,kj->k", segB[:, 0], t), np.einsum("kj,kj->k", segB[:, 1], t)
+    lo_t = np.maximum(np.minimum(a0, a1), np.minimum(b0, b1))
+    hi_t = np.minimum(np.maximum(a0, a1), np.maximum(b0, b1))
+    ok &= hi_t - lo_t > eps
+    # the segment ends on the line, taken on A's clipped segment (which lies in both planes)
+    base = segA[:, 0] - a0[:, None] * t
+    x0, x1 = base + lo_t[:, None] * t, base + hi_t[:, None] * t
+    k = np.nonzero(ok)[0]
+
+    def bary(X, p):
+        e1, e2, r = X[:, 1] - X[:, 0], X[:, 2] - X[:, 0], p - X[:, 0]
+        d11, d12, d22 = (np.einsum("kj,kj->k", *z) for z in ((e1, e1), (e1, e2), (e2, e2)))
+        r1, r2 = np.einsum("kj,kj->k", r, e1), np.einsum("kj,kj->k", r, e2)
+        det = d11 * d22 - d12 * d12
+        return np.stack([(d22 * r1 - d12 * r2) / det, (d11 * r2 - d12 * r1) / det], 1)
+
+    A, B, x0, x1 = A[k], B[k], x0[k], x1[k]
+    return (x0, x1, owner[i][k], face[i][k], owner[j][k], face[j][k],
+            bary(A, x0), bary(A, x1), bary(B, x0), bary(B, x1))
+
+
 class FlatEdgesMixin:
     """Mix into a Mitsuba ``PSIntegrator`` subclass: replaces ``render_primarily_visible_silhouette``
     (module docstring)."""
@@ -134,7 +209,110 @@ class FlatEdgesMixin:
         block.put(pos=sensor_ds.uv, wavelengths=wavelengths, value=derivative * dr.rcp(mi.ScalarFloat(spp)),
                   weight=0, alpha=1, active=active)
         film.put_block(block)
-        return film.develop() + self._render_point_light_shadows(scene, sensor, sampler, spp, shapes)
+        return (film.develop() + self._render_point_light_shadows(scene, sensor, sampler, spp, shapes)
+                + self._render_intersections(scene, sensor, sampler, spp, shapes))
+
+    def _render_intersections(self, scene, sensor, sampler, spp, shapes):
+        """Boundary term (1) of the curves where two parts interpenetrate (a pip's wall entering the die's face):
+        in the image one side shows triangle A, the other triangle B, and the curve is no mesh edge.
+
+        A point x on the crossing segment of A and B lies in both planes; it moves with normal speeds
+        s_A = n_A · ẋ_A and s_B = n_B · ẋ_B (ẋ the material velocities of A and B at x), so the line's velocity
+        across itself is v = a n_A + b n_B with [1 c; c 1] (a, b) = (s_A, s_B), c = n_A · n_B.  Of each triangle
+        the camera sees the wing on the camera side of the other's plane; n (⟂ view ray and line) points from
+        A's wing to B's and ΔL = L_A(x) − L_B(x).  Samples whose wings lie on one side of the line in the image
+        (one occludes the other) or that are hidden contribute nothing.
+        """
+        import drjit as dr
+        import mitsuba as mi
+
+        film = sensor.film()
+        aovs = self.aov_names()
+        zero = dr.zeros(mi.TensorXf, (film.crop_size()[1], film.crop_size()[0], film.base_channels_count() + len(aovs)))
+        with dr.suspend_grad():
+            Vs = [dr.detach(sh.vertex_positions_buffer()).numpy() for sh in shapes]
+            Fs = [sh.faces_buffer().numpy() for sh in shapes]
+            x0, x1, sa, fa, sb, fb, ba0, ba1, bb0, bb1 = intersection_segments(Vs, Fs)
+            if len(x0) == 0:
+                return zero
+            viewpoint = np.array(dr.slice(sensor.world_transform() @ mi.Point3f(0)), np.float64).ravel()
+            d0, d1 = x0 - viewpoint, x1 - viewpoint
+            cosang = np.einsum("kj,kj->k", d0, d1) / (np.linalg.norm(d0, axis=1) * np.linalg.norm(d1, axis=1))
+            w = np.arccos(np.clip(cosang, -1, 1))
+            if w.sum() <= 0:
+                return zero
+            distr = mi.DiscreteDistribution(mi.Float(w))
+            s2 = sampler.next_2d()
+            idx, pmf = distr.sample_pmf(s2.x)
+            u = s2.y
+
+            def g3(a):
+                return mi.Point3f(*[dr.gather(mi.Float, mi.Float(a[:, c].astype(np.float32)), idx) for c in range(3)])
+
+            def g2(a0, a1):
+                b0 = [dr.gather(mi.Float, mi.Float(a0[:, c].astype(np.float32)), idx) for c in range(2)]
+                b1 = [dr.gather(mi.Float, mi.Float(a1[:, c].astype(np.float32)), idx) for c in range(2)]
+                return mi.Point2f(*[dr.lerp(b0[c], b1[c], u) for c in range(2)])
+
+            p0, p1 = g3(x0), g3(x1)
+            x = dr.lerp(p0, p1, u)
+            pdf = pmf * dr.rcp(dr.norm(p1 - p0))
+            ptrs = mi.ShapePtr(shapes)
+            ss_a, ss_b = dr.zeros(mi.SilhouetteSample3f, dr.width(x)), dr.zeros(mi.SilhouetteSample3f, dr.width(x))
+            center = sensor.world_transform() @ mi.Point3f(0)
+            view = dr.normalize(x - center)
+            for ss, sh, fc, (b0, b1) in ((ss_a, sa, fa, (ba0, ba1)), (ss_b, sb, fb, (bb0, bb1))):
+                ss.shape = dr.gather(mi.ShapePtr, ptrs, dr.gather(mi.UInt32, mi.UInt32(sh.astype(np.uint32)), idx))
+                ss.prim_index = dr.gather(mi.UInt32, mi.UInt32(fc.astype(np.uint32)), idx)
+                ss.uv = g2(b0, b1)
+                ss.p, ss.d = x, view
+            t = dr.normalize(p1 - p0)
+            na = dr.detach(self._face_normal(ss_a))
+            nb = dr.detach(self._face_normal(ss_b))
+            to_cam = -view
+            wa = dr.normalize(dr.cross(na, t))
+            wa = dr.select(dr.dot(wa, nb) * dr.dot(nb, to_cam) < 0, -wa, wa)  # A's wing on B's camera side
+            wb = dr.normalize(dr.cross(nb, t))
+            wb = dr.select(dr.dot(wb, na) * dr.dot(na, to_cam) < 0, -wb, wb)
+            n = dr.normalize(dr.cross(view, t))
+            n = dr.select(dr.dot(n, wb) < 0, -n, n)
+            active = (pmf > 0) & (dr.dot(wa, n) < 0) & (dr.dot(na, to_cam) > 0) & (dr.dot(nb, to_cam) > 0)
+            ss_a.n, ss_a.silhouette_d, ss_a.pdf = n, t, pdf
+            J = self.proj_detail.sensor_jacobian(sensor, ss_a)
+            ΔL, wavelengths = self._radiance_difference(scene, sampler, sensor, ss_a, ss_b, mi.Bool(True), active)
+            c = dr.dot(na, nb)
+            it = dr.zeros(mi.Interaction3f)
+            it.p = x
+            sensor_ds, _ = sensor.sample_direction(it, mi.Point2f(0))
+            active &= dr.any(ΔL != 0) & (dr.abs(c) < 1 - 1e-6)
+
+        motion = []
+        for ss in (ss_a, ss_b):
+            si = dr.zeros(mi.SurfaceInteraction3f)
+            si.p, si.prim_index, si.uv = ss.p, ss.prim_index, ss.uv
+            motion.append(ss.shape.differential_motion(dr.detach(si), active))
+        s_a, s_b = dr.dot(na, motion[0]), dr.dot(nb, motion[1])
+        inv = dr.rcp(1 - c * c)
+        v = na * ((s_a - c * s_b) * inv) + nb * ((s_b - c * s_a) * inv)
+        derivative = ΔL * dr.dot(v, n) * dr.select(active, J / pdf, 0)
+
+        film.prepare(aovs)
+        block = film.create_block(normalize=True)
+        block.set_coalesce(block.coalesce() and spp >= 4)
+        block.put(pos=sensor_ds.uv, wavelengths=wavelengths, value=derivative * dr.rcp(mi.ScalarFloat(spp)),
+                  weight=0, alpha=1, active=active)
+        film.put_block(block)
+        return film.develop()
+
+    @staticmethod
+    def _face_normal(ss):
+        """Geometric normal of the face of ``ss`` (surface interaction at its point)."""
+        import drjit as dr
+        import mitsuba as mi
+
+        pi = dr.zeros(mi.PreliminaryIntersection3f)
+        pi.valid, pi.t, pi.prim_index, pi.prim_uv, pi.shape = True, 1, ss.prim_index, ss.uv, ss.shape
+        return pi.compute_surface_interaction(mi.Ray3f(ss.p - ss.d, ss.d), mi.RayFlags.All, True).n
 
     def _shade(self, scene, sampler, ss, ray, active):
         """Radiance leaving the face of ``ss`` at ``ss.p`` towards the camera (primal)."""
