@@ -10,7 +10,7 @@ the image-space curves where f jumps:
 visibility Mitsuba samples the curves from ``Mesh.precompute_silhouette``: the edges with one front- and one
 back-facing face, plus open (perimeter) edges.  That is the whole set only for *smooth* shading.  Our meshes
 are flat-shaded (no vertex normals, as :class:`risp_data.render.Renderer` renders them), and for them Mitsuba
-3.9.1 is biased in two ways (measured in benchmarks/projective_flat_shading.py):
+3.9.1 is biased (reproduced in tests/test_diff_render.py, measured by benchmarks/diff_render_fd.py):
 
 1. **Crease edges are missing.**  Where two front-facing faces meet at an angle, their radiances differ
    (different normals), so the edge is a discontinuity of f; ``precompute_silhouette`` skips it.  A box lit
@@ -25,7 +25,10 @@ angular length seen from the camera, (a) silhouette edges evaluated on their *fr
 f_out traced behind the edge as Mitsuba does, and (b) crease edges between two front-facing faces, with
 f_in − f_out = L_A(p) − L_B(p) both shaded at the edge point p (so convex and concave creases alike).
 The estimator of (1) is Mitsuba's: ΔL · (∂p/∂θ · n) / pdf · J with J the camera Jacobian of
-``ProjectiveDetail.sensor_jacobian``.  Indirect discontinuities (shadows, reflections) stay Mitsuba's.
+``ProjectiveDetail.sensor_jacobian``.  Two more kinds of curve are added (methods below): shadow edges cast
+by point lights (Mitsuba cannot produce them: a boundary ray never hits a point light), and the curves
+where two parts interpenetrate (a pip entering the die), which are no mesh edges.  Indirect discontinuities
+(shadows of area lights and of the environment, reflections) stay Mitsuba's.
 """
 
 from __future__ import annotations
@@ -108,14 +111,15 @@ def intersection_segments(Vs: list, Fs: list, eps: float = 1e-9):
         """The part of triangle X on the plane (n, c): the segment between its two crossing points."""
         d = np.einsum("kvj,kj->kv", X, n) - c[:, None]
         pts, count = np.zeros((len(X), 2, 3)), np.zeros(len(X), np.int64)
+        candidates = [(d[:, a] == 0, X[:, a]) for a in range(3)]  # a vertex on the plane counts once
         for a, b in ((0, 1), (1, 2), (2, 0)):
-            cross = (d[:, a] * d[:, b] < 0)
+            cross = d[:, a] * d[:, b] < 0
             t = np.where(cross, d[:, a] / np.where(cross, d[:, a] - d[:, b], 1), 0)
-            p = X[:, a] + t[:, None] * (X[:, b] - X[:, a])
-            slot = np.minimum(count, 1)
-            m = cross & (count < 2)
-            pts[m, slot[m]] = p[m]
-            count += m
+            candidates.append((cross, X[:, a] + t[:, None] * (X[:, b] - X[:, a])))
+        for hit, p in candidates:
+            m = hit & (count < 2)
+            pts[m, np.minimum(count, 1)[m]] = p[m]
+            count += hit
         return pts, count == 2
 
     nA, cA = plane(A)
@@ -351,10 +355,16 @@ class FlatEdgesMixin:
         wavelength_sample = sampler.next_1d() if mi.is_spectral else 0
         wavelengths, weight = sensor.sample_wavelengths(dr.zeros(mi.SurfaceInteraction3f), wavelength_sample, active)
         ray_bg = ss.spawn_ray(wavelengths)
-        L_in = self._shade(scene, sampler, ss, ray_bg, visible)
-        L_bg, _, _, _ = self.sample(dr.ADMode.Primal, scene, sampler, ray_bg, 0, None, None,
-                                    visible & ~is_crease, False, None)
-        L_face = self._shade(scene, sampler, ss_out, ray_bg, visible & is_crease)
+        # the radiance on either side is the image's: paths as long as the primal's (boundary_max_depth), even
+        # where the interior term uses shorter ones
+        depth, self.max_depth = self.max_depth, getattr(self, "boundary_max_depth", self.max_depth)
+        try:
+            L_in = self._shade(scene, sampler, ss, ray_bg, visible)
+            L_bg, _, _, _ = self.sample(dr.ADMode.Primal, scene, sampler, ray_bg, 0, None, None,
+                                        visible & ~is_crease, False, None)
+            L_face = self._shade(scene, sampler, ss_out, ray_bg, visible & is_crease)
+        finally:
+            self.max_depth = depth
         ΔL = L_in - dr.select(is_crease, L_face, L_bg)
         return dr.select(visible, ΔL * weight, 0), wavelengths
 
@@ -511,9 +521,23 @@ def register() -> tuple[str, str]:
     if not _REGISTERED:
         # nanobind classes take one base: copy the mixin's methods into a subclass of each integrator
         methods = {k: v for k, v in vars(FlatEdgesMixin).items() if callable(v)}
-        path_flat = type("PathProjectiveFlat", (PathProjectiveIntegrator,), methods)
+
+        def path_init(self, props):
+            PathProjectiveIntegrator.__init__(self, props)
+            # path length of the radiance on either side of a boundary (default: max_depth)
+            self.boundary_max_depth = props.get("boundary_max_depth", self.max_depth)
+
+        path_flat = type("PathProjectiveFlat", (PathProjectiveIntegrator,), {**methods, "__init__": path_init})
         direct_flat = type("DirectProjectiveFlat", (DirectProjectiveIntegrator,), methods)
-        mi.register_integrator("prb_projective_flat", lambda props: path_flat(props))
-        mi.register_integrator("direct_projective_flat", lambda props: direct_flat(props))
+        def make(cls):
+            def create(props):
+                integrator = cls(props)
+                # Mitsuba's silhouette tables are unused here (and refuse shapes without silhouette edges)
+                integrator.proj_detail.init_primarily_visible_silhouette = lambda scene, sensor: None
+                return integrator
+            return create
+
+        mi.register_integrator("prb_projective_flat", make(path_flat))
+        mi.register_integrator("direct_projective_flat", make(direct_flat))
         _REGISTERED = True
     return "prb_projective_flat", "direct_projective_flat"
