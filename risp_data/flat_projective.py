@@ -172,9 +172,10 @@ class FlatEdgesMixin:
                 din, dout, crease, w = edge_table(V, F, viewpoint)
                 tables.append((np.full(len(din), i, np.uint32), din, dout, crease, w))
         cat = [np.concatenate(c) for c in zip(*tables)] if tables else []
-        if not tables or len(cat[0]) == 0 or cat[4].sum() <= 0:
-            return dr.zeros(mi.TensorXf, (film.crop_size()[1], film.crop_size()[0],
-                                          film.base_channels_count() + len(aovs)))
+        others = (self._render_point_light_shadows(scene, sensor, sampler, spp, shapes)
+                  + self._render_intersections(scene, sensor, sampler, spp, shapes))
+        if not tables or len(cat[0]) == 0 or cat[4].sum() <= 0:  # no edge in view (its shadow may be)
+            return others
         shape_idx, din, dout, crease, w = cat
         distr = mi.DiscreteDistribution(mi.Float(w))
         shape_ptrs = mi.ShapePtr(shapes)
@@ -213,8 +214,7 @@ class FlatEdgesMixin:
         block.put(pos=sensor_ds.uv, wavelengths=wavelengths, value=derivative * dr.rcp(mi.ScalarFloat(spp)),
                   weight=0, alpha=1, active=active)
         film.put_block(block)
-        return (film.develop() + self._render_point_light_shadows(scene, sensor, sampler, spp, shapes)
-                + self._render_intersections(scene, sensor, sampler, spp, shapes))
+        return film.develop() + others
 
     def _render_intersections(self, scene, sensor, sampler, spp, shapes):
         """Boundary term (1) of the curves where two parts interpenetrate (a pip's wall entering the die's face):
