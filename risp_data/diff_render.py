@@ -6,16 +6,19 @@ Chain (all derivatives analytic, no finite differences):
     states (T, S) --env.meshes (torch)--> vertex positions V_t (per material)
                   --dr.wrap(torch -> drjit)--> I_t = render(scene(V_t); ψ)  (Mitsuba, projective integrator)
 
-∂I/∂V comes from Mitsuba's projective integrators (``prb_projective``; ``direct_projective`` on request):
-path-replay radiance derivatives in the interior of shapes plus the projective boundary term, which
-carries the derivative of visibility (silhouette) edges.  Guiding is switched off (``'guiding': 'none'``):
-with the default guiding one backward pass took 6–9 s at 64×64 on a 2-core machine, without it ≈0.1 s,
-and the silhouette gradient still matched finite differences (tests/test_diff_render.py).
+∂I/∂V comes from a projective integrator (``prb_projective``; ``direct_projective`` on request) in its
+``_flat`` variant (:mod:`risp_data.flat_projective`): Mitsuba's path-replay derivatives in the interior of
+shapes plus a primary-visibility boundary term that is right for our flat-shaded meshes (crease edges,
+silhouettes on their front face, point-light shadow edges, curves where parts interpenetrate), which
+Mitsuba's own term is not.  Guiding is switched off (``'guiding': 'none'``): with the default guiding one
+backward pass took 6–9 s at 64×64 on a 2-core machine, without it ≈0.1 s.
 
 The scene is the one :class:`risp_data.render.Renderer` builds (same meshes, materials, lights, camera,
-ψ bindings); only the integrator differs: the projective counterpart of the domain's path-replay
-integrator with the same maximum path length, so images have the same expectation as the data's.
-Shadow-edge derivatives (a shadow moving with the object) are not checked separately.
+ψ bindings), and the primal image is rendered by its own integrator, so images have the shards'
+expectation.  The gradient's interior term uses paths of at most ``grad_max_depth`` = 2 segments (direct
+light): with the data's indirect bounce it was heavy-tailed near concave contacts (pips); the boundary
+radiances use the primal's path length.  What is still biased (thin interpenetrating parts, the
+quadrotor): docs/tasks.md §Render-mode gradients.
 """
 
 from __future__ import annotations
@@ -40,7 +43,8 @@ class StateRenderer:
     """
 
     def __init__(self, env: str, resolution: int = 64, spp: int = 8, domain: str = "train",
-                 config: RenderConfig | None = None, integrator: str = "prb_projective", variant: str | None = None):
+                 config: RenderConfig | None = None, integrator: str = "prb_projective", variant: str | None = None,
+                 grad_max_depth: int = 2):
         if integrator not in INTEGRATORS:
             raise RispError(f"unknown differentiable integrator {integrator!r}; choose one of: {', '.join(INTEGRATORS)}")
         self.renderer = Renderer(env, domain=domain, resolution=resolution, spp=spp, variant=variant)
@@ -51,10 +55,18 @@ class StateRenderer:
         import mitsuba as mi
 
         self._mi, self._dr = mi, dr
+        from .flat_projective import register
+
+        register()
+        # primal: the data renderer's own integrator (same image expectation as the shards); gradients: the
+        # "_flat" variant of the projective integrator (risp_data/flat_projective.py: boundary terms right for
+        # flat-shaded meshes, point-light shadows), with paths of at most ``grad_max_depth`` segments
+        self.primal_integrator = self.renderer.integrator
         settings = self.renderer.settings
-        props = {"type": integrator, "max_depth": settings.max_depth, "guiding": "none"}
+        props = {"type": integrator + "_flat", "max_depth": min(settings.max_depth, grad_max_depth), "guiding": "none"}
         if integrator == "prb_projective":
             props["rr_depth"] = settings.rr_depth
+            props["boundary_max_depth"] = settings.max_depth  # boundary radiances as long as the primal's
         self.integrator = mi.load_dict(props)
         self.set_look(config if config is not None else nominal_rendering(env, domain))
         self._render_frame = self._make_frame_renderer()
@@ -78,6 +90,7 @@ class StateRenderer:
         """
         mi, dr = self._mi, self._dr
         params, scene, integrator, spp = self.renderer.params, self.renderer.scene, self.integrator, self.spp
+        primal_integrator = self.primal_integrator
         keys = self.renderer.mesh_keys
 
         def write(vertices: dict, grad: bool) -> list:
@@ -95,7 +108,7 @@ class StateRenderer:
         def primal(vertices: dict, seed: int):
             with dr.suspend_grad():
                 write(vertices, grad=False)
-                return mi.render(scene, params, integrator=integrator, seed=seed, spp=spp)
+                return mi.render(scene, params, integrator=primal_integrator, seed=seed, spp=spp)
 
         @dr.wrap(source="torch", target="drjit")
         def vjp(vertices: dict, grad_image, seed: int):

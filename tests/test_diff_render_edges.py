@@ -1,0 +1,38 @@
+"""Edge tables of risp_data.flat_projective (pure numpy): which mesh edges and crossing segments are boundaries."""
+
+import numpy as np
+
+from risp_data.flat_projective import edge_table, intersection_segments
+
+# unit cube, outward-wound triangles (two per face)
+CUBE_V = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float)
+CUBE_F = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                   [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+
+
+def test_cube_seen_from_a_corner_direction_has_six_silhouette_and_three_crease_edges():
+    view = np.array([3.0, 2.5, 2.0])  # sees the +x, +y and +z faces
+    din, dout, crease, w = edge_table(CUBE_V, CUBE_F, view)
+    assert crease.sum() == 3 and (~crease).sum() == 6
+    assert np.all(w > 0)
+    n = np.cross(CUBE_V[CUBE_F[:, 1]] - CUBE_V[CUBE_F[:, 0]], CUBE_V[CUBE_F[:, 2]] - CUBE_V[CUBE_F[:, 0]])
+    front = np.einsum("ij,ij->i", n, CUBE_V[CUBE_F[:, 0]] - view) < 0
+    assert np.all(front[din // 3])  # f_in is always taken on a face that faces the camera
+    assert np.all(front[dout[crease] // 3]) and np.all(dout[~crease] == din[~crease])
+    # the same edges cast shadows from a point light there: silhouettes only
+    din_l, _, crease_l, _ = edge_table(CUBE_V, CUBE_F, view, creases=False)
+    assert len(din_l) == 6 and not crease_l.any()
+
+
+def test_crossing_triangles_give_their_common_segment():
+    a = np.array([[-1.0, -1, 0], [1, -1, 0], [0, 1, 0]])  # in z = 0
+    b = np.array([[0.0, -2, -1], [0, 2, -1], [0, 0, 1]])  # in x = 0, crossing z = 0 along y ∈ [-1, 1]
+    x0, x1, sa, fa, sb, fb, ba0, ba1, bb0, bb1 = intersection_segments([a, b], [np.array([[0, 1, 2]])] * 2)
+    assert len(x0) == 1 and sa[0] == 0 and sb[0] == 1
+    ends = sorted([tuple(np.round(x0[0], 6)), tuple(np.round(x1[0], 6))])
+    assert np.allclose(ends, [(0, -1, 0), (0, 1, 0)], atol=1e-9)  # both reach y = ±1 at x = z = 0 (a: apex on the plane)
+    for X, b0 in ((a, ba0[0]), (b, bb0[0])):  # barycentrics reproduce the end points
+        p = X[0] + b0[0] * (X[1] - X[0]) + b0[1] * (X[2] - X[0])
+        assert np.allclose(p, x0[0], atol=1e-9)
+    # triangles of one mesh that share a vertex are not crossings
+    assert len(intersection_segments([np.r_[a, b[:2]]], [np.array([[0, 1, 2], [2, 3, 4]])])[0]) == 0
