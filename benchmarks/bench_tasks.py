@@ -30,7 +30,7 @@ def _median_time(fn, repeats):
     return statistics.median(out)
 
 
-def bench_env(env_name: str, frames: int, res: int, spp: int, repeats: int) -> dict:
+def bench_env(env_name: str, frames: int, res: int, spp: int, repeats: int, gradient: str = "flat") -> dict:
     from risp_data.diff_render import StateRenderer
     from risp_data.envs import get_environment
     from risp_train.model import ModelConfig, ResNet18, stem_for_resolution
@@ -46,7 +46,7 @@ def bench_env(env_name: str, frames: int, res: int, spp: int, repeats: int) -> d
     predictor = RispPredictor(net, norm, env_name, env.state_names, env.target_names, res).eval()
     for p in predictor.parameters():
         p.requires_grad_(False)
-    renderer = StateRenderer(env_name, resolution=res, spp=spp)
+    renderer = StateRenderer(env_name, resolution=res, spp=spp, boundary=gradient)
     k = steps_per_frame(sim, 10.0)
     params = sim.default_params()
     mid = torch.tensor([(a + b) / 2 for a, b in zip(env.state_low, env.state_high)], dtype=torch.float64)
@@ -104,12 +104,13 @@ def main() -> None:
     ap.add_argument("--res", type=int, default=64)
     ap.add_argument("--spp", type=int, default=4)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--gradient", default="flat", help="boundary term: flat (risp's) or mitsuba")
     args = ap.parse_args()
     torch.set_num_threads(1)
     print(f"load average before: {os.getloadavg()}")
     print(f"{'env':10s} {'state s/it':>10s} {'render s/it':>11s}   shares of a render-mode iteration (sim / render / net)")
     for env in args.envs.split(","):
-        r = bench_env(env, args.frames, args.res, args.spp, args.repeats)
+        r = bench_env(env, args.frames, args.res, args.spp, args.repeats, args.gradient)
         parts = r["simulation"] + r["rendering"] + r["network"]
         print(f"{env:10s} {r['state']:10.3f} {r['render']:11.3f}   "
               f"{r['simulation'] / parts:5.0%} / {r['rendering'] / parts:5.0%} / {r['network'] / parts:5.0%}   "

@@ -31,6 +31,7 @@ from .psi import RenderConfig, nominal_rendering
 from .render import Renderer
 
 INTEGRATORS: tuple[str, ...] = ("prb_projective", "direct_projective")
+BOUNDARIES: tuple[str, ...] = ("flat", "mitsuba")  # whose primary-visibility boundary term (docs/tasks.md)
 
 
 class StateRenderer:
@@ -44,9 +45,12 @@ class StateRenderer:
 
     def __init__(self, env: str, resolution: int = 64, spp: int = 8, domain: str = "train",
                  config: RenderConfig | None = None, integrator: str = "prb_projective", variant: str | None = None,
-                 grad_max_depth: int = 2):
+                 grad_max_depth: int = 2, boundary: str = "flat"):
         if integrator not in INTEGRATORS:
             raise RispError(f"unknown differentiable integrator {integrator!r}; choose one of: {', '.join(INTEGRATORS)}")
+        if boundary not in BOUNDARIES:
+            raise RispError(f"unknown gradient boundary term {boundary!r}; choose one of: {', '.join(BOUNDARIES)}")
+        self.boundary = boundary
         self.renderer = Renderer(env, domain=domain, resolution=resolution, spp=spp, variant=variant)
         self.env = self.renderer.env
         self.resolution = self.renderer.resolution
@@ -63,10 +67,15 @@ class StateRenderer:
         # flat-shaded meshes, point-light shadows), with paths of at most ``grad_max_depth`` segments
         self.primal_integrator = self.renderer.integrator
         settings = self.renderer.settings
-        props = {"type": integrator + "_flat", "max_depth": min(settings.max_depth, grad_max_depth), "guiding": "none"}
+        # (boundary="mitsuba": Mitsuba's own integrator, biased for flat-shaded meshes but cheaper and less
+        # noisy at a few spp; kept selectable so the two can be compared on a task)
+        flat = boundary == "flat"
+        props = {"type": integrator + ("_flat" if flat else ""), "max_depth": min(settings.max_depth, grad_max_depth),
+                 "guiding": "none"}
         if integrator == "prb_projective":
             props["rr_depth"] = settings.rr_depth
-            props["boundary_max_depth"] = settings.max_depth  # boundary radiances as long as the primal's
+            if flat:
+                props["boundary_max_depth"] = settings.max_depth  # boundary radiances as long as the primal's
         self.integrator = mi.load_dict(props)
         self.set_look(config if config is not None else nominal_rendering(env, domain))
         self._render_frame = self._make_frame_renderer()

@@ -96,6 +96,9 @@ def _task_options(f):
         click.option("--camera", default=None, help="camera JSON (intrinsics, extrinsics) replacing the environment's"),
         click.option("--mesh", default=None, help="quadrotor vehicle mesh (OBJ/PLY/STL/glTF, metres, body frame) to render"),
         click.option("--spp", type=int, default=4, show_default=True, help="samples per pixel of the differentiable renderer"),
+        click.option("--gradient", type=click.Choice(("flat", "mitsuba")), default="flat", show_default=True,
+                     help="boundary term of the renderer's gradient: risp's for flat-shaded meshes, or Mitsuba's own "
+                          "(cheaper, biased at creases and shadows; docs/tasks.md §Render-mode gradients)"),
         click.option("--threads", type=int, default=1, show_default=True, help="torch threads (0: one per available CPU)"),
         click.option("--no-plots", is_flag=True, help="skip the PNG plots"),
         click.option("--quiet", is_flag=True, help="no progress bar"),

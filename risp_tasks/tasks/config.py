@@ -43,6 +43,7 @@ class TaskConfig:
     horizon: int = 10  # control: frames to reach the target
     perceptual_weights: str | None = None  # local torchvision vgg16 state dict for --loss perceptual
     spp: int = 4  # samples per pixel of the differentiable renderer (render/pixelwise losses)
+    gradient: str = "flat"  # boundary term of the renderer's gradient: flat (risp_data.flat_projective) | mitsuba
     threads: int = 1
     progress: bool = True
     plots: bool = True
@@ -56,6 +57,8 @@ class TaskConfig:
             raise RispError(f"unknown optimizer {self.optimizer!r}; choose one of: rmsprop, adam, sgd")
         if self.iterations < 0 or not self.lr > 0 or self.every < 1 or self.horizon < 1 or self.spp < 1:
             raise RispError("iterations must be >= 0, lr > 0, every >= 1, horizon >= 1 and spp >= 1")
+        if self.gradient not in ("flat", "mitsuba"):
+            raise RispError(f"unknown --gradient {self.gradient!r}; choose one of: flat, mitsuba")
         if self.loss == "oracle" and not self.truth:
             raise RispError("--loss oracle needs --truth (the reference video's ground-truth JSON)")
 

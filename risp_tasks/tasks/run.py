@@ -109,7 +109,7 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
         from risp_data.psi import nominal_rendering
 
         renderer = StateRenderer(drawn, resolution=predictor.resolution, spp=cfg.spp,
-                                 config=nominal_rendering(env_name, "train"))
+                                 config=nominal_rendering(env_name, "train"), boundary=cfg.gradient)
         if camera is not None:
             set_camera(renderer.renderer, camera)
     truth_targets = None
