@@ -86,8 +86,8 @@ def test_task_lowers_its_loss(quad, tmp_path, task, loss, extra):
 @pytest.mark.parametrize("loss", ["render", "pixelwise", "perceptual"])
 def test_render_losses_differentiate_through_renderer_and_network(quad, tmp_path, loss):
     """The image losses run end to end and their gradient reaches the actions.  (Lowering the loss is not
-    asserted: at 16×16 with a one-epoch network and Mitsuba 3.9.1's incomplete silhouette gradients
-    (tests/test_diff_render.py) six iterations went up and down; docs/tasks.md §Render-mode gradients.)"""
+    asserted: at 16×16 and 1 spp with a one-epoch network, and the quadrotor's boundary terms still biased
+    (tests/test_diff_render.py), six iterations went up and down; docs/tasks.md §Render-mode gradients.)"""
     model, video = quad
     r = _run("imitate", video, tmp_path / "out", model=model, loss=loss, iterations=2, spp=1, plots=False)
     a0, a1 = np.asarray(r["initial"]["actions"]), np.asarray(r["estimates"]["actions"])
