@@ -142,3 +142,14 @@ def test_failure_mid_run_leaves_no_result_folder(quad, tmp_path, monkeypatch):
         run.run_task(TaskConfig(task="estimate", video=quad[1], model=quad[0], out=str(tmp_path / "r"), progress=False),
                      echo=lambda s: None)
     assert os.listdir(tmp_path) == []
+
+
+def test_unknown_gradient_boundary_term(quad, tmp_path):
+    """`--gradient` takes flat|mitsuba: another name stops before anything is read or written."""
+    from risp_tasks.cli import cli
+
+    res = CliRunner().invoke(cli, ["sysid", quad[1], "--model", quad[0], "--loss", "render", "--gradient", "smooth",
+                                   "--out", str(tmp_path / "res"), "--quiet"])
+    assert res.exit_code == 2, res.output
+    assert "--gradient" in res.output and "'flat'" in res.output and "'mitsuba'" in res.output
+    assert not (tmp_path / "res").exists()

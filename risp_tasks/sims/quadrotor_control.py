@@ -9,13 +9,23 @@ from __future__ import annotations
 import torch
 
 
-def tracking_thrusts(state: torch.Tensor, ref_p, ref_v, mass: float, inertia: torch.Tensor, k_m: float, arm: float):
-    """Geometric controller (Lee et al. 2010) -> rotor thrusts (B, 4) in newtons."""
+KP, KD = 4.0, 3.0  # position and velocity gains of the commanded acceleration [1/s², 1/s]
+
+
+def tracking_thrusts(state: torch.Tensor, ref_p, ref_v, mass: float, inertia: torch.Tensor, k_m: float, arm: float,
+                     integral=None, ki: float = 0.0):
+    """Geometric controller (Lee et al. 2010) -> rotor thrusts (B, 4) in newtons.
+
+    Commanded acceleration a_des = KP·(p_ref − p) + KD·(v_ref − v) + ki·∫(p_ref − p) dt (``integral``: that
+    integral, kept by the caller; the I term lets a steady disturbance be compensated by the commands).
+    """
     from risp_data.envs.rotations import quat_to_matrix
 
     g = 9.81
     p, q, v, w = state[:, 0:3], state[:, 3:7], state[:, 7:10], state[:, 10:13]
-    a_des = 4.0 * (ref_p - p) + 3.0 * (ref_v - v)
+    a_des = KP * (ref_p - p) + KD * (ref_v - v)
+    if integral is not None:
+        a_des = a_des + ki * integral
     a_des = torch.clamp(a_des, -6, 6)
     a_des[:, 2] += g
     R = quat_to_matrix(q)

@@ -24,10 +24,10 @@ from risp_data.atomic import write_text_atomic
 from risp_data.errors import RispError
 
 
-# The reference flights' controller: tracking_thrusts' PD law (a_des = KP·e_p + 3·e_v) plus an integral term
-# KI·∫e_p dt, as real flight controllers have: a steady disturbance (a hidden wind) is compensated by the commands
-# instead of pushing the vehicle out of the sampled flight volume (s³ + 3s² + KP·s + KI is stable for KI < 3·KP).
-KP, KI = 4.0, 2.0
+# The reference flights' controller: tracking_thrusts' PD law plus its integral term KI·∫e_p dt, as real flight
+# controllers have: a steady disturbance (a hidden wind) is compensated by the commands instead of pushing the
+# vehicle out of the sampled flight volume (s³ + KD·s² + KP·s + KI is stable for KI < KD·KP = 12).
+KI = 2.0
 
 
 @dataclass(frozen=True)
@@ -121,8 +121,8 @@ def _motion(sim, params, n, k, fps, rng):
         with torch.no_grad():
             for i in range(n):
                 integral += (ref_p[i:i + 1] - s[:, :3]) / fps
-                f = tracking_thrusts(s, ref_p[i:i + 1] + (KI / KP) * integral, ref_v[i:i + 1], mass, inertia, k_m,
-                                     ARM_LENGTH)
+                f = tracking_thrusts(s, ref_p[i:i + 1], ref_v[i:i + 1], mass, inertia, k_m, ARM_LENGTH,
+                                     integral=integral, ki=KI)
                 thrusts.append(f[0])
                 if i == n - 1:
                     break
