@@ -135,9 +135,16 @@ def estimate(video, **kw):
     _run("estimate", video, **kw)
 
 
+_fit_initial = click.option(
+    "--fit-initial-state/--fixed-initial-state", default=None,
+    help="identify the initial state read from the first two frames jointly, or keep it fixed "
+         "[default: fit; the rod starts at rest] (docs/tasks.md §Initial state)")
+
+
 @cli.command()
 @click.argument("video", type=click.Path())
 @_task_options
+@_fit_initial
 def sysid(video, **kw):
     """The physical parameter(s) that reproduce VIDEO (quadrotor mass, cube log10 k_n, hand stiffness, rod log10 E)."""
     _run("sysid", video, **kw)
@@ -146,6 +153,7 @@ def sysid(video, **kw):
 @cli.command()
 @click.argument("video", type=click.Path())
 @_task_options
+@_fit_initial
 def imitate(video, **kw):
     """The action sequence that reproduces the motion in VIDEO (quadrotor, hand, rod)."""
     _run("imitate", video, **kw)

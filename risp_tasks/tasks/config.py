@@ -41,6 +41,9 @@ class TaskConfig:
     mesh: str | None = None  # vehicle mesh file (quadrotor) replacing the built-in one
     initial_state: str | None = None  # control: JSON with the initial simulator state
     horizon: int = 10  # control: frames to reach the target
+    # sysid, imitate: optimise the initial state read from the first two frames jointly (simulate.InitialState);
+    # None: yes where the initial state is read from the video (quadrotor, cube, hand; the rod starts at rest)
+    fit_initial_state: bool | None = None
     perceptual_weights: str | None = None  # local torchvision vgg16 state dict for --loss perceptual
     spp: int = 4  # samples per pixel of the differentiable renderer (render/pixelwise losses)
     gradient: str = "flat"  # boundary term of the renderer's gradient: flat (risp_data.flat_projective) | mitsuba
@@ -59,6 +62,8 @@ class TaskConfig:
             raise RispError("iterations must be >= 0, lr > 0, every >= 1, horizon >= 1 and spp >= 1")
         if self.gradient not in ("flat", "mitsuba"):
             raise RispError(f"unknown --gradient {self.gradient!r}; choose one of: flat, mitsuba")
+        if self.fit_initial_state and self.task not in ("sysid", "imitate"):
+            raise RispError(f"--fit-initial-state is for sysid and imitate, not {self.task}")
         if self.loss == "oracle" and not self.truth:
             raise RispError("--loss oracle needs --truth (the reference video's ground-truth JSON)")
 

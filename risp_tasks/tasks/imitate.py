@@ -6,7 +6,8 @@ Initialisation (``--init``): ``default`` x = 0; ``random`` x ~ U(−1, 1) (seede
 geometric tracking controller (Lee et al. 2010) flown in the simulator along the network-estimated
 trajectory; the refinement then adjusts the controller's reference path, and the actions are the commands
 the controller issues (paper Sec. 5.5: long horizons are chaotic in open loop).  Physical parameters are the
-simulator's nominal ones; the initial state comes from the first two frames' estimates.
+simulator's nominal ones; the initial state comes from the first two frames' estimates (``--fit-initial-state``:
+optimised jointly with the actions, :class:`~risp_tasks.tasks.simulate.InitialState`).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from risp_data.errors import RispError
 
 from .context import Context
 from .loop import Problem
-from .simulate import ACTION_SCALE, action_centre, frame_states, initial_sim_state, to_file_actions
+from .simulate import ACTION_SCALE, InitialState, action_centre, frame_states, to_file_actions
 
 
 TRACK_SCALE = 0.1  # m: the normalised reference-path offsets of ``--init track``
@@ -66,7 +67,7 @@ def tracked_rollout(ctx: Context, params: torch.Tensor, s0: torch.Tensor, ref_p:
     return sim.to_env_state(torch.cat(states)), torch.stack(commands)
 
 
-def _track_problem(ctx: Context, params: torch.Tensor, s0: torch.Tensor, n_frames: int) -> Problem:
+def _track_problem(ctx: Context, params: torch.Tensor, s0, n_frames: int) -> Problem:
     """``--init track``: the tracking controller's reference path is what is refined (offsets δ_t = 0.1 m · x_t
     added to the estimated path); the controller keeps the long open-loop horizon stable, and the actions are
     the commands it issues.  (Refining raw commands over 14 s diverged in one step: the open loop is chaotic.)"""
@@ -76,7 +77,7 @@ def _track_problem(ctx: Context, params: torch.Tensor, s0: torch.Tensor, n_frame
     x = torch.zeros(n_frames, 3, dtype=torch.float64, requires_grad=True)
 
     def run():
-        return tracked_rollout(ctx, params, s0, ref_p + TRACK_SCALE * x, ref_v)
+        return tracked_rollout(ctx, params, s0(), ref_p + TRACK_SCALE * x, ref_v)
 
     with torch.no_grad():
         initial = to_file_actions(ctx.sim, params, run()[1])
@@ -87,8 +88,9 @@ def _track_problem(ctx: Context, params: torch.Tensor, s0: torch.Tensor, n_frame
         return {"actions": to_file_actions(ctx.sim, params, commands).tolist(), "initial_actions": initial.tolist(),
                 "path_offsets_m": (TRACK_SCALE * x.detach()).tolist()}
 
-    return Problem(variables={"path_offsets": x}, states=lambda: run()[0], estimates=estimates,
-                   info={"initial_state": s0[0].tolist(), "parametrisation": "tracking-controller reference path"})
+    return Problem(variables={"path_offsets": x, **s0.variables}, states=lambda: run()[0],
+                   estimates=lambda: {**estimates(), **s0.info()},
+                   info={**s0.info(), "parametrisation": "tracking-controller reference path"})
 
 
 def build(ctx: Context, n_frames: int | None = None, s0: torch.Tensor | None = None) -> Problem:
@@ -98,9 +100,9 @@ def build(ctx: Context, n_frames: int | None = None, s0: torch.Tensor | None = N
     n_frames = ctx.n_source if n_frames is None else n_frames
     params = sim.default_params()
     if s0 is None:
-        second = ctx.predicted[1] if len(ctx.keep) > 1 else None
-        fps = ctx.fps / (ctx.keep[1] - ctx.keep[0]) if len(ctx.keep) > 1 else ctx.fps
-        s0 = initial_sim_state(sim, ctx.predicted[0], second, fps)
+        s0 = InitialState(ctx, fit=ctx.cfg.fit_initial_state)
+    else:  # control: a given state, fixed
+        s0 = _Fixed(s0)
     if ctx.cfg.init == "track":
         return _track_problem(ctx, params, s0, n_frames)
     centre, scale = action_centre(sim, params), ACTION_SCALE[sim.env]
@@ -114,5 +116,19 @@ def build(ctx: Context, n_frames: int | None = None, s0: torch.Tensor | None = N
         return {"actions": to_file_actions(sim, params, actions(x.detach())).tolist(),
                 "initial_actions": to_file_actions(sim, params, actions(x0)).tolist()}
 
-    return Problem(variables={"actions": x}, states=lambda: frame_states(sim, params, s0, actions(x), n_frames, ctx.k),
-                   estimates=estimates, info={"initial_state": s0[0].tolist()})
+    return Problem(variables={"actions": x, **s0.variables},
+                   states=lambda: frame_states(sim, params, s0(), actions(x), n_frames, ctx.k),
+                   estimates=lambda: {**estimates(), **s0.info()}, info=s0.info())
+
+
+class _Fixed:
+    """A given initial state (control's ``--initial-state``) in InitialState's interface."""
+
+    def __init__(self, s0: torch.Tensor):
+        self.s0, self.variables = s0, {}
+
+    def __call__(self) -> torch.Tensor:
+        return self.s0
+
+    def info(self) -> dict:
+        return {"initial_state": self.s0[0].tolist(), "initial_state_fitted": False}

@@ -91,6 +91,71 @@ def initial_sim_state(sim, first: torch.Tensor, second: torch.Tensor | None, fps
     return sim.default_state(1, dtype)
 
 
+#: Step scales of a fitted initial state (``--fit-initial-state``) per unit of its normalised offsets x.
+#: RMSProp moves x by about lr per iteration, so the paper's 100 steps at lr 3e-3 reach about ±0.3–0.6 scale:
+#: a few centimetres, up to ~15°, ~0.5 rad/s — the size of the network's per-frame errors.
+INITIAL_STEP = {"position": 0.1, "angle": 0.5, "angular_velocity": 1.0}  # m, rad, rad/s per unit of x
+
+
+class InitialState:
+    """The simulator's initial state s₀ of a task, from the network's estimates ŝ₀, ŝ₁ of the first two kept frames
+    (:func:`initial_sim_state`: pose from ŝ₀, velocities from ŝ₁ − ŝ₀).  Fixed by default for ``fit=False``;
+    when fitted, offsets x (2, S) are optimised jointly with the task's own variables:
+
+        s₀(x) = initial_sim_state(ŝ₀ + σ ⊙ x₀, ŝ₁ + σ ⊙ x₁)            (hand: joint angles and rates)
+        quadrotor, cube: as above for position, attitude and linear velocity (x₁'s positions), and the body
+        angular velocity ω₀ = σ_ω · x₁[yaw, pitch, roll] (from 0: differencing two noisy attitudes at 10 fps
+        would give rad/s of noise)
+
+    with σ from :data:`INITIAL_STEP`, so that N's errors on the first frames are corrected by the whole video
+    instead of being carried through the rollout.  ``fit=None`` (the default): fitted where s₀ is read from the
+    video (quadrotor, cube, hand; the rod's videos start at rest)."""
+
+    def __init__(self, ctx, fit: bool | None = None):
+        sim = ctx.sim
+        if fit is None:
+            fit = sim.env != "rod"
+        self.sim, self.fit = sim, fit
+        self.first = ctx.predicted[0].double()
+        self.second = ctx.predicted[1].double() if len(ctx.keep) > 1 else None
+        self.fps = ctx.fps / (ctx.keep[1] - ctx.keep[0]) if len(ctx.keep) > 1 else ctx.fps
+        self.variables: dict[str, torch.Tensor] = {}
+        if fit:
+            if sim.env == "rod":
+                raise RispError("--fit-initial-state: the rod's videos start at rest; its initial state is not "
+                                "read from the video (use --fixed-initial-state)")
+            names = ctx.env.state_names
+            self.step = torch.tensor([INITIAL_STEP["position" if n in ("x", "y", "z") else "angle"] for n in names],
+                                     dtype=torch.float64)
+            self.x = torch.zeros(2, len(names), dtype=torch.float64, requires_grad=True)
+            self.variables = {"initial_state": self.x}
+
+    @property
+    def rigid(self) -> bool:
+        return self.sim.env in ("quadrotor", "cube")
+
+    def __call__(self) -> torch.Tensor:
+        """s₀ (1, X), differentiable w.r.t. the offsets when fitted."""
+        if not self.fit:
+            return initial_sim_state(self.sim, self.first, self.second, self.fps)
+        first = self.first + self.step * self.x[0]
+        if self.rigid:
+            second = None if self.second is None else torch.cat([self.second[:3] + self.step[:3] * self.x[1, :3],
+                                                                   first[3:]])
+            s0 = initial_sim_state(self.sim, first, second, self.fps)
+            omega = INITIAL_STEP["angular_velocity"] * self.x[1, 3:6]
+            return torch.cat([s0[:, :10], omega[None], s0[:, 13:]], 1)
+        second = None if self.second is None else self.second + self.step * self.x[1]
+        return initial_sim_state(self.sim, first, second, self.fps)
+
+    def info(self) -> dict:
+        with torch.no_grad():
+            out = {"initial_state": self().detach()[0].tolist(), "initial_state_fitted": self.fit}
+            if self.fit:
+                out["initial_state_offsets"] = (self.step * self.x.detach()).tolist()
+        return out
+
+
 def frame_states(sim, params: torch.Tensor, s0: torch.Tensor, actions: torch.Tensor | None, n_frames: int,
                  k: int) -> torch.Tensor:
     """Environment states (n_frames, S) at the video frames; ``actions`` (n_frames, A) per frame in simulator

@@ -4,7 +4,8 @@ Identified parameters (paper's ranges): quadrotor mass [2.8, 3.2) kg, cube log10
 joint stiffness [0, 1), rod log10 E [4, 7).  Each is optimised in normalised coordinates x ∈ [0, 1],
 θ = low + (high − low)·x (clamped after every step), starting from the middle of the range (``--init default``)
 or a seeded uniform draw (``--init random``).  The initial state comes from the network's estimates of the
-first two frames (docs/tasks.md §Initial state); actions from ``--actions``.
+first two frames (docs/tasks.md §Initial state) — fixed, or with ``--fit-initial-state`` identified jointly with
+the parameters (:class:`~risp_tasks.tasks.simulate.InitialState`); actions from ``--actions``.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from risp_data.errors import RispError
 
 from .context import Context
 from .loop import Problem
-from .simulate import frame_states, initial_sim_state, to_sim_actions
+from .simulate import InitialState, frame_states, to_sim_actions
 
 IDENTIFIED = {"quadrotor": ("mass",), "cube": ("log10_kn",),
               "hand": tuple(f"stiffness_{f}" for f in ("thumb", "index", "middle", "ring", "little")),
@@ -44,9 +45,7 @@ def build(ctx: Context) -> Problem:
     if sim.action_dim and ctx.file_actions is None:
         raise RispError(f"sysid of the {sim.env} needs its commands: pass --actions A.csv")
     file_actions = None if ctx.file_actions is None else torch.from_numpy(ctx.file_actions)
-    second = ctx.predicted[1] if len(ctx.keep) > 1 else None
-    fps = ctx.fps / (ctx.keep[1] - ctx.keep[0]) if len(ctx.keep) > 1 else ctx.fps
-    s0 = initial_sim_state(sim, ctx.predicted[0], second, fps)
+    s0 = InitialState(ctx, fit=ctx.cfg.fit_initial_state)
 
     def params():
         theta = low + (high - low) * x
@@ -57,7 +56,7 @@ def build(ctx: Context) -> Problem:
     def states():
         p = params()
         actions = None if file_actions is None else to_sim_actions(sim, p, file_actions)
-        return frame_states(sim, p, s0, actions, ctx.n_source, ctx.k)
+        return frame_states(sim, p, s0(), actions, ctx.n_source, ctx.k)
 
     def project():
         x.clamp_(0.0, 1.0)
@@ -66,7 +65,7 @@ def build(ctx: Context) -> Problem:
         theta = (low + (high - low) * x).detach()
         return {"parameters": {n: float(v) for n, v in zip(names, theta)},
                 "initial_parameters": {n: float(v) for n, v in zip(names, low + (high - low) * x0)},
-                "ranges": {n: list(ranges[n]) for n in names}}
+                "ranges": {n: list(ranges[n]) for n in names}, **s0.info()}
 
-    return Problem(variables={"x": x}, states=states, estimates=estimates, project=project,
-                   info={"initial_state": s0[0].tolist()})
+    return Problem(variables={"x": x, **s0.variables}, states=states, estimates=estimates, project=project,
+                   info=s0.info())
