@@ -213,9 +213,11 @@ def make_video(env, out, frames, fps, resolution, spp, domain, params, effect, c
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--executor", type=click.Choice(("local", "ray")), default="local", show_default=True,
               help="ray: cells as Ray tasks (optional extra risp[ray])")
+@click.option("--jobs", type=int, default=0, show_default=True,
+              help="local: cells computed at once, one single-threaded process each (0: one per available CPU)")
 @click.option("--quiet", is_flag=True, help="no progress bar")
 def table(table, preset, repeats, quick, out, envs, methods, reg, perceptual_weights, n_train, n_test, iterations,
-          seed, executor, quiet):
+          seed, executor, jobs, quiet):
     """One of the paper's tables: every method on every environment, mean ± std over repeats (resumable)."""
     from risp_tasks.tables.config import make_config
     from risp_tasks.tables.grid import run_table
@@ -225,7 +227,8 @@ def table(table, preset, repeats, quick, out, envs, methods, reg, perceptual_wei
 
     cfg = make_config(table, preset=preset, quick=quick, out=out, repeats=repeats, envs=names(envs),
                       methods=names(methods), reg=reg, perceptual_weights=perceptual_weights, n_train=n_train,
-                      n_test=n_test, iterations=iterations, seed=seed, executor=executor, progress=not quiet)
+                      n_test=n_test, iterations=iterations, seed=seed, executor=executor, jobs=jobs,
+                      progress=not quiet)
     report = run_table(cfg, echo=click.echo)
     click.echo(open(report["files"][0]).read())
     click.echo(f"wrote {report['files'][0]} and {report['files'][1]}")

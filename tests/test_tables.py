@@ -152,6 +152,21 @@ def test_killed_and_resumed_run_gives_the_same_table(cache, tmp_path):
     assert strip(open(whole["files"][0]).read()) == strip(open(resumed["files"][0]).read())
 
 
+def test_parallel_cells_give_the_same_table_as_one_process(cache, tmp_path):
+    """--jobs 2: cells in two spawned single-threaded processes; every cell's number equals the serial run's."""
+    kw = dict(TINY, repeats=2)
+    methods = ("average", "random", "ours", "pixelwise", "oracle")
+    serial = run_table(make_config("estimation", quick=True, out=str(tmp_path / "a"), envs=("cube",),
+                                   methods=methods, **kw), cache=cache, echo=lambda *_: None)
+    seen = []
+    cfg = make_config("estimation", quick=True, out=str(tmp_path / "b"), envs=("cube",), methods=methods, jobs=2, **kw)
+    parallel = run_table(cfg, cache=cache, on_cell=lambda c, r: seen.append(r), echo=lambda *_: None)
+    assert len(seen) == len(methods) * 2 and len({r["pid"] for r in seen}) == 2  # two processes did the work
+    for m in methods:
+        a, b = serial["cells"]["cube"][m], parallel["cells"]["cube"][m]
+        assert a["values"] == pytest.approx(b["values"], rel=1e-6, abs=1e-9), m
+
+
 def test_failed_cell_is_stored_and_retried(cache, tmp_path, monkeypatch):
     from risp_tasks.tables import cells as cells_mod
 

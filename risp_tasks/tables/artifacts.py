@@ -32,6 +32,16 @@ def _quiet(*_):
     return None
 
 
+def _complete(folder: str) -> bool:
+    """Whether a render folder's manifest lists all its shards (run_job, which checks the files, made it so)."""
+    try:
+        with open(os.path.join(folder, "manifest.json")) as f:
+            manifest = json.load(f)
+    except (OSError, ValueError):
+        return False
+    return len(manifest.get("shards", ())) == manifest.get("num_shards", -1) > 0
+
+
 class Artifacts:
     """Lazily made, cached artifacts of one table configuration (one environment at a time)."""
 
@@ -49,7 +59,8 @@ class Artifacts:
                         spp=cfg.spp, seed=seed, workers=1, shard_size=min(64, n), jacobian=jacobian)
         key = checksum({k: v for k, v in asdict(job).items() if k not in ("out", "workers")})
         out = os.path.join(self.root, "data", f"{env}-{name}-{key}")
-        run_job(replace(job, out=out), progress=cfg.progress, log=_quiet)
+        if not _complete(out):  # a finished set is only read (cells in parallel processes must not lock it)
+            run_job(replace(job, out=out), progress=cfg.progress, log=_quiet)
         return out
 
     def train_shards(self, env: str) -> str:

@@ -45,6 +45,7 @@ class TableConfig:
     perceptual_weights: str | None = None  # local feature-extractor weights (methods.FeatureExtractor)
     workers: int = 1  # data workers of training
     executor: str = "local"  # local | ray
+    jobs: int = 1  # local executor: cells computed at once, one process each (0: one per available CPU)
     quick: bool = False
     progress: bool = True
 
@@ -111,6 +112,8 @@ def validate(cfg: TableConfig) -> None:
             raise RispError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(cfg, name)}")
     if cfg.iterations < 0 or not cfg.lr > 0:
         raise RispError("--iterations must be >= 0 and --lr > 0")
+    if cfg.jobs < 0:
+        raise RispError(f"--jobs must be >= 0 (0: one per available CPU), got {cfg.jobs}")
     if cfg.executor not in ("local", "ray"):
         raise RispError(f"unknown executor {cfg.executor!r}; choose local or ray")
 
