@@ -189,6 +189,7 @@ def test_failed_cell_is_stored_and_retried(cache, tmp_path, monkeypatch):
     (["--table", "estimation", "--envs", "cube,mars"], "Error: unknown environment 'mars'"),
     (["--table", "estimation", "--preset", "tpu"], "Error: unknown preset 'tpu'; choose one of: cpu, paper"),
     (["--table", "estimation", "--reg", "none"], "Error: the regularizer of `ours` must be one of"),
+    (["--table", "estimation", "--jobs", "-1"], "Error: --jobs must be >= 0"),
 ])
 def test_bad_input_is_one_error_line(tmp_path, args, message):
     from risp_tasks.cli import cli

@@ -33,13 +33,14 @@ def _quiet(*_):
 
 
 def _complete(folder: str) -> bool:
-    """Whether a render folder's manifest lists all its shards (run_job, which checks the files, made it so)."""
+    """Whether a render folder is finished (its manifest's ``complete``, kept by run_job, which checks the files)."""
+    from risp_data.errors import RispError
+    from risp_data.shards.manifest import load_manifest
+
     try:
-        with open(os.path.join(folder, "manifest.json")) as f:
-            manifest = json.load(f)
-    except (OSError, ValueError):
+        return bool(load_manifest(folder).get("complete"))
+    except RispError:  # absent or unreadable: run_job makes or repairs it
         return False
-    return len(manifest.get("shards", ())) == manifest.get("num_shards", -1) > 0
 
 
 class Artifacts:

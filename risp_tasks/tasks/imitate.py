@@ -99,10 +99,7 @@ def build(ctx: Context, n_frames: int | None = None, s0: torch.Tensor | None = N
         raise RispError(f"the {sim.env} has no actions to imitate; imitate works for: quadrotor, hand, rod")
     n_frames = ctx.n_source if n_frames is None else n_frames
     params = sim.default_params()
-    if s0 is None:
-        s0 = InitialState(ctx, fit=ctx.cfg.fit_initial_state)
-    else:  # control: a given state, fixed
-        s0 = _Fixed(s0)
+    s0 = InitialState(ctx, fit=ctx.cfg.fit_initial_state, given=s0)  # control passes its given state
     if ctx.cfg.init == "track":
         return _track_problem(ctx, params, s0, n_frames)
     centre, scale = action_centre(sim, params), ACTION_SCALE[sim.env]
@@ -120,15 +117,3 @@ def build(ctx: Context, n_frames: int | None = None, s0: torch.Tensor | None = N
                    states=lambda: frame_states(sim, params, s0(), actions(x), n_frames, ctx.k),
                    estimates=lambda: {**estimates(), **s0.info()}, info=s0.info())
 
-
-class _Fixed:
-    """A given initial state (control's ``--initial-state``) in InitialState's interface."""
-
-    def __init__(self, s0: torch.Tensor):
-        self.s0, self.variables = s0, {}
-
-    def __call__(self) -> torch.Tensor:
-        return self.s0
-
-    def info(self) -> dict:
-        return {"initial_state": self.s0[0].tolist(), "initial_state_fitted": False}

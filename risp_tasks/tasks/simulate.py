@@ -109,13 +109,16 @@ class InitialState:
 
     with σ from :data:`INITIAL_STEP`, so that N's errors on the first frames are corrected by the whole video
     instead of being carried through the rollout.  ``fit=None`` (the default): fitted where s₀ is read from the
-    video (quadrotor, cube, hand; the rod's videos start at rest)."""
+    video (quadrotor, cube, hand; the rod's videos start at rest).  ``given``: a full simulator state used as it
+    is (control's ``--initial-state``), never fitted."""
 
-    def __init__(self, ctx, fit: bool | None = None):
+    def __init__(self, ctx, fit: bool | None = None, given: torch.Tensor | None = None):
         sim = ctx.sim
-        if fit is None:
+        if given is not None:  # control's --initial-state: a given full simulator state, fixed
+            fit = False
+        elif fit is None:
             fit = sim.env != "rod"
-        self.sim, self.fit = sim, fit
+        self.sim, self.fit, self.given = sim, fit, given
         self.first = ctx.predicted[0].double()
         self.second = ctx.predicted[1].double() if len(ctx.keep) > 1 else None
         self.fps = ctx.fps / (ctx.keep[1] - ctx.keep[0]) if len(ctx.keep) > 1 else ctx.fps
@@ -137,7 +140,8 @@ class InitialState:
     def __call__(self) -> torch.Tensor:
         """s₀ (1, X), differentiable w.r.t. the offsets when fitted."""
         if not self.fit:
-            return initial_sim_state(self.sim, self.first, self.second, self.fps)
+            return self.given if self.given is not None else initial_sim_state(self.sim, self.first, self.second,
+                                                                               self.fps)
         first = self.first + self.step * self.x[0]
         if self.rigid:
             second = None if self.second is None else torch.cat([self.second[:3] + self.step[:3] * self.x[1, :3],
