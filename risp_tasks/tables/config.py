@@ -12,10 +12,11 @@ from . import TABLES
 EXTRA_TABLES: tuple[str, ...] = ("regularizers", "sampling")  # the project's own: not among the paper's four
 from .methods import METHODS
 
-#: Sizes per preset.  ``cpu``: this 2-core machine (hours for all four tables); ``paper``: the paper's scale,
+#: Sizes per preset.  ``cpu``: this 2-core machine, sized so that the four tables fit in 4 hours with ``--jobs 2``
+#: (docs/tables.md: an image-loss iteration costs 0.25-0.45 s per 64x64 image on one core); ``paper``: the paper's scale,
 #: for a GPU machine (``cuda_ad_rgb`` renders, CUDA torch).  ``--quick`` shrinks everything to a smoke run.
 PRESETS: dict[str, dict] = {
-    "cpu": dict(n_train=1000, n_test=32, resolution=64, spp=8, frames=8, iterations=50, train_preset="cpu"),
+    "cpu": dict(n_train=1000, n_test=16, resolution=64, spp=8, frames=8, iterations=40, train_preset="cpu"),
     "paper": dict(n_train=10000, n_test=200, resolution=64, spp=16, frames=10, iterations=100, train_preset="paper"),
 }
 QUICK: dict = dict(n_train=32, n_test=4, spp=4, frames=3, iterations=3, epochs=1, width=8)
@@ -31,11 +32,11 @@ class TableConfig:
     methods: tuple[str, ...] = METHODS
     seed: int = 0
     n_train: int = 1000  # training-domain samples (with Jacobians) per environment
-    n_test: int = 32  # target-domain test images per repeat (estimation)
+    n_test: int = 16  # target-domain test images per repeat (estimation)
     resolution: int = 64
     spp: int = 8
     frames: int = 8  # reference-video frames (sysid, imitation; control: horizon)
-    iterations: int = 50  # optimisation iterations of the optimising methods
+    iterations: int = 40  # optimisation iterations of the optimising methods
     lr: float = 1e-2  # RMSProp step of the per-image state optimisation (estimation: pixelwise, perceptual)
     epochs: int | None = None  # training epochs (None: the risp-train preset's)
     width: int | None = None  # network width (None: the risp-train preset's)

@@ -16,7 +16,7 @@ import json
 import os
 import time
 import traceback
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable
 
 from risp_data.atomic import write_text_atomic
@@ -152,23 +152,34 @@ def single_threaded():
 
 
 def _run_processes(cfg: TableConfig, todo: list[Cell], folder: str, cache: str | None, on_cell, jobs: int) -> None:
-    """``--jobs N``: the artifacts first, in this process and in order (each is made once), then the cells in N
-    single-threaded processes (concurrent.futures; spawned, so no Dr.Jit/OpenMP thread state is forked).  A
-    cell's number does not depend on which process computed it or when (each cell is seeded by itself)."""
+    """``--jobs N``: N spawned single-threaded processes (concurrent.futures; spawned, so no Dr.Jit/OpenMP thread
+    state is forked).  Each environment's artifacts are made by one task (so each is made once), its cells are
+    queued when that task has finished: environments' data sets and networks are made side by side, and the
+    first environment's cells run while the next one's networks train.  A cell's number does not depend on
+    which process computed it or when (each cell is seeded by itself)."""
     import multiprocessing as mp
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
     from tqdm.auto import tqdm
 
-    for env in sorted({c.env for c in todo}):
-        prepare(cfg, env, cache)
+    by_env: dict[str, list[Cell]] = {}
+    for c in todo:
+        by_env.setdefault(c.env, []).append(c)
+    quiet = replace(cfg, progress=False)  # progress bars of parallel renders and fits would interleave
     pool = ProcessPoolExecutor(min(jobs, len(todo)), mp_context=mp.get_context("spawn"), initializer=_single_threaded)
     try:
-        pending = {pool.submit(compute_cell, cfg, c, folder, cache): c for c in todo}
+        preparing = {pool.submit(prepare, quiet, env, cache): env for env in by_env}
+        pending: dict = {}
         with tqdm(total=len(todo), unit="cell", desc=f"{cfg.table} ({jobs} jobs)", disable=not cfg.progress) as bar:
-            while pending:
-                done, _ = wait(list(pending), return_when=FIRST_COMPLETED)
+            while preparing or pending:
+                done, _ = wait(list(preparing) + list(pending), return_when=FIRST_COMPLETED)
                 for future in done:
+                    if future in preparing:
+                        env = preparing.pop(future)
+                        future.result()  # a data set or network that cannot be made ends the run
+                        bar.set_description(f"{cfg.table} {env}: data and networks ready")
+                        pending.update({pool.submit(compute_cell, cfg, c, folder, cache): c for c in by_env[env]})
+                        continue
                     cell = pending.pop(future)
                     result = future.result()
                     bar.set_description(f"{cfg.table} {cell.name} done")
