@@ -53,6 +53,12 @@ def test_every_method_estimation(cache, tmp_path):
     assert cfg.reg != "none" and any("-none-" in r for r in runs) and any(f"-{cfg.reg}-" in r for r in runs)
     md = open(report["files"][0]).read()
     assert "| oracle | 0 ± 0 |" in md and "filterbank" in md
+    # per state group in its unit (issue 8): the cube's position [m] and geodesic attitude [deg]
+    groups = report["groups"]
+    assert set(groups) == {"cube position [m]", "cube attitude [deg]"}
+    assert groups["cube attitude [deg]"]["oracle"]["mean"] == pytest.approx(0.0, abs=1e-4)
+    assert groups["cube attitude [deg]"]["average"]["mean"] > 1.0  # degrees, not radians or an L1
+    assert "| method | cube position [m] | cube attitude [deg] |" in md
 
 
 def test_every_method_sysid_and_imitation(cache, tmp_path):
@@ -260,3 +266,12 @@ def test_feature_extractors(tmp_path):
         feature_extractor(str(tmp_path / "bad.pth"))
     with pytest.raises(RispError, match="missing.pth: perceptual weights file not found"):
         feature_extractor(str(tmp_path / "missing.pth"))
+
+
+def test_ours_is_trained_with_risp_trains_default_regularizer():
+    # `ours` follows `risp-train fit`'s default (the calibrated one), not the TrainConfig dataclass's `none`
+    from risp_train.config import DEFAULT_REG
+
+    assert DEFAULT_REG != "none"
+    assert make_config("estimation").reg == DEFAULT_REG
+    assert make_config("sysid", reg="exact").reg == "exact"

@@ -83,14 +83,12 @@ def make_config(table: str, preset: str = "cpu", quick: bool = False, **override
 
 
 def default_reg() -> str:
-    """The regularizer of `ours`: risp-train's default when it has one (not ``none``), else the paper's
-    surrogate (Eq. 12) — so the tables follow the trainer's choice."""
-    from dataclasses import fields
+    """The regularizer of `ours`: risp-train's default (``risp-train fit``'s ``DEFAULT_REG``, the calibrated
+    one of docs/training.md) when it is not ``none``, else the paper's surrogate (Eq. 12) — so the tables
+    follow the trainer's choice."""
+    from risp_train.config import DEFAULT_REG
 
-    from risp_train.config import TrainConfig
-
-    default = next(f.default for f in fields(TrainConfig) if f.name == "reg")
-    return default if default != "none" else "surrogate"
+    return DEFAULT_REG if DEFAULT_REG != "none" else "surrogate"
 
 
 def validate(cfg: TableConfig) -> None:

@@ -34,6 +34,20 @@ def aggregate(results: list[dict], env: str, method: str, field: str = "value") 
     return {"mean": float(values.mean()), "std": float(values.std()), "n": len(values), "values": values.tolist()}
 
 
+def group_cells(cfg: TableConfig, results: list[dict]) -> dict:
+    """The estimation table per state group, in its unit (issue 8: position m, attitude ° geodesic, hand joints
+    rad, rod sensors m): {"<env> <group> [<unit>]": {method: mean ± std over repeats of the repeat's mean}}."""
+    from risp_train.evaluate import STATE_GROUPS
+
+    columns: dict = {}
+    for env in cfg.envs:
+        rows = [r for r in results if r["env"] == env]
+        for group, (unit, _) in STATE_GROUPS[env].items():  # the evaluator's order (position before attitude)
+            per_group = [{**r, "value": r.get("groups", {}).get(group, {}).get("mean")} for r in rows]
+            columns[f"{env} {group} [{unit}]"] = {m: aggregate(per_group, env, m) for m in cfg.methods}
+    return columns
+
+
 def _fmt(entry: dict, notes: list[str]) -> str:
     """mean ± std, or "N/A [n]" with the reason as footnote n (one footnote per distinct reason)."""
     if "na" in entry:
@@ -50,6 +64,8 @@ def build_report(cfg: TableConfig, results: list[dict]) -> dict:
         for m in cfg.methods:
             table[env][m]["paper"] = published(cfg.table, env, m)
     extra = {}
+    if cfg.table == "estimation":
+        extra["groups"] = group_cells(cfg, results)
     if cfg.table == "regularizers":
         extra["seconds_per_epoch"] = {env: {m: aggregate(results, env, m, "seconds_per_epoch") for m in cfg.methods}
                                       for env in cfg.envs}
@@ -86,6 +102,9 @@ def markdown(report: dict) -> str:
              f"Metric: {report['metric']}; mean ± std over repeats (lower is better).", ""]
     notes: list[str] = []
     lines += _rows(report["rows"], envs, methods, report["cells"], paper=report["rows"] == "method", notes=notes)
+    if report.get("groups"):
+        lines += ["", "Per state group, in its unit (the mean error of a repeat's images; mean ± std over repeats):", ""]
+        lines += _rows("method", list(report["groups"]), methods, report["groups"], paper=False, notes=notes)
     if regs:
         lines += ["", "Median wall time per training epoch [s] (mean ± std over repeats; under load, see below):", ""]
         lines += _rows("regularizer", envs, methods, report["seconds_per_epoch"], paper=False, notes=notes)
