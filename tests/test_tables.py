@@ -173,6 +173,62 @@ def test_parallel_cells_give_the_same_table_as_one_process(cache, tmp_path):
         assert a["values"] == pytest.approx(b["values"], rel=1e-6, abs=1e-9), m
 
 
+def _children(pid: int) -> set[int]:
+    """Live child processes of ``pid`` (from /proc)."""
+    out = set()
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as f:
+                    fields = f.read().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == pid and fields[0] != "Z":
+                out.add(int(entry))
+    return out
+
+
+def _running(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc"), reason="reads /proc")
+def test_jobs_workers_end_when_the_table_process_is_killed(tmp_path):
+    """A `--jobs 2` table killed by SIGKILL (no shutdown) leaves no worker computing on behind it."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    cmd = [sys.executable, "-m", "risp_tasks", "table", "--table", "estimation", "--quick", "--jobs", "2",
+           "--envs", "cube,rod", "--out", str(tmp_path), "--quiet"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    workers: set[int] = set()
+    try:
+        deadline = time.time() + 120
+        while len(workers := _children(proc.pid)) < 2 and time.time() < deadline and proc.poll() is None:
+            time.sleep(0.5)
+        assert len(workers) >= 2, "the table did not start its two worker processes"
+        time.sleep(3.0)  # past the workers' start-up: they are making the data sets now
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        deadline = time.time() + 30
+        while any(_running(w) for w in workers) and time.time() < deadline:
+            time.sleep(0.5)
+        alive = [w for w in workers if _running(w)]
+        assert not alive, f"workers {alive} went on after their table process was killed"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        for w in workers:  # a failed check must not leave them running
+            if _running(w):
+                os.kill(w, signal.SIGKILL)
+
+
 def test_failed_cell_is_stored_and_retried(cache, tmp_path, monkeypatch):
     from risp_tasks.tables import cells as cells_mod
 

@@ -130,6 +130,22 @@ def _single_threaded() -> None:
     dr.set_thread_count(1)
 
 
+def _pool_worker_init(parent: int) -> None:
+    """A ``--jobs`` process: single-threaded (above), and it ends when the table process that started it is gone.
+    Killed by a signal, the parent cannot shut its pool down, and the workers would go on computing, unseen,
+    beside the next run; a watcher thread ends them (their results are atomic files, so nothing is half-written)."""
+    import threading
+
+    _single_threaded()
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
+
 def _compute_cell_single_threaded(cfg: TableConfig, cell: Cell, folder: str, cache: str | None) -> dict:
     """compute_cell in a Ray worker: single-threaded like every other cell."""
     _single_threaded()
@@ -166,7 +182,8 @@ def _run_processes(cfg: TableConfig, todo: list[Cell], folder: str, cache: str |
     for c in todo:
         by_env.setdefault(c.env, []).append(c)
     quiet = replace(cfg, progress=False)  # progress bars of parallel renders and fits would interleave
-    pool = ProcessPoolExecutor(min(jobs, len(todo)), mp_context=mp.get_context("spawn"), initializer=_single_threaded)
+    pool = ProcessPoolExecutor(min(jobs, len(todo)), mp_context=mp.get_context("spawn"), initializer=_pool_worker_init,
+                               initargs=(os.getpid(),))
     try:
         preparing = {pool.submit(prepare, quiet, env, cache): env for env in by_env}
         pending: dict = {}
