@@ -97,6 +97,33 @@ def test_render_losses_differentiate_through_renderer_and_network(quad, tmp_path
         assert r["info"]["perceptual_extractor"] == "filterbank"
 
 
+def test_warm_start_runs_the_state_loss_before_the_render_loss(quad, tmp_path):
+    """--warm-start N: N state-loss iterations (their history recorded apart), then the render loss from where they
+    ended; the state loss falls during the warm start and the render descent starts from its end point."""
+    model, video = quad
+    kw = dict(model=model, actions=_stem(video) + ".actions.csv", truth=_stem(video) + ".truth.json", init="random",
+              seed=1, spp=1, plots=False)
+    r = _run("sysid", video, tmp_path / "warm", loss="render", iterations=1, warm_start=6, **kw)
+    w = r["warm_start"]
+    assert w["iterations"] == 6 and len(w["loss"]) == 6 and w["final_loss"] < w["loss"][0], w
+    assert len(r["loss"]) == 1
+    # the render loss started at the warm start's end: the same as 6 state iterations alone reach
+    s = _run("sysid", video, tmp_path / "state", loss="state", iterations=6, **kw)
+    assert s["final_loss"] == pytest.approx(w["final_loss"], rel=1e-9)
+    assert r["initial"] == s["initial"]  # "initial" stays the random guess, before the warm start
+
+
+@pytest.mark.parametrize("loss", ["state", "pixelwise"])
+def test_warm_start_is_for_the_render_loss_only(loss):
+    from risp_data.errors import RispError
+    from risp_tasks.tasks.config import TaskConfig
+
+    with pytest.raises(RispError, match="--warm-start is for --loss render"):
+        TaskConfig(task="sysid", video="v.mp4", loss=loss, warm_start=3)
+    with pytest.raises(RispError, match="--warm-start must be >= 0"):
+        TaskConfig(task="sysid", video="v.mp4", loss="render", warm_start=-1)
+
+
 def test_perceptual_loss_is_the_feature_distance(quad):
     """make_loss("perceptual") = mean (F(R(s)) − F(I))², F the filter bank: zero for the frames R(s) itself
     rendered, equal to the hand-computed feature distance for other frames, and it differs from pixelwise."""

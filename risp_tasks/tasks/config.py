@@ -31,6 +31,9 @@ class TaskConfig:
     lr: float = 3e-3
     momentum: float = 0.5
     iterations: int = 100
+    # render loss: first this many iterations of the state loss (same variables and optimiser settings), so that
+    # the render-loss descent starts where N's per-frame estimates put it (docs/tasks.md §Warm start)
+    warm_start: int = 0
     seed: int = 0
     every: int = 1
     fps: float | None = None  # resample the video to this rate
@@ -60,6 +63,10 @@ class TaskConfig:
             raise RispError(f"unknown optimizer {self.optimizer!r}; choose one of: rmsprop, adam, sgd")
         if self.iterations < 0 or not self.lr > 0 or self.every < 1 or self.horizon < 1 or self.spp < 1:
             raise RispError("iterations must be >= 0, lr > 0, every >= 1, horizon >= 1 and spp >= 1")
+        if self.warm_start < 0:
+            raise RispError(f"--warm-start must be >= 0, got {self.warm_start}")
+        if self.warm_start and self.loss != "render":
+            raise RispError(f"--warm-start is for --loss render (it runs the state loss first), not --loss {self.loss}")
         if self.gradient not in ("flat", "mitsuba"):
             raise RispError(f"unknown --gradient {self.gradient!r}; choose one of: flat, mitsuba")
         if self.fit_initial_state and self.task not in ("sysid", "imitate"):

@@ -126,6 +126,11 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
     with torch.no_grad():
         initial_states = problem.states().detach().clone()
         initial_estimates = problem.estimates()
+    warm = None
+    if cfg.warm_start:  # the state loss first, then the render loss from there (docs/tasks.md §Warm start)
+        state_loss = make_loss("state", env, loss_frames, predicted_targets.double(), None, None)
+        warm = optimize(problem, state_loss, optimizer=cfg.optimizer, lr=cfg.lr, momentum=cfg.momentum,
+                        iterations=cfg.warm_start, timer=timer, progress=cfg.progress)
     history = optimize(problem, loss, optimizer=cfg.optimizer, lr=cfg.lr, momentum=cfg.momentum,
                        iterations=cfg.iterations, timer=timer, progress=cfg.progress)
     with torch.no_grad():
@@ -141,6 +146,9 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
                     "seconds_per_iteration": history["seconds_per_iteration"], "sections_s": timer.seconds},
         "versions": versions(), "info": problem.info,
     }
+    if warm is not None:
+        result["warm_start"] = {"iterations": cfg.warm_start, "loss": warm["loss"], "final_loss": warm["final_loss"],
+                                "seconds_per_iteration": warm["seconds_per_iteration"]}
     if features is not None:
         result["info"] = {**problem.info, "perceptual_extractor": features.name}
     result["errors"] = _errors(cfg, env, sim, truth, keep, loss_frames, initial_states, final_states, predicted,
