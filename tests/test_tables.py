@@ -173,27 +173,34 @@ def test_parallel_cells_give_the_same_table_as_one_process(cache, tmp_path):
         assert a["values"] == pytest.approx(b["values"], rel=1e-6, abs=1e-9), m
 
 
-def _children(pid: int) -> set[int]:
-    """Live child processes of ``pid`` (from /proc)."""
-    out = set()
-    for entry in os.listdir("/proc"):
-        if entry.isdigit():
-            try:
-                with open(f"/proc/{entry}/stat") as f:
-                    fields = f.read().rsplit(")", 1)[1].split()
-            except OSError:
-                continue
-            if int(fields[1]) == pid and fields[0] != "Z":
-                out.add(int(entry))
-    return out
+def _stat(pid: int) -> list[str] | None:
+    """/proc/<pid>/stat's fields after the command name (state, ppid, …), or None when the process is gone."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
 
 
 def _running(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
-    except OSError:
-        return False
+    fields = _stat(pid)
+    return fields is not None and fields[0] != "Z"
+
+
+def _children(pid: int) -> set[int]:
+    """Live child processes of ``pid`` started by multiprocessing's spawn (the pool's workers, their data loaders;
+    not its resource tracker, which ends when the last holder of its pipe does)."""
+    stats = {int(e): _stat(int(e)) for e in os.listdir("/proc") if e.isdigit()}
+    out = set()
+    for p, f in stats.items():
+        if f is not None and f[0] != "Z" and int(f[1]) == pid:
+            try:
+                with open(f"/proc/{p}/cmdline", "rb") as fh:
+                    if b"spawn_main" in fh.read():
+                        out.add(p)
+            except OSError:
+                pass
+    return out
 
 
 @pytest.mark.skipif(not os.path.isdir("/proc"), reason="reads /proc")
@@ -208,23 +215,26 @@ def test_jobs_workers_end_when_the_table_process_is_killed(tmp_path):
            "--envs", "cube,rod", "--out", str(tmp_path), "--quiet"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     workers: set[int] = set()
+    loaders: set[int] = set()
     try:
         deadline = time.time() + 120
         while len(workers := _children(proc.pid)) < 2 and time.time() < deadline and proc.poll() is None:
             time.sleep(0.5)
         assert len(workers) >= 2, "the table did not start its two worker processes"
-        time.sleep(3.0)  # past the workers' start-up: they are making the data sets now
+        deadline = time.time() + 120  # until a network trains (its data loaders are the workers' children)
+        while not (loaders := set().union(*(_children(w) for w in workers))) and time.time() < deadline:
+            time.sleep(0.5)
         proc.send_signal(signal.SIGKILL)
         proc.wait()
         deadline = time.time() + 30
-        while any(_running(w) for w in workers) and time.time() < deadline:
+        while any(_running(w) for w in workers | loaders) and time.time() < deadline:
             time.sleep(0.5)
-        alive = [w for w in workers if _running(w)]
+        alive = [w for w in workers | loaders if _running(w)]
         assert not alive, f"workers {alive} went on after their table process was killed"
     finally:
         if proc.poll() is None:
             proc.kill()
-        for w in workers:  # a failed check must not leave them running
+        for w in workers | loaders:  # a failed check must not leave them running
             if _running(w):
                 os.kill(w, signal.SIGKILL)
 

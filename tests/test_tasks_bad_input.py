@@ -153,3 +153,10 @@ def test_unknown_gradient_boundary_term(quad, tmp_path):
     assert res.exit_code == 2, res.output
     assert "--gradient" in res.output and "'flat'" in res.output and "'mitsuba'" in res.output
     assert not (tmp_path / "res").exists()
+
+
+def test_warm_start_with_another_loss_is_one_error_line(quad, tmp_path):
+    """`--warm-start` runs the state loss before the render loss: with any other loss it stops, one line."""
+    line = _invoke(["sysid", quad[1], "--model", quad[0], "--actions", os.path.splitext(quad[1])[0] + ".actions.csv",
+                    "--loss", "state", "--warm-start", "5"], tmp_path)
+    assert "--warm-start is for --loss render" in line

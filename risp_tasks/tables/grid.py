@@ -139,8 +139,12 @@ def _pool_worker_init(parent: int) -> None:
     _single_threaded()
 
     def watch():
+        import multiprocessing as mp
+
         while os.getppid() == parent:
             time.sleep(1.0)
+        for child in mp.active_children():  # a training's data loaders would outlive it
+            child.kill()
         os._exit(1)
 
     threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
