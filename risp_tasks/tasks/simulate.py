@@ -118,11 +118,14 @@ class InitialState:
             fit = False
         elif fit is None:
             fit = sim.env != "rod"
-        self.sim, self.fit, self.given = sim, fit, given
+        self.sim, self.fit = sim, fit
         self.first = ctx.predicted[0].double()
         self.second = ctx.predicted[1].double() if len(ctx.keep) > 1 else None
         self.fps = ctx.fps / (ctx.keep[1] - ctx.keep[0]) if len(ctx.keep) > 1 else ctx.fps
         self.variables: dict[str, torch.Tensor] = {}
+        # not fitted: one s₀ for the whole run, made once (not once per iteration)
+        self.fixed = None if fit else (given if given is not None else
+                                       initial_sim_state(sim, self.first, self.second, self.fps))
         if fit:
             if sim.env == "rod":
                 raise RispError("--fit-initial-state: the rod's videos start at rest; its initial state is not "
@@ -140,8 +143,7 @@ class InitialState:
     def __call__(self) -> torch.Tensor:
         """s₀ (1, X), differentiable w.r.t. the offsets when fitted."""
         if not self.fit:
-            return self.given if self.given is not None else initial_sim_state(self.sim, self.first, self.second,
-                                                                               self.fps)
+            return self.fixed
         first = self.first + self.step * self.x[0]
         if self.rigid:
             second = None if self.second is None else torch.cat([self.second[:3] + self.step[:3] * self.x[1, :3],
