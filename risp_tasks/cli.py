@@ -212,6 +212,8 @@ def make_video(env, out, frames, fps, resolution, spp, domain, params, effect, c
 @click.option("--n-train", type=int, default=None, help="training samples per environment [preset]")
 @click.option("--n-test", type=int, default=None, help="target-domain test images per repeat [preset]")
 @click.option("--iterations", type=int, default=None, help="optimisation iterations [preset]")
+@click.option("--control-start", default=None, help="control: where the optimisers start, neutral (the `average` "
+              "row's actions) | random [default: neutral]")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--executor", type=click.Choice(("local", "ray")), default="local", show_default=True,
               help="ray: cells as Ray tasks (optional extra risp[ray])")
@@ -219,7 +221,7 @@ def make_video(env, out, frames, fps, resolution, spp, domain, params, effect, c
               help="local: cells computed at once, one single-threaded process each (0: one per available CPU)")
 @click.option("--quiet", is_flag=True, help="no progress bar")
 def table(table, preset, repeats, quick, out, envs, methods, reg, perceptual_weights, n_train, n_test, iterations,
-          seed, executor, jobs, quiet):
+          control_start, seed, executor, jobs, quiet):
     """One of the paper's tables: every method on every environment, mean ± std over repeats (resumable)."""
     from risp_tasks.tables.config import make_config
     from risp_tasks.tables.grid import run_table
@@ -229,7 +231,7 @@ def table(table, preset, repeats, quick, out, envs, methods, reg, perceptual_wei
 
     cfg = make_config(table, preset=preset, quick=quick, out=out, repeats=repeats, envs=names(envs),
                       methods=names(methods), reg=reg, perceptual_weights=perceptual_weights, n_train=n_train,
-                      n_test=n_test, iterations=iterations, seed=seed, executor=executor, jobs=jobs,
+                      n_test=n_test, iterations=iterations, control_start=control_start, seed=seed, executor=executor, jobs=jobs,
                       progress=not quiet)
     report = run_table(cfg, echo=click.echo)
     click.echo(open(report["files"][0]).read())

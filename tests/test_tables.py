@@ -93,6 +93,22 @@ def test_control_reaches_for_the_pictured_state(cache, tmp_path):
     assert len(cell["reached"]) == len(cell["goal"]) == 10  # the rod's ten sensor heights
 
 
+def test_control_optimisers_start_from_the_neutral_actions(cache, tmp_path):
+    """--control-start neutral (default): with no iterations every optimising method reaches exactly what `average`
+    (the neutral actions) reaches; --control-start random: they start elsewhere.  Only control's key changes."""
+    common = dict(quick=True, out=str(tmp_path), envs=("rod",), methods=("average", "oracle"), **{**TINY, "iterations": 0})
+    values = {}
+    for start in ("neutral", "random"):
+        cfg = make_config("control", control_start=start, **common)
+        cells = run_table(cfg, cache=cache, echo=lambda *_: None)["cells"]["rod"]
+        values[start] = (cells["average"]["mean"], cells["oracle"]["mean"])
+    assert values["neutral"][1] == values["neutral"][0]
+    assert values["random"][1] != values["random"][0] and values["random"][0] == values["neutral"][0]
+    folder = lambda table, start: run_folder(make_config(table, control_start=start, **common))  # noqa: E731
+    assert folder("control", "neutral") != folder("control", "random")
+    assert folder("sysid", "neutral") == folder("sysid", "random")
+
+
 def test_regularizer_comparison(cache, tmp_path):
     cfg = make_config("regularizers", quick=True, out=str(tmp_path), envs=("cube",), **dict(TINY, epochs=2))
     assert cfg.methods == ("none", "surrogate", "exact", "stochastic")
@@ -262,6 +278,7 @@ def test_failed_cell_is_stored_and_retried(cache, tmp_path, monkeypatch):
     (["--table", "estimation", "--preset", "tpu"], "Error: unknown preset 'tpu'; choose one of: cpu, paper"),
     (["--table", "estimation", "--reg", "none"], "Error: the regularizer of `ours` must be one of"),
     (["--table", "estimation", "--jobs", "-1"], "Error: --jobs must be >= 0"),
+    (["--table", "control", "--control-start", "far"], "Error: unknown control start 'far'; choose one of: neutral"),
 ])
 def test_bad_input_is_one_error_line(tmp_path, args, message):
     from risp_tasks.cli import cli

@@ -97,7 +97,7 @@ def estimation(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> 
 
 
 def _task_run(cfg, art: Artifacts, task: str, env_name: str, method: str, repeat: int, video: str | None = None,
-              truth: str | None = None, **task_kw) -> dict:
+              truth: str | None = None, start: str = "random", **task_kw) -> dict:
     """One risp_tasks.tasks run of ``method`` on repeat k's reference video; the result dict."""
     from risp_tasks.tasks.config import TaskConfig
     from risp_tasks.tasks.run import run_task
@@ -109,7 +109,8 @@ def _task_run(cfg, art: Artifacts, task: str, env_name: str, method: str, repeat
     model = art.network(env_name, m.network or "reg")
     loss = {None: "state", "render": "render", "pixelwise": "pixelwise", "perceptual": "perceptual",
             "oracle": "oracle"}[m.loss]
-    init = "default" if m.name == "average" else "random"  # optimisers start at the seeded random guess
+    # optimisers start at the seeded random guess (``start="random"``) or, for control, at the neutral actions
+    init = "default" if m.name == "average" or (start == "neutral" and m.loss is not None) else "random"
     iterations = 0 if m.loss is None else cfg.iterations
     with tempfile.TemporaryDirectory(dir=art.root) as tmp:
         tcfg = TaskConfig(task=task, video=video or ref["video"], out=os.path.join(tmp, "result"), model=model,
@@ -145,7 +146,9 @@ def imitation(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> d
 def control(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> dict:
     """Adapter over ``risp-task control``: from the simulator state of repeat k's reference video at frame 0,
     reach the state pictured in its last frame (horizon = frames − 1) with the nominal simulator; the value is
-    the per-state L1 error (angles wrapped) between the reached and the pictured state."""
+    the per-state L1 error (angles wrapped) between the reached and the pictured state.  The optimising methods
+    start from ``cfg.control_start``: the neutral actions (the `average` row) by default, so that a row below
+    `average` is what its loss added; the `random` row stays the seeded random actions."""
     import json
 
     from PIL import Image
@@ -176,7 +179,7 @@ def control(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> dic
         with open(goal_json, "w") as f:  # the oracle loss compares the loss frame (the last) with this state
             json.dump({"env_states": [goal.tolist()]}, f)
         result = _task_run(cfg, art, "control", env_name, method, repeat, video=goal_png, truth=goal_json,
-                           initial_state=init_json, horizon=horizon, fps=truth["fps"])
+                           start=cfg.control_start, initial_state=init_json, horizon=horizon, fps=truth["fps"])
     params = sim.default_params()
     actions = to_sim_actions(sim, params, torch.tensor(result["estimates"]["actions"], dtype=torch.float64))
     with torch.no_grad():

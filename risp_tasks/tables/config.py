@@ -19,6 +19,9 @@ PRESETS: dict[str, dict] = {
     "cpu": dict(n_train=1000, n_test=16, resolution=64, spp=8, frames=8, iterations=40, train_preset="cpu"),
     "paper": dict(n_train=10000, n_test=200, resolution=64, spp=16, frames=10, iterations=100, train_preset="paper"),
 }
+#: Where the control table's optimising methods start: ``neutral`` (x = 0, the `average` row's actions, so each
+#: method's row shows what its loss adds to the same start) or ``random`` (the seeded draw, as the other tasks).
+CONTROL_STARTS: tuple[str, ...] = ("neutral", "random")
 QUICK: dict = dict(n_train=32, n_test=4, spp=4, frames=3, iterations=3, epochs=1, width=8)
 
 
@@ -37,6 +40,7 @@ class TableConfig:
     spp: int = 8
     frames: int = 8  # reference-video frames (sysid, imitation; control: horizon)
     iterations: int = 40  # optimisation iterations of the optimising methods
+    control_start: str = "neutral"  # control: the optimisers' initial actions, neutral (x = 0) | random (seeded)
     lr: float = 1e-2  # RMSProp step of the per-image state optimisation (estimation: pixelwise, perceptual)
     epochs: int | None = None  # training epochs (None: the risp-train preset's)
     width: int | None = None  # network width (None: the risp-train preset's)
@@ -111,6 +115,8 @@ def validate(cfg: TableConfig) -> None:
             raise RispError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(cfg, name)}")
     if cfg.iterations < 0 or not cfg.lr > 0:
         raise RispError("--iterations must be >= 0 and --lr > 0")
+    if cfg.control_start not in CONTROL_STARTS:
+        raise RispError(f"unknown control start {cfg.control_start!r}; choose one of: {', '.join(CONTROL_STARTS)}")
     if cfg.jobs < 0:
         raise RispError(f"--jobs must be >= 0 (0: one per available CPU), got {cfg.jobs}")
     if cfg.executor not in ("local", "ray"):

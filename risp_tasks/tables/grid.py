@@ -48,7 +48,9 @@ def grid(cfg: TableConfig) -> list[Cell]:
 
 
 def run_folder(cfg: TableConfig) -> str:
-    key = checksum({k: v for k, v in cfg.to_dict().items() if k not in NOT_IN_KEY})
+    # control_start changes only the control table's numbers: the other tables' keys stay as they were
+    skip = NOT_IN_KEY + (() if cfg.table == "control" else ("control_start",))
+    key = checksum({k: v for k, v in cfg.to_dict().items() if k not in skip})
     return os.path.join(cfg.out, f"{cfg.table}-{cfg.preset}{'-quick' if cfg.quick else ''}-{key}")
 
 
