@@ -274,6 +274,7 @@ def render_shard(job: RenderJob, shard_index: int, renderer, on_sample: Callable
 
 def new_manifest(job: RenderJob, variant: str) -> dict[str, Any]:
     from .envs import get_environment
+    from .envs.look import look_fingerprint
     from .psi import own_channels, psi_manifest
 
     env = get_environment(job.env)
@@ -282,6 +283,7 @@ def new_manifest(job: RenderJob, variant: str) -> dict[str, Any]:
         "format": FORMAT_NAME,
         "format_version": FORMAT_VERSION,
         "env": job.env,
+        "look": look_fingerprint(job.env),
         "domain": job.domain,
         "resolution": job.resolution,
         "spp": job.spp,

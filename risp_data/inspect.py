@@ -89,7 +89,7 @@ def summarize(folder: str, m: dict) -> str:
     c = m["counts"]
     lines = [
         f"folder       {folder}  ({_folder_bytes(folder) / 2**20:.1f} MiB)",
-        f"environment  {m['env']}   domain {m['domain']}   variant {m['variant']}",
+        f"environment  {m['env']}   domain {m['domain']}   variant {m['variant']}   look {m.get('look', 'unrecorded')}",
         f"images       {m['resolution']}x{m['resolution']}, {m['spp']} spp, jacobian {'yes' if m['jacobian'] else 'no'}",
         f"samples      {c['complete_samples']}/{m['n']} complete in {c['complete_shards']}/{m['num_shards']} shards "
         f"of {m['shard_size']}{'' if m['complete'] else '  (INCOMPLETE: rerun render to resume)'}",

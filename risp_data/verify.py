@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .envs.look import look_fingerprint
 from .errors import RispError
 from .shards import load_manifest, verify_checksums
 from .shards.reader import complete_indices, read_samples
@@ -109,6 +110,10 @@ def verify_folder(cfg: VerifyConfig) -> VerifyReport:
         files = verify_checksums(cfg.folder, m) if cfg.checksums else 0
     except RispError as e:
         raise RispError(f"{e}; repair: risp-data verify --repair {cfg.folder}") from None
+    look = look_fingerprint(m["env"])
+    if m.get("look") != look:  # the re-renders would show another object than the stored images
+        raise RispError(f"{cfg.folder} was rendered with another look of {m['env']} (look {m.get('look')}, risp "
+                        f"draws {look} now: docs/environments.md §Appearance); its Jacobians cannot be re-rendered")
     indices = complete_indices(m)
     if not indices:
         raise RispError(f"{cfg.folder} has no complete shard yet")

@@ -31,6 +31,7 @@ FORMAT_VERSION = 2  # 2: jacobian_storage (own-channel Jacobians); folders of ve
 # Fields that define what a folder holds; resuming with any of them different is refused.
 IDENTITY_FIELDS = (
     "env",
+    "look",  # risp_data.envs.look: a folder rendered with another appearance of the environment is not resumed
     "domain",
     "resolution",
     "spp",
@@ -113,7 +114,8 @@ def load_manifest(folder: str) -> dict[str, Any]:
     m = _read_json(path, "manifest")
     if m.get("format") != FORMAT_NAME:
         raise RispError(f"corrupt manifest {path}: not a {FORMAT_NAME} manifest")
-    missing = [k for k in (*IDENTITY_FIELDS, "psi", "state_names", "shards") if k not in m]
+    # "look" came later: folders rendered before it still read (and train); only resuming them is refused
+    missing = [k for k in (*IDENTITY_FIELDS, "psi", "state_names", "shards") if k not in m and k != "look"]
     if missing:
         raise RispError(f"corrupt manifest {path}: missing field(s) {', '.join(missing)}")
     if m.get("format_version", 0) > FORMAT_VERSION:

@@ -6,8 +6,9 @@ checksum of their configuration.
     <cache>/runs/<env>-<reg>-<key>/       risp_train.train.fit (key: training config + data manifest hash)
     <cache>/videos/<env>-r<k>-<key>.mp4   risp_tasks.tasks.reference.make_reference (target domain, random look)
 
-``<key>`` is the first 12 hex digits of the sha256 of the JSON of everything that determines the artifact, so
-a changed setting makes a new artifact and an unchanged one is found again (also by another table).  Both
+``<key>`` is the first 12 hex digits of the sha256 of the JSON of everything that determines the artifact (the
+environment's look, risp_data.envs.look, included), so a changed setting or appearance makes a new artifact and
+an unchanged one is found again (also by another table).  Both
 run_job and fit resume a half-made artifact.
 """
 
@@ -53,12 +54,15 @@ class Artifacts:
     # ------------------------------------------------------------------ data sets
 
     def _render(self, env: str, name: str, n: int, domain: str, seed: int, jacobian: bool) -> str:
+        from risp_data.envs.look import look_fingerprint
         from risp_data.generate import RenderJob, run_job
 
         cfg = self.cfg
         job = RenderJob(env=env, n=n, out="", domain=domain, formats=("wds",), resolution=cfg.resolution,
                         spp=cfg.spp, seed=seed, workers=1, shard_size=min(64, n), jacobian=jacobian)
-        key = checksum({k: v for k, v in asdict(job).items() if k not in ("out", "workers")})
+        # the look: data of an environment whose appearance risp has since changed is not found again
+        key = checksum({**{k: v for k, v in asdict(job).items() if k not in ("out", "workers")},
+                        "look": look_fingerprint(env)})
         out = os.path.join(self.root, "data", f"{env}-{name}-{key}")
         if not _complete(out):  # a finished set is only read (cells in parallel processes must not lock it)
             run_job(replace(job, out=out), progress=cfg.progress, log=_quiet)
@@ -96,12 +100,14 @@ class Artifacts:
 
     def video(self, env: str, repeat: int, frames: int | None = None) -> dict:
         """The target-domain reference video of repeat ``repeat``: {"video", "truth", "actions"} paths."""
+        from risp_data.envs.look import look_fingerprint
         from risp_tasks.tasks.reference import ReferenceConfig, actions_path, make_reference, truth_path
 
         cfg = self.cfg
         ref = ReferenceConfig(env=env, out="", frames=frames or cfg.frames, fps=10.0, resolution=cfg.resolution, spp=cfg.spp,
                               domain="target", seed=TEST_SEED + cfg.seed + repeat, progress=False)
-        key = checksum({k: v for k, v in asdict(ref).items() if k not in ("out", "progress")})
+        key = checksum({**{k: v for k, v in asdict(ref).items() if k not in ("out", "progress")},
+                        "look": look_fingerprint(env)})
         out = os.path.join(self.root, "videos", f"{env}-r{repeat}-{key}.mp4")
         if not (os.path.exists(out) and os.path.exists(truth_path(out))):  # the truth is written last
             make_reference(replace(ref, out=out))

@@ -58,13 +58,22 @@ def cell_path(folder: str, cell: Cell) -> str:
     return os.path.join(folder, "cells", cell.env, cell.method, f"r{cell.repeat}.json")
 
 
-def read_cell(path: str) -> dict | None:
-    """A finished cell's result, or None when absent or failed (to be (re)computed)."""
+def read_cell(path: str, look: str | None = None) -> dict | None:
+    """A finished cell's result, or None when absent, failed or made with another ``look`` of its environment
+    (risp_data.envs.look; cells from before looks were recorded count as another look): to be (re)computed."""
     if not os.path.exists(path):
         return None
     with open(path) as f:
         result = json.load(f)
-    return None if result.get("failed") else result
+    if result.get("failed") or (look is not None and result.get("look") != look):
+        return None
+    return result
+
+
+def cell_look(cell: Cell) -> str:
+    from risp_data.envs.look import look_fingerprint
+
+    return look_fingerprint(cell.env)
 
 
 def compute_cell(cfg: TableConfig, cell: Cell, folder: str, cache: str | None) -> dict:
@@ -80,9 +89,9 @@ def compute_cell(cfg: TableConfig, cell: Cell, folder: str, cache: str | None) -
         line = str(e).splitlines()[0] if str(e) else ""
         result = {"na": f"failed: {type(e).__name__}: {line}", "failed": True,
                   "traceback": traceback.format_exc(limit=8)}
-    result.update({"table": cfg.table, "env": cell.env, "method": cell.method, "repeat": cell.repeat,
-                   "seed": cfg.seed, "seconds": time.perf_counter() - started, "loadavg": list(os.getloadavg()),
-                   "pid": os.getpid()})
+    result.update({"table": cfg.table, "env": cell.env, "look": cell_look(cell), "method": cell.method,
+                   "repeat": cell.repeat, "seed": cfg.seed, "seconds": time.perf_counter() - started,
+                   "loadavg": list(os.getloadavg()), "pid": os.getpid()})
     write_text_atomic(cell_path(folder, cell), json.dumps(result, indent=1, sort_keys=True) + "\n")
     return result
 
@@ -98,7 +107,7 @@ def run_table(cfg: TableConfig, cache: str | None = None, on_cell: Callable[[Cel
     os.makedirs(folder, exist_ok=True)
     write_text_atomic(os.path.join(folder, "config.json"), json.dumps(cfg.to_dict(), indent=1, sort_keys=True) + "\n")
     cells = grid(cfg)
-    todo = [c for c in cells if read_cell(cell_path(folder, c)) is None]
+    todo = [c for c in cells if read_cell(cell_path(folder, c), cell_look(c)) is None]
     echo(f"{cfg.table}: {len(cells) - len(todo)} of {len(cells)} cells done, {len(todo)} to run; results: {folder}")
     jobs = cfg.jobs or available_cpus()
     if cfg.executor == "ray" and todo:
@@ -112,7 +121,7 @@ def run_table(cfg: TableConfig, cache: str | None = None, on_cell: Callable[[Cel
                 result = compute_cell(cfg, cell, folder, cache)
                 if on_cell is not None:
                     on_cell(cell, result)
-    results = [read_cell(cell_path(folder, c)) or _failed(folder, c) for c in cells]
+    results = [read_cell(cell_path(folder, c), cell_look(c)) or _failed(folder, c) for c in cells]
     return write_report(cfg, folder, results)
 
 
