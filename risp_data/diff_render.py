@@ -16,7 +16,7 @@ backward pass took 6–9 s at 64×64 on a 2-core machine, without it ≈0.1 s.
 The scene is the one :class:`risp_data.render.Renderer` builds (same meshes, materials, lights, camera,
 ψ bindings), and the primal image is rendered by its own integrator, so images have the shards'
 expectation.  The gradient's interior term uses paths of at most ``grad_max_depth`` = 2 segments (direct
-light): with the data's indirect bounce it was heavy-tailed near concave contacts (pips); the boundary
+light): with the data's indirect bounce it was heavy-tailed near concave contacts (the die pips the cube had then); the boundary
 radiances use the primal's path length.  What is still biased (thin interpenetrating parts, the
 quadrotor): docs/tasks.md §Render-mode gradients.
 """

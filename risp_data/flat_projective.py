@@ -27,7 +27,7 @@ f_in − f_out = L_A(p) − L_B(p) both shaded at the edge point p (so convex an
 The estimator of (1) is Mitsuba's: ΔL · (∂p/∂θ · n) / pdf · J with J the camera Jacobian of
 ``ProjectiveDetail.sensor_jacobian``.  Two more kinds of curve are added (methods below): shadow edges cast
 by point lights (Mitsuba cannot produce them: a boundary ray never hits a point light), and the curves
-where two parts interpenetrate (a pip entering the die), which are no mesh edges.  Indirect discontinuities
+where two parts interpenetrate (a sticker entering the cube), which are no mesh edges.  Indirect discontinuities
 (shadows of area lights and of the environment, reflections) stay Mitsuba's.
 """
 
@@ -77,7 +77,7 @@ def edge_table(V: np.ndarray, F: np.ndarray, viewpoint: np.ndarray, crease_cos: 
 
 
 def intersection_segments(Vs: list, Fs: list, eps: float = 1e-9):
-    """Segments where triangles of the given meshes cross each other (parts that interpenetrate: a die's pips,
+    """Segments where triangles of the given meshes cross each other (parts that interpenetrate: the cube's stickers,
     a hand's phalanges at the joints).  Pairs of triangles sharing a vertex of one mesh are skipped.
 
     Returns (x0, x1 (K, 3) segment ends; sa, fa, sb, fb: mesh and face index of the two triangles; ba0, ba1,
@@ -217,7 +217,7 @@ class FlatEdgesMixin:
         return film.develop() + others
 
     def _render_intersections(self, scene, sensor, sampler, spp, shapes):
-        """Boundary term (1) of the curves where two parts interpenetrate (a pip's wall entering the die's face):
+        """Boundary term (1) of the curves where two parts interpenetrate (a sticker's wall entering the cube's face):
         in the image one side shows triangle A, the other triangle B, and the curve is no mesh edge.
 
         A point x on the crossing segment of A and B lies in both planes; it moves with normal speeds

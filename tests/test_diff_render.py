@@ -13,8 +13,8 @@ Mitsuba 3.9.1's own projective integrators are biased for our flat-shaded meshes
 silhouettes evaluated on the back face, no point-light shadow edges; test_mitsuba_projective_gradient_is_
 biased_for_flat_shading reproduces it, upstream mitsuba3#1895 reports the cube case).  risp_data/
 flat_projective.py supplies those terms; the minimal scenes below match FD within 10 %.  What remains
-(docs/tasks.md §Render-mode gradients): thin parts that interpenetrate — the die's pips stand 1 mm proud and
-reach 2 mm into it — still bias the cube (with its pips moved out of view the same scene matches FD), and
+(docs/tasks.md §Render-mode gradients): thin parts that interpenetrate — the cube's face stickers stand 1 mm
+proud and reach 2 mm into it — still bias the cube (with its stickers moved out of view the same scene matches FD), and
 the quadrotor (many small, overlapping parts and self-shadows) is biased too: both are strict xfails.
 """
 
@@ -44,7 +44,7 @@ def _weights(res):
     return (torch.sin(3 * xx + 1) + torch.cos(2 * yy))[None, :, :, None].expand(1, res, res, 3).float()
 
 
-_THIN_PARTS = pytest.mark.xfail(strict=True, reason="boundary terms of thin interpenetrating parts (pips) and "
+_THIN_PARTS = pytest.mark.xfail(strict=True, reason="boundary terms of thin interpenetrating parts (stickers) and "
                                  "the quadrotor's small parts are still biased (module docstring)")
 
 
@@ -77,9 +77,9 @@ def test_state_gradient_matches_central_differences(env, one_torch_thread):
 
 
 @pytest.mark.slow
-def test_cube_state_gradient_without_pips_matches_central_differences(one_torch_thread):
-    """The cube environment's scene (floor, point light, ambient) with the die's pips moved out of view: the
-    flat-shading and shadow terms make the gradient match FD; the cube's remaining bias is the pips'."""
+def test_cube_state_gradient_without_stickers_matches_central_differences(one_torch_thread):
+    """The cube environment's scene (floor, point light, ambient) with the face stickers moved out of view: the
+    flat-shading and shadow terms make the gradient match FD; the cube's remaining bias is the stickers'."""
     r = _renderer("cube")
     vertices = r.vertices
     r.vertices = lambda state: {m: (v if m == "object" else v + 100.0) for m, v in vertices(state).items()}

@@ -194,27 +194,45 @@ def test_cube_target_is_the_continuous_6d_rotation():
     assert float(angle.max()) < 0.05  # radians: a small target error is a small rotation error
 
 
-def test_cube_is_marked_like_a_die():
-    """Face value v carries v pips on its own face, opposite faces sum to 7, one colour per value, and
-    1-2-3 run counter-clockwise around their corner: no rotation of the cube maps the marks onto themselves."""
+def _cube_rotations():
+    """The 24 rotations of the cube: signed permutation matrices with determinant +1."""
+    import itertools
+
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1, -1), repeat=3):
+            R = np.zeros((3, 3))
+            R[list(range(3)), list(perm)] = signs
+            if np.linalg.det(R) > 0:
+                out.append(R)
+    return out
+
+
+def test_cube_faces_carry_distinct_stickers():
+    """Face value v carries one square sticker on its own face (numbered like a die: opposite faces sum to 7,
+    1-2-3 counter-clockwise around their corner), six distinct colours, and no rotation of the cube but the
+    identity maps every sticker onto the sticker of its colour."""
     from risp_data.envs.materials import FIXED_MATERIALS
 
     h = cube.CUBE_SIDE / 2
-    s = torch.zeros(6, dtype=torch.float64)
-    meshes = {m.material: m for m in cube.meshes(s)}
+    meshes = {m.material: m for m in cube.meshes(torch.zeros(6, dtype=torch.float64))}
     normals = {}
     for value in range(1, 7):
-        m = meshes[f"pip{value}"]
-        v = m.vertices.numpy()
-        assert len(v) == 8 * value and len(m.faces) == 12 * value  # one box per pip
-        axis = int(np.argmax(np.abs(v).min(0)))  # all pip vertices are near the face plane of this axis
-        assert np.all(np.abs(np.abs(v[:, axis]) - h) <= 0.002 + 1e-9)
-        assert np.abs(v[:, axis]).max() == pytest.approx(h + cube.PIP_RAISE)
+        v = meshes[f"sticker{value}"].vertices.numpy()
+        assert len(v) == 8 and len(meshes[f"sticker{value}"].faces) == 12  # one box
+        axis = int(np.argmax(np.abs(v).min(0)))  # all sticker vertices are near the face plane of this axis
+        assert np.all(np.abs(np.abs(v[:, axis]) - h) <= cube.STICKER_DEPTH + 1e-9)
+        assert np.abs(v[:, axis]).max() == pytest.approx(h + cube.STICKER_RAISE)
+        others = [a for a in range(3) if a != axis]
+        np.testing.assert_allclose(np.abs(v[:, others]).max(0), cube.STICKER_HALF)  # a square, face-centred
         normals[value] = np.sign(v[0, axis]) * np.eye(3)[axis]
     for value in (1, 2, 3):
         np.testing.assert_array_equal(normals[value], -normals[7 - value])
     assert np.dot(np.cross(normals[1], normals[2]), normals[3]) > 0  # right-handed 1-2-3 corner
-    assert len({FIXED_MATERIALS[f"pip{v}"] for v in range(1, 7)}) == 6
+    colours = [np.asarray(FIXED_MATERIALS[f"sticker{v}"]) for v in range(1, 7)]
+    assert min(np.abs(a - b).max() for i, a in enumerate(colours) for b in colours[i + 1:]) > 0.3
+    symmetries = [R for R in _cube_rotations() if all(np.allclose(R @ normals[v], normals[v]) for v in normals)]
+    assert len(_cube_rotations()) == 24 and len(symmetries) == 1 and np.allclose(symmetries[0], np.eye(3))
 
 
 def _read_ply(path):

@@ -3,7 +3,7 @@
 Every mesh names a material (:class:`risp_data.envs.base.Mesh`): ``object`` takes the object
 reflectance ψ (object_r/g/b); the names below are fixed colours that ψ does not touch, so the stored
 Jacobians ∂I/∂ψ need no change for them.  They make the objects identifiable (docs/environments.md
-§Appearance): the quadrotor's coloured front and left rotors, the die pips of the cube (one colour
+§Appearance): the quadrotor's coloured front and left rotors, the stickers of the cube (one colour
 per face), and the grey parts (rotor discs, rod posts).  Renderers (risp_data.render, risp_data's
 differentiable renderer) look colours up here.
 """
@@ -15,13 +15,13 @@ FIXED_MATERIALS: dict[str, tuple[float, float, float]] = {
     "rotor_front": (0.80, 0.06, 0.04),  # quadrotor front rotor (+x), red
     "rotor_left": (0.85, 0.85, 0.85),  # quadrotor left rotor (+y), white
     "post": (0.35, 0.35, 0.35),  # rod end posts
-    # die pips, one colour per face value (cube.PIP_FACES)
-    "pip1": (0.80, 0.05, 0.05),  # red
-    "pip2": (0.05, 0.10, 0.75),  # blue
-    "pip3": (0.05, 0.55, 0.10),  # green
-    "pip4": (0.85, 0.70, 0.05),  # yellow
-    "pip5": (0.03, 0.03, 0.03),  # black
-    "pip6": (0.92, 0.92, 0.92),  # white
+    # the cube's face stickers, one colour per face value (cube.FACE_NORMALS)
+    "sticker1": (0.80, 0.05, 0.05),  # red
+    "sticker2": (0.05, 0.10, 0.75),  # blue
+    "sticker3": (0.05, 0.55, 0.10),  # green
+    "sticker4": (0.85, 0.70, 0.05),  # yellow
+    "sticker5": (0.03, 0.03, 0.03),  # black
+    "sticker6": (0.92, 0.92, 0.92),  # white
 }
 
 
