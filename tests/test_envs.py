@@ -366,6 +366,24 @@ def test_hand_kinematics():
     assert float(tip[1]) < -0.1  # a positive angle bends towards −y (towards the camera)
 
 
+def test_hand_phalanges_are_marked():
+    """Every finger's last link is red, a three-link finger's middle link white, the proximal links and the
+    palm take ψ's object colour: the joints between links show at 64×64."""
+    from risp_data.envs.materials import FIXED_MATERIALS
+
+    materials = {m.name: m.material for m in hand.meshes(torch.zeros(13, dtype=torch.float64))}
+    assert materials.pop("palm") == "object"
+    expected = {}
+    for finger, n in zip(hand.FINGERS, hand.JOINTS_PER_FINGER):
+        names = [f"link_{finger}_{k}" for k in range(n)]
+        expected.update({names[0]: "object", names[-1]: "phalanx_distal"})
+        if n == 3:
+            expected[names[1]] = "phalanx_middle"
+    assert materials == expected
+    middle, distal = (np.asarray(FIXED_MATERIALS[m]) for m in ("phalanx_middle", "phalanx_distal"))
+    assert np.abs(middle - distal).max() > 0.3
+
+
 def test_rod_spline_through_sensors_and_fixed_ends():
     s = torch.from_numpy(rod.sample_states(np.random.default_rng(6), 4))
     z, _ = rod.spline_at(s, rod.SENSOR_X)

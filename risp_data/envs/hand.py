@@ -86,14 +86,29 @@ def link_frames(states: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor, 
 
 
 def meshes(states: torch.Tensor) -> list[Mesh]:
-    """The fixed palm box and one box per finger link (cross-section 2·LINK_RADIUS square)."""
+    """The fixed palm box and one box per finger link (cross-section 2·LINK_RADIUS square; materials by
+    :func:`link_material`)."""
     pv, pf = box(PALM_HALF_EXTENTS, PALM_CENTER)
     out = [Mesh("palm", pv.to(states.dtype).expand(*states.shape[:-1], -1, -1), pf, "object")]
     for i, (p, frame, length) in enumerate(link_frames(states)):
         half = (LINK_RADIUS, LINK_RADIUS, length / 2 + JOINT_OVERLAP)
         v, f = box(half, (0.0, 0.0, length / 2))
-        out.append(Mesh(f"link_{JOINT_NAMES[i]}", transform(v, frame, p), f, "object"))
+        out.append(Mesh(f"link_{JOINT_NAMES[i]}", transform(v, frame, p), f, link_material(i)))
     return out
+
+
+def link_material(i: int) -> str:
+    """Material of link i (JOINT_NAMES order): every finger's last link is ``phalanx_distal`` (red), a
+    three-link finger's middle link ``phalanx_middle`` (white), the proximal links take the object colour ψ.
+    Why: in one colour the joints between links are invisible at 64×64, and a network read the thumb and the
+    proximal joints 9 % worse over 3 seeds (docs/RESULTS.md §The hand's marked phalanges)."""
+    f, k = 0, i
+    while k >= JOINTS_PER_FINGER[f]:
+        k -= JOINTS_PER_FINGER[f]
+        f += 1
+    if k == JOINTS_PER_FINGER[f] - 1:
+        return "phalanx_distal"
+    return "phalanx_middle" if k == 1 else "object"
 
 
 def sample_states(rng: np.random.Generator, n: int) -> np.ndarray:
