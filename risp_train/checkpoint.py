@@ -8,6 +8,7 @@ Keys (docs/training.md §Checkpoints):
     format, format_version       "risp-train-checkpoint", 1
     env, state_names, target_names, psi_names, resolution
     manifest_hash, shards        the training shards (sha256 of their identity and file hashes; folder)
+    look                         the training images' look (risp_data.envs.look; None for older data)
     seed, config, model_config   the run's TrainConfig and ModelConfig as dicts
     normalization                Normalization.to_dict()
     model                        the network's state_dict

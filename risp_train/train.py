@@ -265,7 +265,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, device: torch.devic
         return {
             "env": shards.env, "state_names": list(env.state_names), "target_names": list(env.target_names),
             "psi_names": list(shards.psi_names), "resolution": shards.resolution, "manifest_hash": mhash,
-            "shards": os.path.abspath(cfg.shards), "seed": cfg.seed, "config": cfg.to_dict(),
+            "look": shards.manifest.get("look"), "shards": os.path.abspath(cfg.shards), "seed": cfg.seed, "config": cfg.to_dict(),
             "model_config": model_cfg.to_dict(), "normalization": norm.to_dict(), "gamma": gamma,
             "model": net.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
             "progress": {"epoch": epoch, "batch": batch, "global_step": step, "total_steps": total_steps,

@@ -95,3 +95,18 @@ def test_folder_from_before_looks_were_recorded_still_reads(tmp_path):
     assert open_shards(str(out)).manifest["n"] == 2
     r = _render(out, n=2)
     assert r.exit_code == 1 and "look=None (folder)" in r.output
+
+
+def test_checkpoint_records_the_look_and_the_render_loss_warns_on_another(tmp_path_factory):
+    from risp_tasks.tasks.inputs import load_model, look_note
+    from tests.tasks_helpers import shared_model
+
+    path = shared_model(tmp_path_factory, "cube")
+    predictor = load_model(path, "cube")
+    assert predictor.look == look_module.look_fingerprint("cube")
+    assert look_note(predictor, path, "render", None) is None
+    predictor.look = "0123456789ab"  # a network trained on images of an older look
+    note = look_note(predictor, path, "render", None)
+    assert note.startswith("note: ") and "another look (0123456789ab)" in note
+    assert look_note(predictor, path, "state", None) is None  # no rendered image reaches N
+    assert look_note(predictor, path, "render", "vehicle.obj") is None  # the user's own mesh: their look

@@ -39,6 +39,21 @@ def load_model(path: str, env: str | None):
     return predictor
 
 
+def look_note(predictor, path: str, loss: str, mesh: str | None) -> str | None:
+    """A warning line when the render loss would feed N images of another look than it was trained on: risp
+    changed the environment's appearance since (risp_data.envs.look), and N has never seen the new marks."""
+    from risp_data.envs.look import look_fingerprint
+
+    if loss != "render" or mesh is not None:  # other losses do not feed N rendered images; a --mesh is the user's
+        return None
+    now = look_fingerprint(predictor.env_name)
+    if predictor.look == now:
+        return None
+    return (f"note: {path} was trained on {predictor.env_name} images of another look ({predictor.look or 'unrecorded'}) "
+            f"than risp renders now ({now}); the render loss compares N's readings of unlike images: retrain on new data "
+            "(docs/environments.md §Appearance)")
+
+
 @dataclass(frozen=True)
 class Reference:
     """The reference video at the network's resolution and the simulation timeline it lies on."""

@@ -15,7 +15,7 @@ from risp_data.threads import set_torch_threads
 from . import TASKS
 from .config import TaskConfig
 from .context import Context
-from .inputs import (latest_model, load_model, read_actions, read_camera, read_reference, read_truth,
+from .inputs import (latest_model, load_model, look_note, read_actions, read_camera, read_reference, read_truth,
                      render_environment)
 from .loop import Timer, make_loss, optimize
 from .results import ResultFolder, check_free, plot_loss, plot_trajectories, save_strip, versions
@@ -71,6 +71,9 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
     model_path, model_line = resolve_model(cfg)
     echo(model_line)
     predictor = load_model(model_path, cfg.env)
+    note = look_note(predictor, model_path, cfg.loss, cfg.mesh)
+    if note:
+        echo(note)
     env_name = predictor.env_name
     from risp_data.envs import get_environment
 
