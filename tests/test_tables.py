@@ -358,3 +358,17 @@ def test_ours_is_trained_with_risp_trains_default_regularizer():
     assert DEFAULT_REG != "none"
     assert make_config("estimation").reg == DEFAULT_REG
     assert make_config("sysid", reg="exact").reg == "exact"
+
+
+def test_a_new_default_gamma_is_a_new_network(monkeypatch):
+    """The tables find networks again by checksum: a changed per-environment γ default (GAMMA_DEFAULTS) must not
+    find the network trained with the old one (the training config stores gamma=None, i.e. "the default")."""
+    from risp_tasks.tables.artifacts import network_key
+    from risp_train import config as train_config
+
+    tcfg = train_config.make_config("s", "", preset="cpu", reg="stochastic")
+    before = network_key(tcfg, "cube", "data")
+    assert network_key(tcfg, "cube", "data") == before  # found again
+    monkeypatch.setitem(train_config.GAMMA_DEFAULTS, "cube", train_config.GAMMA_DEFAULTS["cube"] + 0.1)
+    assert network_key(tcfg, "cube", "data") != before
+    assert network_key(train_config.with_(tcfg, reg="none"), "cube", "data") != before

@@ -88,9 +88,7 @@ class Artifacts:
         reg = cfg.reg if which == "reg" else which
         tcfg = make_config(shards, "", preset=cfg.train_preset, reg=reg, epochs=cfg.epochs, width=cfg.width,
                            batch_size=cfg.batch_size, seed=cfg.seed if seed is None else seed, workers=cfg.workers)
-        ident = {k: v for k, v in tcfg.to_dict().items() if k not in ("shards", "out", "workers", "threads", "device")}
-        key = checksum({**ident, "data": manifest_hash(open_shards(shards).manifest)})
-        out = os.path.join(self.root, "runs", f"{env}-{reg}-{key}")
+        out = os.path.join(self.root, "runs", f"{env}-{reg}-{network_key(tcfg, env, manifest_hash(open_shards(shards).manifest))}")
         model = os.path.join(out, MODEL)
         if not os.path.exists(model):
             fit(replace(tcfg, out=out), resume=True, progress=cfg.progress)
@@ -113,6 +111,15 @@ class Artifacts:
             make_reference(replace(ref, out=out))
         actions = actions_path(out)
         return {"video": out, "truth": truth_path(out), "actions": actions if os.path.exists(actions) else None}
+
+
+def network_key(tcfg, env: str, data_hash: str) -> str:
+    """Checksum of what makes a network: its training configuration, the γ it trains with (resolved: a new
+    per-environment default in GAMMA_DEFAULTS is a new network) and its data (manifest hash)."""
+    from risp_train.config import resolved_gamma
+
+    ident = {k: v for k, v in tcfg.to_dict().items() if k not in ("shards", "out", "workers", "threads", "device")}
+    return checksum({**ident, "gamma": resolved_gamma(tcfg, env), "data": data_hash})
 
 
 def prepare(cfg: TableConfig, env: str, cache: str | None = None) -> None:
