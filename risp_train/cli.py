@@ -54,7 +54,7 @@ def fit(shards, out, reg, gamma, gamma_ramp, preset, epochs, batch_size, lr, wei
 
     SHARDS may also be a folder holding data sets (e.g. shards/ after `risp-data render`): the one data set in
     it, or its one train-domain set with Jacobians, is used; otherwise the error lists what it holds."""
-    from .config import default_preset, make_config
+    from .config import REG_NOTES, default_preset, make_config
     from .train import fit as run_fit
 
     rank0 = int(os.environ.get("RANK", "0")) == 0
@@ -67,6 +67,9 @@ def fit(shards, out, reg, gamma, gamma_ramp, preset, epochs, batch_size, lr, wei
         out = os.path.join("runs", f"{os.path.basename(os.path.normpath(shards))}-{reg}-s{seed}")
     if rank0:
         click.echo(f"data: {shards}; preset: {preset} ({why}); regularizer: {reg}; run folder: {out}", err=True)
+        note = REG_NOTES.get(dataset_env(shards)) if reg != "none" else None
+        if note:
+            click.echo(note, err=True)
     cfg = make_config(shards, out, preset=preset, reg=reg, gamma=gamma, gamma_ramp=gamma_ramp, epochs=epochs,
                       batch_size=batch_size, lr=lr, weight_decay=weight_decay, width=width, seed=seed,
                       workers=workers, threads=threads, device=device, format=fmt,
@@ -74,6 +77,16 @@ def fit(shards, out, reg, gamma, gamma_ramp, preset, epochs, batch_size, lr, wei
     path = run_fit(cfg, resume=resume, progress=not quiet, overwrite=overwrite, allow_incomplete=allow_incomplete)
     if rank0:
         click.echo(f"model: {path}")
+
+
+def dataset_env(folder: str) -> str | None:
+    """The environment a shard folder holds (None when its manifest cannot be read: fit then says why)."""
+    from risp_data.shards import load_manifest
+
+    try:
+        return load_manifest(folder)["env"]
+    except RispError:
+        return None
 
 
 def find_dataset(folder: str, need_jacobian: bool) -> str:
