@@ -31,7 +31,6 @@ from .meshes import (  # noqa: E402
     RIGID_STATE_NAMES,
     ROT6D_TARGET_NAMES,
     box,
-    merge,
     rigid_pose,
     rot6d_state_to_target,
     rot6d_target_to_state,

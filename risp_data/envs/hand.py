@@ -101,7 +101,7 @@ def link_material(i: int) -> str:
     """Material of link i (JOINT_NAMES order): every finger's last link is ``phalanx_distal`` (red), a
     three-link finger's middle link ``phalanx_middle`` (white), the proximal links take the object colour ψ.
     Why: in one colour the joints between links are invisible at 64×64, and a network read the thumb and the
-    proximal joints 9 % worse over 3 seeds (docs/RESULTS.md §The hand's marked phalanges)."""
+    proximal joints 9 % worse over 3 seeds (docs/RESULTS.md §Identifiable marks, revisited)."""
     f, k = 0, i
     while k >= JOINTS_PER_FINGER[f]:
         k -= JOINTS_PER_FINGER[f]
