@@ -29,6 +29,14 @@ def checksum(obj) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:12]
 
 
+def look_key(settings, env: str, skip: tuple[str, ...]) -> str:
+    """Checksum of a rendering job's settings (a dataclass, less ``skip``) and of the environment's look: data of
+    an environment whose appearance risp has since changed is not found again (risp_data.envs.look)."""
+    from risp_data.envs.look import look_fingerprint
+
+    return checksum({**{k: v for k, v in asdict(settings).items() if k not in skip}, "look": look_fingerprint(env)})
+
+
 def _quiet(*_):
     return None
 
@@ -54,15 +62,12 @@ class Artifacts:
     # ------------------------------------------------------------------ data sets
 
     def _render(self, env: str, name: str, n: int, domain: str, seed: int, jacobian: bool) -> str:
-        from risp_data.envs.look import look_fingerprint
         from risp_data.generate import RenderJob, run_job
 
         cfg = self.cfg
         job = RenderJob(env=env, n=n, out="", domain=domain, formats=("wds",), resolution=cfg.resolution,
                         spp=cfg.spp, seed=seed, workers=1, shard_size=min(64, n), jacobian=jacobian)
-        # the look: data of an environment whose appearance risp has since changed is not found again
-        key = checksum({**{k: v for k, v in asdict(job).items() if k not in ("out", "workers")},
-                        "look": look_fingerprint(env)})
+        key = look_key(job, env, skip=("out", "workers"))
         out = os.path.join(self.root, "data", f"{env}-{name}-{key}")
         if not _complete(out):  # a finished set is only read (cells in parallel processes must not lock it)
             run_job(replace(job, out=out), progress=cfg.progress, log=_quiet)
@@ -98,14 +103,12 @@ class Artifacts:
 
     def video(self, env: str, repeat: int, frames: int | None = None) -> dict:
         """The target-domain reference video of repeat ``repeat``: {"video", "truth", "actions"} paths."""
-        from risp_data.envs.look import look_fingerprint
         from risp_tasks.tasks.reference import ReferenceConfig, actions_path, make_reference, truth_path
 
         cfg = self.cfg
         ref = ReferenceConfig(env=env, out="", frames=frames or cfg.frames, fps=10.0, resolution=cfg.resolution, spp=cfg.spp,
                               domain="target", seed=TEST_SEED + cfg.seed + repeat, progress=False)
-        key = checksum({**{k: v for k, v in asdict(ref).items() if k not in ("out", "progress")},
-                        "look": look_fingerprint(env)})
+        key = look_key(ref, env, skip=("out", "progress"))
         out = os.path.join(self.root, "videos", f"{env}-r{repeat}-{key}.mp4")
         if not (os.path.exists(out) and os.path.exists(truth_path(out))):  # the truth is written last
             make_reference(replace(ref, out=out))
