@@ -104,14 +104,22 @@ def make_optimizer(name: str, params, lr: float, momentum: float) -> torch.optim
 
 def optimize(problem: Problem, loss: Callable, *, optimizer: str, lr: float, momentum: float, iterations: int,
              timer: Timer, progress: bool = True) -> dict:
-    """Minimise ``loss(problem.states())`` over ``problem.variables``; returns the per-iteration history."""
+    """Minimise ``loss(problem.states())`` over ``problem.variables``; returns the per-iteration history.
+
+    The variables are left at the *best* iterate by the task's own loss, not the last: with a fixed step size a
+    long, chaotic rollout (the quadrotor's open-loop flights) can overshoot in a late step, and a user asking for
+    the parameters that best explain the video wants the ones that did.  ``final_loss`` is that iterate's loss,
+    ``last_loss`` the last iterate's, ``best_iteration`` its index (``iterations`` = the point after the last
+    step).  The selection uses only the optimised loss, never ground truth.
+    """
     from tqdm import tqdm
 
     leaves = list(problem.variables.values())
     opt = make_optimizer(optimizer, leaves, lr, momentum) if leaves and iterations else None
     history, seconds = [], []
+    best_value, best_iteration, best_leaves = float("inf"), iterations, None
     bar = tqdm(range(iterations), desc="optimizing", unit="it", disable=not progress, leave=False)
-    for _ in bar:
+    for it in bar:
         start = time.perf_counter()
         opt.zero_grad()
         with timer.section("simulation"):
@@ -119,14 +127,26 @@ def optimize(problem: Problem, loss: Callable, *, optimizer: str, lr: float, mom
         value = loss(states)
         if not torch.isfinite(value):
             raise RispError("the loss became NaN/inf (try a smaller --lr)")
+        history.append(float(value.detach()))
+        if history[-1] < best_value:  # the variables that gave this loss, before the step moves them
+            best_value, best_iteration = history[-1], it
+            best_leaves = [v.detach().clone() for v in leaves]
         with timer.section("backward"):
             value.backward()
         opt.step()
         with torch.no_grad():
             problem.project()
-        history.append(float(value.detach()))
         seconds.append(time.perf_counter() - start)
         bar.set_postfix(loss=f"{history[-1]:.4g}")
     with torch.no_grad():
-        final = float(loss(problem.states()))
-    return {"loss": history, "final_loss": final, "seconds_per_iteration": seconds}
+        last = float(loss(problem.states()))
+    final = last
+    if best_leaves is not None and not last <= best_value:  # NaN-safe: a non-finite last loss is never kept
+        with torch.no_grad():
+            for v, b in zip(leaves, best_leaves):
+                v.copy_(b)
+        final = best_value
+    else:
+        best_iteration = iterations
+    return {"loss": history, "final_loss": final, "last_loss": last, "best_iteration": best_iteration,
+            "seconds_per_iteration": seconds}
