@@ -31,6 +31,7 @@ def cli():
 @click.option("--reg", default=DEFAULT_REG, show_default=True, help="Regularizer: none, surrogate, exact or stochastic.")
 @click.option("--gamma", type=float, default=None, help="Final weight γ of the calibrated regularizer (dimensionless) [per environment, docs/training.md].")
 @click.option("--gamma-ramp", type=float, default=0.5, show_default=True, help="γ ramps linearly from 0 over this fraction of all steps.")
+@click.option("--gamma-start", type=float, default=None, help="γ is 0 before this fraction of all steps, then ramps [0].")
 @click.option("--preset", default=None, help="paper (ResNet-18 w64, 100 epochs, lr 1e-2) or cpu (w16, 20 epochs, lr 3e-3) [paper with a CUDA GPU, else cpu].")
 @click.option("--epochs", type=int, default=None, help="Epochs [preset].")
 @click.option("--batch-size", type=int, default=None, help="Images per step and process [preset: 16].")
@@ -48,7 +49,7 @@ def cli():
 @click.option("--overwrite", is_flag=True, help="Replace the model/checkpoint a run folder already holds.")
 @click.option("--allow-incomplete", is_flag=True, help="Train on an unfinished shard folder's complete shards.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def fit(shards, out, reg, gamma, gamma_ramp, preset, epochs, batch_size, lr, weight_decay, width, seed, workers,
+def fit(shards, out, reg, gamma, gamma_ramp, gamma_start, preset, epochs, batch_size, lr, weight_decay, width, seed, workers,
         threads, device, fmt, checkpoint_every, val, resume, overwrite, allow_incomplete, quiet):
     """Train on the shard folder SHARDS (streamed; resolution from its manifest).
 
@@ -70,7 +71,7 @@ def fit(shards, out, reg, gamma, gamma_ramp, preset, epochs, batch_size, lr, wei
         note = REG_NOTES.get(dataset_env(shards)) if reg != "none" else None
         if note:
             click.echo(note, err=True)
-    cfg = make_config(shards, out, preset=preset, reg=reg, gamma=gamma, gamma_ramp=gamma_ramp, epochs=epochs,
+    cfg = make_config(shards, out, preset=preset, reg=reg, gamma=gamma, gamma_ramp=gamma_ramp, gamma_start=gamma_start, epochs=epochs,
                       batch_size=batch_size, lr=lr, weight_decay=weight_decay, width=width, seed=seed,
                       workers=workers, threads=threads, device=device, format=fmt,
                       checkpoint_every=checkpoint_every, val=val)

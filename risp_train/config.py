@@ -46,6 +46,7 @@ class TrainConfig:
     reg: str = "none"  # none | surrogate | exact | stochastic (the CLI's default is DEFAULT_REG)
     gamma: float | None = None  # final regularizer weight (dimensionless); None → GAMMA_DEFAULTS[env]
     gamma_ramp: float = 0.5  # γ ramps linearly from 0 over this fraction of all steps
+    gamma_start: float = 0.0  # γ is 0 before this fraction of all steps, then ramps
     epochs: int = 100
     batch_size: int = 16
     lr: float = 1e-2
@@ -79,7 +80,7 @@ class TrainConfig:
 
 
 # fields that must agree for --resume to continue the same run
-RESUME_FIELDS = ("reg", "gamma", "gamma_ramp", "epochs", "batch_size", "lr", "weight_decay", "seed", "width",
+RESUME_FIELDS = ("reg", "gamma", "gamma_ramp", "gamma_start", "epochs", "batch_size", "lr", "weight_decay", "seed", "width",
                  "blocks", "stem", "format", "shuffle_buffer", "stats_samples")
 
 
@@ -117,6 +118,8 @@ def validate(cfg: TrainConfig) -> None:
         raise RispError(f"--gamma must be >= 0, got {cfg.gamma}")
     if not 0 <= cfg.gamma_ramp <= 1:
         raise RispError(f"--gamma-ramp must be in [0, 1], got {cfg.gamma_ramp}")
+    if not 0 <= cfg.gamma_start < 1:
+        raise RispError(f"--gamma-start must be in [0, 1), got {cfg.gamma_start}")
     if cfg.workers < 0 or cfg.checkpoint_every < 0 or cfg.threads < 0:
         raise RispError("--workers, --threads and --checkpoint-every must be >= 0")
     if cfg.stem not in ("auto", "imagenet", "small"):

@@ -230,6 +230,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, device: torch.devic
             raise RispError(f"cannot resume {last_path}: it was trained on other shards than {cfg.shards} "
                             "(manifest hash differs)")
         stored = state["config"]
+        stored = TrainConfig.from_dict(stored).to_dict()  # fields added since the checkpoint take their defaults
         diffs = [f"{k}={stored.get(k)!r}→{cfg.to_dict()[k]!r}" for k in RESUME_FIELDS if stored.get(k) != cfg.to_dict()[k]]
         if diffs:
             raise RispError(f"cannot resume {last_path} with different options: {', '.join(diffs)}")
@@ -311,7 +312,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, device: torch.devic
                 if b < skip:
                     continue  # already trained on before the resume
                 # ---- one optimizer step ------------------------------------------------------------
-                g_t = gamma_at(step, total_steps, gamma, cfg.gamma_ramp)
+                g_t = gamma_at(step, total_steps, gamma, cfg.gamma_ramp, cfg.gamma_start)
                 x, y, tangents = batch_tensors(batch, norm, env, need_j, device)
                 terms = risp_loss(net, x, y, cfg.reg, g_t, tangents, step_generator(cfg.seed, rank, step), psi_std)
                 if not torch.isfinite(terms.total):

@@ -232,3 +232,12 @@ def test_gamma_ramp():
     assert gamma_at(50, 100, 20.0, 0.5) == 20.0
     assert gamma_at(99, 100, 20.0, 0.5) == 20.0
     assert gamma_at(0, 100, 20.0, 0.0) == 20.0
+
+
+def test_gamma_start_delays_the_ramp():
+    """γ = 0 before start · total, then the same linear ramp, shifted."""
+    assert gamma_at(49, 100, 20.0, 0.25, 0.5) == 0.0
+    assert gamma_at(50, 100, 20.0, 0.25, 0.5) == 0.0
+    assert gamma_at(60, 100, 20.0, 0.25, 0.5) == pytest.approx(8.0)
+    assert gamma_at(75, 100, 20.0, 0.25, 0.5) == 20.0
+    assert gamma_at(10, 100, 20.0, 0.0, 0.3) == 0.0 and gamma_at(30, 100, 20.0, 0.0, 0.3) == 20.0
