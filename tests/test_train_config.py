@@ -29,7 +29,8 @@ def test_explicit_gamma_wins_and_none_regularizer_has_no_weight():
     assert resolved_gamma(make_config("s", "o", preset="paper", reg="none"), "cube") == 0.0
 
 
-@pytest.mark.parametrize("kw", [dict(preset="huge"), dict(reg="l2"), dict(gamma=-1.0), dict(lr=0.0)])
+@pytest.mark.parametrize("kw", [dict(preset="huge"), dict(reg="l2"), dict(gamma=-1.0), dict(lr=0.0), dict(gamma_start=1.0),
+                                dict(gamma_start=-0.1), dict(gamma_ramp=1.5)])
 def test_bad_configuration_is_a_clear_error(kw):
     with pytest.raises(RispError):
         make_config("s", "o", **kw)
