@@ -314,7 +314,8 @@ def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, device: torch.devic
                 # ---- one optimizer step ------------------------------------------------------------
                 g_t = gamma_at(step, total_steps, gamma, cfg.gamma_ramp, cfg.gamma_start)
                 x, y, tangents = batch_tensors(batch, norm, env, need_j, device)
-                terms = risp_loss(net, x, y, cfg.reg, g_t, tangents, step_generator(cfg.seed, rank, step), psi_std)
+                reg_t = cfg.reg if g_t > 0 else "none"  # R is not computed (nor logged) while γ(t) = 0
+                terms = risp_loss(net, x, y, reg_t, g_t, tangents, step_generator(cfg.seed, rank, step), psi_std)
                 if not torch.isfinite(terms.total):
                     raise RispError(f"loss is not finite at step {step} (epoch {epoch}); lower --lr or --gamma")
                 opt.zero_grad(set_to_none=True)

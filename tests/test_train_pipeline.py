@@ -126,6 +126,21 @@ def test_exact_and_surrogate_train_one_epoch(shards, tmp_path):
         assert ck["history"][-1]["train_reg"] >= 0
 
 
+def test_gamma_start_keeps_the_regularizer_off_then_on(shards, tmp_path):
+    """--gamma-start 0.5: the logged γ(t) and R are 0 in the first half of the steps (R is not computed), R is
+    measured (> 0) once γ(t) > 0."""
+    import csv
+
+    fit(_cfg(shards, tmp_path / "late", reg="stochastic", epochs=2, batch_size=8, gamma_start=0.5, gamma_ramp=0.25),
+        progress=False)
+    rows = list(csv.DictReader(open(tmp_path / "late" / "losses.csv")))
+    n = len(rows)
+    assert n == 16
+    early, late = rows[: n // 2], rows[n // 2 + 1:]
+    assert all(float(r["gamma"]) == 0.0 and float(r["reg"]) == 0.0 for r in early)
+    assert all(float(r["gamma"]) > 0.0 and float(r["reg"]) > 0.0 for r in late)
+
+
 def _copy(src, dst):
     shutil.copytree(src, dst)
     return str(dst)
