@@ -30,8 +30,8 @@ def cli():
 @click.option("--out", default=None, type=click.Path(file_okay=False), help="Run folder (checkpoints, logs, plots) [runs/DATASET-REG-sSEED].")
 @click.option("--reg", default=DEFAULT_REG, show_default=True, help="Regularizer: none, surrogate, exact or stochastic.")
 @click.option("--gamma", type=float, default=None, help="Final weight γ of the calibrated regularizer (dimensionless) [per environment, docs/training.md].")
-@click.option("--gamma-ramp", type=float, default=0.5, show_default=True, help="γ ramps linearly from 0 over this fraction of all steps.")
-@click.option("--gamma-start", type=float, default=None, help="γ is 0 before this fraction of all steps, then ramps [0].")
+@click.option("--gamma-ramp", type=float, default=0.5, show_default=True, help="γ ramps linearly from 0 over this fraction of the steps after its start.")
+@click.option("--gamma-start", type=float, default=None, help="γ is 0 before this fraction of all steps, then ramps [per environment: cube 0.5, else 0].")
 @click.option("--preset", default=None, help="paper (ResNet-18 w64, 100 epochs, lr 1e-2) or cpu (w16, 20 epochs, lr 3e-3) [paper with a CUDA GPU, else cpu].")
 @click.option("--epochs", type=int, default=None, help="Epochs [preset].")
 @click.option("--batch-size", type=int, default=None, help="Images per step and process [preset: 16].")
@@ -55,7 +55,7 @@ def fit(shards, out, reg, gamma, gamma_ramp, gamma_start, preset, epochs, batch_
 
     SHARDS may also be a folder holding data sets (e.g. shards/ after `risp-data render`): the one data set in
     it, or its one train-domain set with Jacobians, is used; otherwise the error lists what it holds."""
-    from .config import REG_NOTES, default_preset, make_config
+    from .config import default_preset, make_config
     from .train import fit as run_fit
 
     rank0 = int(os.environ.get("RANK", "0")) == 0
@@ -66,18 +66,29 @@ def fit(shards, out, reg, gamma, gamma_ramp, gamma_start, preset, epochs, batch_
         why = "default: " + ("a CUDA GPU is present" if preset == "paper" else "no CUDA GPU")
     if out is None:
         out = os.path.join("runs", f"{os.path.basename(os.path.normpath(shards))}-{reg}-s{seed}")
-    if rank0:
-        click.echo(f"data: {shards}; preset: {preset} ({why}); regularizer: {reg}; run folder: {out}", err=True)
-        note = REG_NOTES.get(dataset_env(shards)) if reg != "none" else None
-        if note:
-            click.echo(note, err=True)
-    cfg = make_config(shards, out, preset=preset, reg=reg, gamma=gamma, gamma_ramp=gamma_ramp, gamma_start=gamma_start, epochs=epochs,
-                      batch_size=batch_size, lr=lr, weight_decay=weight_decay, width=width, seed=seed,
+    cfg = make_config(shards, out, preset=preset, reg=reg, gamma=gamma, gamma_ramp=gamma_ramp, gamma_start=gamma_start,
+                      epochs=epochs, batch_size=batch_size, lr=lr, weight_decay=weight_decay, width=width, seed=seed,
                       workers=workers, threads=threads, device=device, format=fmt,
                       checkpoint_every=checkpoint_every, val=val)
+    if rank0:
+        click.echo(f"data: {shards}; preset: {preset} ({why}); regularizer: {describe_regularizer(cfg, shards)}; "
+                   f"run folder: {out}", err=True)
     path = run_fit(cfg, resume=resume, progress=not quiet, overwrite=overwrite, allow_incomplete=allow_incomplete)
     if rank0:
         click.echo(f"model: {path}")
+
+
+def describe_regularizer(cfg, shards: str) -> str:
+    """``stochastic, γ 0.3 from 50% of the steps, ramped in over 50% of the rest``: the schedule as resolved for the
+    data's environment (per-environment defaults, docs/training.md §γ schedule)."""
+    from .config import resolved_gamma, resolved_gamma_start
+
+    env = dataset_env(shards)
+    if cfg.reg == "none" or env is None:
+        return cfg.reg
+    gamma, start = resolved_gamma(cfg, env), resolved_gamma_start(cfg, env)
+    return (f"{cfg.reg}, γ {gamma:g}" + (f" from {start:.0%} of the steps," if start else "")
+            + f" ramped in over {cfg.gamma_ramp:.0%} of the {'rest' if start else 'steps'}")
 
 
 def dataset_env(folder: str) -> str | None:

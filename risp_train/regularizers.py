@@ -198,13 +198,14 @@ def risp_loss(
 
 
 def gamma_at(step: int, total_steps: int, gamma: float, ramp_fraction: float, start_fraction: float = 0.0) -> float:
-    """γ(step): 0 before start_fraction · total_steps, then a linear ramp to γ over ramp_fraction · total_steps,
-    constant afterwards.  A late start lets the state error shape the features first: at initialization R's
-    parameter gradient is 25–100× the state error's (benchmarks/reg_gradient_ratio.py)."""
+    """γ(step): 0 before the start s = start_fraction · total_steps, then a linear ramp to γ over ramp_fraction of
+    the steps that follow the start, (total_steps − s) · ramp_fraction, constant afterwards.  A late start lets
+    the state error shape the features first: at initialization R's parameter gradient is 25–100× the state
+    error's (benchmarks/reg_gradient_ratio.py)."""
     start = start_fraction * total_steps
     if step < start:
         return 0.0
-    ramp = ramp_fraction * total_steps
+    ramp = ramp_fraction * (total_steps - start)
     if ramp <= 0:
         return gamma
     return gamma * min(1.0, (step - start) / ramp)

@@ -27,7 +27,7 @@ import torch
 from risp_data.errors import RispError
 
 from . import checkpoint as ckpt_io
-from .config import RESUME_FIELDS, TrainConfig, resolved_gamma
+from .config import RESUME_FIELDS, TrainConfig, resolved_gamma, resolved_gamma_start
 from .data import (ShardSet, check_complete, check_environment, iter_batches, make_loader, manifest_hash, open_shards,
                    sample_counts, steps_per_epoch)
 from .model import ModelConfig, ResNet18, build_model, stem_for_resolution
@@ -205,7 +205,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, device: torch.devic
         if val.resolution != shards.resolution:
             raise RispError(f"--val shards {cfg.val} are {val.resolution}×{val.resolution} images, the training "
                             f"shards {shards.resolution}×{shards.resolution}: render them at --res {shards.resolution}")
-    gamma = resolved_gamma(cfg, shards.env)
+    gamma, gamma_start = resolved_gamma(cfg, shards.env), resolved_gamma_start(cfg, shards.env)
     psi_std = psi_scale(shards.env)  # σ_ψ: the regularizer measures ψ in standard deviations (regularizers.py)
     mhash = manifest_hash(shards.manifest)
 
@@ -268,6 +268,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, device: torch.devic
             "psi_names": list(shards.psi_names), "resolution": shards.resolution, "manifest_hash": mhash,
             "look": shards.manifest.get("look"), "shards": os.path.abspath(cfg.shards), "seed": cfg.seed, "config": cfg.to_dict(),
             "model_config": model_cfg.to_dict(), "normalization": norm.to_dict(), "gamma": gamma,
+            "gamma_start": gamma_start,
             "model": net.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
             "progress": {"epoch": epoch, "batch": batch, "global_step": step, "total_steps": total_steps,
                          "complete": complete},
@@ -279,7 +280,8 @@ def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, device: torch.devic
 
     if rank == 0:
         _write_json(os.path.join(cfg.out, "config.json"),
-                    {"config": cfg.to_dict(), "model_config": model_cfg.to_dict(), "gamma": gamma, "env": shards.env,
+                    {"config": cfg.to_dict(), "model_config": model_cfg.to_dict(), "gamma": gamma, "gamma_start": gamma_start,
+                     "env": shards.env,
                      "manifest_hash": mhash, "normalization": norm.to_dict(), "world_size": world,
                      "threads": threads, "device": str(device), "steps_per_epoch": plan,
                      "samples": sample_counts(shards)})
@@ -312,7 +314,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, device: torch.devic
                 if b < skip:
                     continue  # already trained on before the resume
                 # ---- one optimizer step ------------------------------------------------------------
-                g_t = gamma_at(step, total_steps, gamma, cfg.gamma_ramp, cfg.gamma_start)
+                g_t = gamma_at(step, total_steps, gamma, cfg.gamma_ramp, gamma_start)
                 x, y, tangents = batch_tensors(batch, norm, env, need_j, device)
                 reg_t = cfg.reg if g_t > 0 else "none"  # R is not computed (nor logged) while γ(t) = 0
                 terms = risp_loss(net, x, y, reg_t, g_t, tangents, step_generator(cfg.seed, rank, step), psi_std)

@@ -39,8 +39,9 @@ def test_render_then_fit_work_as_users_write_them(tmp_path):
     expected = "paper" if torch.cuda.is_available() else "cpu"
     assert cfg["preset"] == expected and cfg["reg"] == "stochastic"
     assert f"preset: {expected}" in r.stderr and "regularizer: stochastic" in r.stderr
-    # the cube's known cost of the default regularizer is said, with the way around it (docs/RESULTS.md)
-    assert "keeps the cube's attitude from being learned" in r.stderr and "--reg none" in r.stderr
+    # the schedule is said as resolved for the cube: its γ starts at half the run (GAMMA_START_DEFAULTS)
+    assert "γ 0.3 from 50% of the steps, ramped in over 50% of the rest" in r.stderr
+    assert cfg["gamma_start"] is None and json.load(open(run / "config.json"))["gamma_start"] == 0.5
 
 
 def _dataset(folder, domain="train", jacobian=True, env="cube"):

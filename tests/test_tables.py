@@ -371,4 +371,7 @@ def test_a_new_default_gamma_is_a_new_network(monkeypatch):
     assert network_key(tcfg, "cube", "data") == before  # found again
     monkeypatch.setitem(train_config.GAMMA_DEFAULTS, "cube", train_config.GAMMA_DEFAULTS["cube"] + 0.1)
     assert network_key(tcfg, "cube", "data") != before
+    moved = network_key(tcfg, "cube", "data")
+    monkeypatch.setitem(train_config.GAMMA_START_DEFAULTS, "cube", 0.25)  # the ramp's start is part of it too
+    assert network_key(tcfg, "cube", "data") != moved
     assert network_key(train_config.with_(tcfg, reg="none"), "cube", "data") != before

@@ -3,7 +3,8 @@
 import pytest
 
 from risp_data.errors import RispError
-from risp_train.config import DEFAULT_REG, GAMMA_DEFAULTS, default_preset, make_config, resolved_gamma
+from risp_train.config import (DEFAULT_REG, GAMMA_DEFAULTS, GAMMA_START_DEFAULTS, default_preset, make_config,
+                               resolved_gamma, resolved_gamma_start)
 
 
 def test_default_gamma_is_per_environment_and_the_same_in_both_presets():
@@ -34,3 +35,12 @@ def test_explicit_gamma_wins_and_none_regularizer_has_no_weight():
 def test_bad_configuration_is_a_clear_error(kw):
     with pytest.raises(RispError):
         make_config("s", "o", **kw)
+
+
+def test_the_ramp_start_is_per_environment_unless_given():
+    cfg = make_config("s", "o", preset="cpu", reg="stochastic")
+    assert cfg.gamma_start is None  # "the default", resolved per environment
+    for env in GAMMA_DEFAULTS:
+        assert resolved_gamma_start(cfg, env) == GAMMA_START_DEFAULTS.get(env, 0.0)
+    assert resolved_gamma_start(make_config("s", "o", preset="cpu", gamma_start=0.2), "cube") == 0.2
+    assert resolved_gamma_start(make_config("s", "o", preset="cpu", gamma_start=0.0), "cube") == 0.0

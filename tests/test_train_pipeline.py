@@ -131,7 +131,7 @@ def test_gamma_start_keeps_the_regularizer_off_then_on(shards, tmp_path):
     measured (> 0) once γ(t) > 0."""
     import csv
 
-    fit(_cfg(shards, tmp_path / "late", reg="stochastic", epochs=2, batch_size=8, gamma_start=0.5, gamma_ramp=0.25),
+    fit(_cfg(shards, tmp_path / "late", reg="stochastic", epochs=2, batch_size=8, gamma_start=0.5),
         progress=False)
     rows = list(csv.DictReader(open(tmp_path / "late" / "losses.csv")))
     n = len(rows)

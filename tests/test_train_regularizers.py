@@ -235,9 +235,10 @@ def test_gamma_ramp():
 
 
 def test_gamma_start_delays_the_ramp():
-    """γ = 0 before start · total, then the same linear ramp, shifted."""
-    assert gamma_at(49, 100, 20.0, 0.25, 0.5) == 0.0
-    assert gamma_at(50, 100, 20.0, 0.25, 0.5) == 0.0
-    assert gamma_at(60, 100, 20.0, 0.25, 0.5) == pytest.approx(8.0)
-    assert gamma_at(75, 100, 20.0, 0.25, 0.5) == 20.0
+    """γ = 0 before start · total, then the linear ramp over ramp_fraction of the steps after the start."""
+    assert gamma_at(49, 100, 20.0, 0.5, 0.5) == 0.0
+    assert gamma_at(50, 100, 20.0, 0.5, 0.5) == 0.0
+    assert gamma_at(60, 100, 20.0, 0.5, 0.5) == pytest.approx(8.0)  # 10 of the 25 ramp steps
+    assert gamma_at(75, 100, 20.0, 0.5, 0.5) == 20.0
+    assert gamma_at(60, 200, 20.0, 0.5, 0.5) == 0.0
     assert gamma_at(10, 100, 20.0, 0.0, 0.3) == 0.0 and gamma_at(30, 100, 20.0, 0.0, 0.3) == 20.0

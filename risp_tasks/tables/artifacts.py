@@ -117,12 +117,14 @@ class Artifacts:
 
 
 def network_key(tcfg, env: str, data_hash: str) -> str:
-    """Checksum of what makes a network: its training configuration, the γ it trains with (resolved: a new
-    per-environment default in GAMMA_DEFAULTS is a new network) and its data (manifest hash)."""
-    from risp_train.config import resolved_gamma
+    """Checksum of what makes a network: its training configuration, the γ schedule it trains with (resolved: a
+    new per-environment default in GAMMA_DEFAULTS or GAMMA_START_DEFAULTS is a new network) and its data
+    (manifest hash)."""
+    from risp_train.config import resolved_gamma, resolved_gamma_start
 
     ident = {k: v for k, v in tcfg.to_dict().items() if k not in ("shards", "out", "workers", "threads", "device")}
-    return checksum({**ident, "gamma": resolved_gamma(tcfg, env), "data": data_hash})
+    return checksum({**ident, "gamma": resolved_gamma(tcfg, env), "gamma_start": resolved_gamma_start(tcfg, env),
+                     "data": data_hash})
 
 
 def prepare(cfg: TableConfig, env: str, cache: str | None = None) -> None:
