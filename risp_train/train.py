@@ -229,8 +229,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, device: torch.devic
         if state.get("manifest_hash") != mhash:
             raise RispError(f"cannot resume {last_path}: it was trained on other shards than {cfg.shards} "
                             "(manifest hash differs)")
-        stored = state["config"]
-        stored = TrainConfig.from_dict(stored).to_dict()  # fields added since the checkpoint take their defaults
+        stored = TrainConfig.from_dict(state["config"]).to_dict()  # fields added since the checkpoint: defaults
         diffs = [f"{k}={stored.get(k)!r}→{cfg.to_dict()[k]!r}" for k in RESUME_FIELDS if stored.get(k) != cfg.to_dict()[k]]
         if diffs:
             raise RispError(f"cannot resume {last_path} with different options: {', '.join(diffs)}")
@@ -280,8 +279,8 @@ def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, device: torch.devic
 
     if rank == 0:
         _write_json(os.path.join(cfg.out, "config.json"),
-                    {"config": cfg.to_dict(), "model_config": model_cfg.to_dict(), "gamma": gamma, "gamma_start": gamma_start,
-                     "env": shards.env,
+                    {"config": cfg.to_dict(), "model_config": model_cfg.to_dict(), "gamma": gamma,
+                     "gamma_start": gamma_start, "env": shards.env,
                      "manifest_hash": mhash, "normalization": norm.to_dict(), "world_size": world,
                      "threads": threads, "device": str(device), "steps_per_epoch": plan,
                      "samples": sample_counts(shards)})
