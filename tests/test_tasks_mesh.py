@@ -94,8 +94,10 @@ def test_make_video_and_imitate_with_a_mesh(quad, tmp_path):
     result = runs["imit"]
     assert result["config"]["mesh"] == mesh
     assert abs(result["loss"][0] - runs["builtin"]["loss"][0]) > 1e-4  # the loop draws the file's vehicle
-    moved = np.abs(np.subtract(result["estimates"]["actions"], result["initial"]["actions"])).max()
-    assert np.isfinite(result["loss"]).all() and moved > 1e-3  # its gradient reaches the actions
+    # its gradient reaches the actions: with deterministic renders the loss moves only if the first step moved
+    # them (the estimates are the best iterate, which may be the initial actions)
+    loss = result["loss"]
+    assert np.isfinite(loss).all() and abs(loss[1] - loss[0]) > 1e-9 * abs(loss[0]), loss
     assert os.path.isfile(tmp_path / "imit" / "frames.png")
 
 

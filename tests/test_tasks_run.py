@@ -85,13 +85,15 @@ def test_task_lowers_its_loss(quad, tmp_path, task, loss, extra):
 
 @pytest.mark.parametrize("loss", ["render", "pixelwise", "perceptual"])
 def test_render_losses_differentiate_through_renderer_and_network(quad, tmp_path, loss):
-    """The image losses run end to end and their gradient reaches the actions.  (Lowering the loss is not
-    asserted: at 16×16 and 1 spp with a one-epoch network, and the quadrotor's boundary terms still biased
-    (tests/test_diff_render.py), six iterations went up and down; docs/tasks.md §Render-mode gradients.)"""
+    """The image losses run end to end and their gradient reaches the actions: the renders are deterministic
+    (seed 0), so the loss after the first step differs from the first only if the step moved the actions.
+    (Lowering the loss is not asserted: at 16×16 and 1 spp with a one-epoch network, and the quadrotor's boundary
+    terms still biased (tests/test_diff_render.py), six iterations went up and down; docs/tasks.md §Render-mode
+    gradients.  The estimates are the best iterate, which may be the initial actions.)"""
     model, video = quad
     r = _run("imitate", video, tmp_path / "out", model=model, loss=loss, iterations=2, spp=1, plots=False)
-    a0, a1 = np.asarray(r["initial"]["actions"]), np.asarray(r["estimates"]["actions"])
-    assert np.isfinite(r["loss"]).all() and np.abs(a1 - a0).max() > 1e-3
+    assert np.isfinite(r["loss"]).all() and abs(r["loss"][1] - r["loss"][0]) > 1e-9 * abs(r["loss"][0]), r["loss"]
+    assert r["final_loss"] == min(r["loss"] + [r["last_loss"]])
     assert r["timings"]["sections_s"]["rendering"] > 0
     if loss == "perceptual":
         assert r["info"]["perceptual_extractor"] == "filterbank"
