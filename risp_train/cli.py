@@ -31,7 +31,7 @@ def cli():
 @click.option("--reg", default=DEFAULT_REG, show_default=True, help="Regularizer: none, surrogate, exact or stochastic.")
 @click.option("--gamma", type=float, default=None, help="Final weight γ of the calibrated regularizer (dimensionless) [per environment, docs/training.md].")
 @click.option("--gamma-ramp", type=float, default=0.5, show_default=True, help="γ ramps linearly from 0 over this fraction of the steps after its start.")
-@click.option("--gamma-start", type=float, default=None, help="γ is 0 before this fraction of all steps, then ramps [per environment: cube 0.5, else 0].")
+@click.option("--gamma-start", type=float, default=None, help="γ is 0 before this fraction of all steps, then ramps [per environment: quadrotor and cube 0.5, else 0].")
 @click.option("--preset", default=None, help="paper (ResNet-18 w64, 100 epochs, lr 1e-2) or cpu (w16, 20 epochs, lr 3e-3) [paper with a CUDA GPU, else cpu].")
 @click.option("--epochs", type=int, default=None, help="Epochs [preset].")
 @click.option("--batch-size", type=int, default=None, help="Images per step and process [preset: 16].")
