@@ -80,8 +80,8 @@ class TrainConfig:
 
 
 # fields that must agree for --resume to continue the same run
-RESUME_FIELDS = ("reg", "gamma", "gamma_ramp", "gamma_start", "epochs", "batch_size", "lr", "weight_decay", "seed", "width",
-                 "blocks", "stem", "format", "shuffle_buffer", "stats_samples")
+RESUME_FIELDS = ("reg", "gamma", "gamma_ramp", "gamma_start", "epochs", "batch_size", "lr", "weight_decay", "seed",
+                 "width", "blocks", "stem", "format", "shuffle_buffer", "stats_samples")
 
 
 def default_preset() -> str:
