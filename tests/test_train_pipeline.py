@@ -176,6 +176,8 @@ def test_clear_errors(shards, tmp_path):
     assert r.exit_code != 0 and "Jacobians" in r.output, r.output
     r = runner.invoke(cli, ["fit", shards["held_out"], "--out", str(tmp_path / "r5"), "--reg", "bogus"])
     assert r.exit_code != 0 and "unknown --reg" in r.output
+    r = runner.invoke(cli, ["fit", shards["train"], "--out", str(tmp_path / "r5b"), "--gamma-start", "1.5"])
+    assert r.exit_code != 0 and "--gamma-start must be in [0, 1)" in r.output and not os.path.exists(tmp_path / "r5b")
     # checkpoint from another environment
     model = fit(_cfg(shards, tmp_path / "tiny", epochs=1, batch_size=16), progress=False)
     ck = torch.load(model, weights_only=True)
