@@ -3,6 +3,7 @@
     python benchmarks/bench_train.py            # 64×64, batch 16, K = the env's ψ count, ResNet-18 width 64
     python benchmarks/bench_train.py --quick    # fewer rounds
     python benchmarks/bench_train.py --shards shards/cube   # use the first batch of real shards as input
+    python benchmarks/bench_train.py --width 16 --stem imagenet   # another stem than the automatic one
 
 One optimizer step = input normalization + chain rule of J, loss (regularizers.py), backward, Adam step,
 exactly as in train.py.  Methods are timed interleaved (none, surrogate, exact, stochastic, none, …) in
@@ -28,6 +29,7 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=64)
     ap.add_argument("--rounds", type=int, default=7)
     ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--stem", default="auto", help="auto (model.stem_for_resolution), imagenet, stride2 or small")
     ap.add_argument("--shards", default=None)
     ap.add_argument("--quick", action="store_true", help="3 rounds")
     args = ap.parse_args()
@@ -61,7 +63,8 @@ def main() -> None:
     acc = StatsAccumulator(env.target_dim)
     acc.add(batch["image"], env.state_to_target(batch["state"]))
     norm = acc.result()
-    net = build_model(ModelConfig(out_dim=env.target_dim, width=args.width, stem=stem_for_resolution(args.res)), 0)
+    stem = stem_for_resolution(args.res) if args.stem == "auto" else args.stem
+    net = build_model(ModelConfig(out_dim=env.target_dim, width=args.width, stem=stem), 0)
     opt = torch.optim.Adam(net.parameters(), lr=1e-4, weight_decay=1e-6)
 
     def step(reg: str, i: int) -> float:
@@ -73,7 +76,7 @@ def main() -> None:
         opt.step()
         return time.perf_counter() - t0
 
-    print(f"env {args.env}: {args.res}×{args.res}, batch {args.batch}, K = {k}, ResNet-18 width {args.width}, "
+    print(f"env {args.env}: {args.res}×{args.res}, batch {args.batch}, K = {k}, ResNet-18 width {args.width}, stem {stem}, "
           f"{torch.get_num_threads()} threads, inputs: {source}")
     for reg in REGULARIZERS:  # warm-up (allocator, functorch dispatch caches)
         step(reg, 0)

@@ -57,7 +57,7 @@ class TrainConfig:
     device: str = "auto"  # auto (CUDA when torch sees a GPU) | cpu | cuda | cuda:N
     width: int = 64  # ResNet-18 first-stage channels
     blocks: tuple[int, int, int, int] = (2, 2, 2, 2)
-    stem: str = "auto"  # auto | imagenet | small
+    stem: str = "auto"  # auto | imagenet | stride2 | small (auto: model.stem_for_resolution)
     format: str = "auto"  # auto | wds | zarr
     shuffle_buffer: int = 256  # samples held by each worker's shuffle buffer
     stats_samples: int = 256  # samples streamed for the normalization statistics
@@ -122,8 +122,8 @@ def validate(cfg: TrainConfig) -> None:
         raise RispError(f"--gamma-start must be in [0, 1), got {cfg.gamma_start}")
     if cfg.workers < 0 or cfg.checkpoint_every < 0 or cfg.threads < 0:
         raise RispError("--workers, --threads and --checkpoint-every must be >= 0")
-    if cfg.stem not in ("auto", "imagenet", "small"):
-        raise RispError(f"unknown stem {cfg.stem!r}; choose auto, imagenet or small")
+    if cfg.stem not in ("auto", "imagenet", "stride2", "small"):
+        raise RispError(f"unknown stem {cfg.stem!r}; choose auto, imagenet, stride2 or small")
 
 
 def resolved_gamma(cfg: TrainConfig, env: str) -> float:

@@ -375,3 +375,7 @@ def test_a_new_default_gamma_is_a_new_network(monkeypatch):
     monkeypatch.setitem(train_config.GAMMA_START_DEFAULTS, "cube", 0.25)  # the ramp's start is part of it too
     assert network_key(tcfg, "cube", "data") != moved
     assert network_key(train_config.with_(tcfg, reg="none"), "cube", "data") != before
+    from risp_train import model as train_model  # the automatic stem's rule is part of the architecture
+
+    monkeypatch.setattr(train_model, "MIN_LAST_MAP", 2)
+    assert network_key(tcfg, "cube", "data") != moved

@@ -116,6 +116,22 @@ def test_resume_after_kill_gives_identical_weights(shards, tmp_path, fmt):
     assert [r.split(",")[:8] for r in rows_a] == [r.split(",")[:8] for r in rows_b]
 
 
+def test_resume_continues_the_checkpoints_architecture(shards, tmp_path, monkeypatch):
+    """A run checkpointed under one automatic-stem rule and resumed under another (a newer risp) finishes with the
+    network it started (the stem's weights have another shape: loading them into the new stem would fail)."""
+    from risp_train import train as train_mod
+
+    cfg = _cfg(shards, tmp_path / "run", epochs=2, batch_size=8, checkpoint_every=3)
+    with pytest.raises(TrainingStopped):
+        fit(cfg, progress=False, stop_after_step=5)
+    assert torch.load(tmp_path / "run" / "last.pt", weights_only=True)["model_config"]["stem"] == "small"
+    monkeypatch.setattr(train_mod, "stem_for_resolution", lambda resolution: "stride2")
+    model = fit(cfg, resume=True, progress=False)
+    ck = torch.load(model, weights_only=True)
+    assert ck["model_config"]["stem"] == "small" and ck["progress"]["complete"]
+    assert ck["model"]["stem.0.weight"].shape[-1] == 3 and ck["progress"]["global_step"] == 16
+
+
 def test_exact_and_surrogate_train_one_epoch(shards, tmp_path):
     for reg in ("exact", "surrogate"):
         path = fit(_cfg(shards, tmp_path / reg, reg=reg, epochs=1, batch_size=16), progress=False)

@@ -122,8 +122,8 @@ def test_exact_equals_explicit_loop_over_psi(setup):
 
 
 def test_explicit_tangent_rules_match_functorch_jvp():
-    """forward_tangents (explicit rules, both stems, max-pool and shortcuts) = vmap(jvp) to rounding."""
-    for stem, h in (("small", 16), ("imagenet", 64)):
+    """forward_tangents (explicit rules, every stem, max-pool and shortcuts) = vmap(jvp) to rounding."""
+    for stem, h in (("small", 16), ("stride2", 32), ("imagenet", 64)):
         net = build_model(ModelConfig(out_dim=5, width=4, stem=stem), seed=2).double()
         g = torch.Generator().manual_seed(4)
         x = torch.randn(2, 3, h, h, generator=g, dtype=torch.float64)
@@ -203,6 +203,25 @@ def test_instance_norm_values_and_no_torch_norm_modules():
     assert net(torch.randn(2, 3, 64, 64)).shape == (2, 9)
     with pytest.raises(ValueError, match="too small"):
         ResNet18(ModelConfig(out_dim=9, width=4, stem="imagenet"))(torch.randn(1, 3, 16, 16))
+
+
+def test_automatic_stem_keeps_the_last_stage_at_least_4x4():
+    """stem_for_resolution picks the coarsest stem whose last stage sees >= 4×4 pixels (instance norm of a 2×2 map
+    keeps 2 numbers per channel): measured on the network's own feature map, not on the factors table."""
+    from risp_train.model import stem_for_resolution
+
+    def last_map(stem, res):
+        net = ResNet18(ModelConfig(out_dim=3, width=4, stem=stem))
+        return net.stages(net.stem(torch.randn(1, 3, res, res))).shape[-1]
+
+    assert [stem_for_resolution(r) for r in (16, 32, 48, 64, 96, 128, 256)] == \
+        ["small", "small", "small", "stride2", "stride2", "imagenet", "imagenet"]
+    for res in (32, 64, 96, 128, 256):
+        chosen = stem_for_resolution(res)
+        assert last_map(chosen, res) >= 4
+        coarser = {"small": "stride2", "stride2": "imagenet", "imagenet": None}[chosen]
+        if coarser is not None:  # the next coarser stem would leave fewer than 4×4
+            assert last_map(coarser, res) < 4
 
 
 def test_input_normalization_chain_rule_matches_finite_differences():

@@ -118,11 +118,14 @@ class Artifacts:
 
 def network_key(tcfg, env: str, data_hash: str) -> str:
     """Checksum of what makes a network: its training configuration, the γ schedule it trains with (resolved: a
-    new per-environment default in GAMMA_DEFAULTS or GAMMA_START_DEFAULTS is a new network) and its data
-    (manifest hash)."""
+    new per-environment default in GAMMA_DEFAULTS or GAMMA_START_DEFAULTS is a new network), the rule that picks
+    the automatic stem (a new rule is a new architecture) and its data (manifest hash)."""
     from risp_train.config import resolved_gamma, resolved_gamma_start
+    from risp_train.model import MIN_LAST_MAP, STEM_FACTOR
 
     ident = {k: v for k, v in tcfg.to_dict().items() if k not in ("shards", "out", "workers", "threads", "device")}
+    if tcfg.stem == "auto":
+        ident["stem_rule"] = {"min_last_map": MIN_LAST_MAP, "factors": STEM_FACTOR}
     return checksum({**ident, "gamma": resolved_gamma(tcfg, env), "gamma_start": resolved_gamma_start(tcfg, env),
                      "data": data_hash})
 
