@@ -10,15 +10,19 @@ PY=${PYTHON:-python3}
 SUDO=""
 if [ "$(id -u)" -ne 0 ] && command -v sudo >/dev/null 2>&1; then SUDO="sudo"; fi
 
+# apt-get waits up to 10 minutes for a package manager that another process holds (e.g. a second set-up
+# started at the same time on a fresh machine) instead of failing at once on the dpkg lock.
+APT="apt-get -o DPkg::Lock::Timeout=600"
+
 llvm_ok() { "$PY" -c 'import sys; sys.path.insert(0, "."); from risp_data.llvm import ensure_llvm; ensure_llvm()' >/dev/null 2>&1; }
 
 # 1. System library: libLLVM >= 16 (docs/install.md)
 if ! llvm_ok; then
   if command -v apt-get >/dev/null 2>&1; then
     echo "[setup] installing libLLVM 19 for Dr.Jit (apt-get)"
-    $SUDO apt-get update -qq
-    $SUDO apt-get install -y -qq libllvm19 >/dev/null || $SUDO apt-get install -y -qq libllvm18 >/dev/null \
-      || $SUDO apt-get install -y -qq libllvm17 >/dev/null || $SUDO apt-get install -y -qq libllvm16 >/dev/null
+    $SUDO $APT update -qq
+    $SUDO $APT install -y -qq libllvm19 >/dev/null || $SUDO $APT install -y -qq libllvm18 >/dev/null \
+      || $SUDO $APT install -y -qq libllvm17 >/dev/null || $SUDO $APT install -y -qq libllvm16 >/dev/null
   fi
   if ! llvm_ok; then
     "$PY" -c 'import sys; sys.path.insert(0, "."); from risp_data.llvm import ensure_llvm; ensure_llvm()' 2>&1 | tail -n 1 >&2
@@ -29,7 +33,7 @@ fi
 
 # 2. Python environment
 if ! "$PY" -c 'import venv, ensurepip' >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1; then
-  $SUDO apt-get update -qq && $SUDO apt-get install -y -qq python3-venv >/dev/null
+  $SUDO $APT update -qq && $SUDO $APT install -y -qq python3-venv >/dev/null
 fi
 if [ ! -x .venv/bin/python ]; then
   echo "[setup] creating .venv"
