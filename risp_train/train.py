@@ -234,10 +234,11 @@ def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, device: torch.devic
         if diffs:
             raise RispError(f"cannot resume {last_path} with different options: {', '.join(diffs)}")
 
-    model_cfg = ModelConfig(out_dim=env.target_dim, width=cfg.width, blocks=cfg.blocks,
-                            stem=stem_for_resolution(shards.resolution) if cfg.stem == "auto" else cfg.stem)
     if state is not None:  # a resumed run continues its checkpoint's network, also one of an older automatic stem
         model_cfg = ModelConfig.from_dict(state["model_config"])
+    else:
+        model_cfg = ModelConfig(out_dim=env.target_dim, width=cfg.width, blocks=cfg.blocks,
+                                stem=stem_for_resolution(shards.resolution) if cfg.stem == "auto" else cfg.stem)
     net = build_model(model_cfg, cfg.seed).to(device)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=total_steps)
