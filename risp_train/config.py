@@ -20,6 +20,7 @@ from dataclasses import asdict, dataclass, fields, replace
 
 from risp_data.errors import RispError
 
+from .model import STEM_FACTOR
 from .regularizers import REGULARIZERS
 
 # dimensionless; docs/training.md §Sweep of γ.  hand 0.05: at 5000 samples γ = 0.3 cost the hand 11 % against `none`
@@ -122,8 +123,8 @@ def validate(cfg: TrainConfig) -> None:
         raise RispError(f"--gamma-start must be in [0, 1), got {cfg.gamma_start}")
     if cfg.workers < 0 or cfg.checkpoint_every < 0 or cfg.threads < 0:
         raise RispError("--workers, --threads and --checkpoint-every must be >= 0")
-    if cfg.stem not in ("auto", "imagenet", "stride2", "small"):
-        raise RispError(f"unknown stem {cfg.stem!r}; choose auto, imagenet, stride2 or small")
+    if cfg.stem != "auto" and cfg.stem not in STEM_FACTOR:
+        raise RispError(f"unknown stem {cfg.stem!r}; choose auto, {', '.join(STEM_FACTOR)}")
 
 
 def resolved_gamma(cfg: TrainConfig, env: str) -> float:

@@ -31,7 +31,7 @@ def test_explicit_gamma_wins_and_none_regularizer_has_no_weight():
 
 
 @pytest.mark.parametrize("kw", [dict(preset="huge"), dict(reg="l2"), dict(gamma=-1.0), dict(lr=0.0), dict(gamma_start=1.0),
-                                dict(gamma_start=-0.1), dict(gamma_ramp=1.5)])
+                                dict(gamma_start=-0.1), dict(gamma_ramp=1.5), dict(stem="resnet")])
 def test_bad_configuration_is_a_clear_error(kw):
     with pytest.raises(RispError):
         make_config("s", "o", **kw)
@@ -44,3 +44,10 @@ def test_the_ramp_start_is_per_environment_unless_given():
         assert resolved_gamma_start(cfg, env) == GAMMA_START_DEFAULTS.get(env, 0.0)
     assert resolved_gamma_start(make_config("s", "o", preset="cpu", gamma_start=0.2), "cube") == 0.2
     assert resolved_gamma_start(make_config("s", "o", preset="cpu", gamma_start=0.0), "cube") == 0.0
+
+
+def test_every_stem_of_the_model_is_accepted():
+    from risp_train.model import STEM_FACTOR
+
+    for stem in ("auto", *STEM_FACTOR):
+        assert make_config("s", "o", stem=stem).stem == stem
