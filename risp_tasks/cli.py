@@ -89,6 +89,9 @@ def _task_options(f):
         click.option("--iterations", type=int, default=None, help="optimisation iterations [default: 100; estimate: 0]"),
         click.option("--warm-start", type=int, default=0, show_default=True,
                      help="--loss render: run this many state-loss iterations first (docs/tasks.md §Warm start)"),
+        click.option("--grow-horizon", type=int, default=0, show_default=True,
+                     help="sysid, imitate: over this many iterations the loss compares the first 2, 3, … frames, "
+                          "then all (docs/tasks.md §Horizon curriculum)"),
         click.option("--seed", type=int, default=0, show_default=True),
         click.option("--every", type=int, default=1, show_default=True, help="keep every k-th frame"),
         click.option("--fps", type=float, default=None, help="resample the video to this frame rate"),

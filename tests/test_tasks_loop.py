@@ -37,3 +37,72 @@ def test_converging_descent_ends_at_the_last_iterate():
     h = optimize(problem, loss, optimizer="sgd", lr=0.1, momentum=0.0, iterations=5, timer=Timer(), progress=False)
     assert h["best_iteration"] == 5 and h["final_loss"] == h["last_loss"] == pytest.approx(0.8 ** 10)
     assert float(x.detach()) == pytest.approx(0.8 ** 5)
+
+
+def test_horizon_grows_from_two_frames_to_all():
+    from risp_tasks.tasks.loop import horizon
+
+    assert [horizon(i, 6, 8) for i in range(8)] == [2, 3, 4, 5, 6, 7, 8, 8]
+    assert [horizon(i, 0, 8) for i in range(3)] == [8, 8, 8]  # no curriculum
+    assert [horizon(i, 4, 2) for i in range(3)] == [2, 2, 2]  # nothing to grow
+    assert [horizon(i, 100, 20) for i in (0, 50, 99, 100)] == [2, 11, 19, 20]
+
+
+def _line_fit(x0: float, frames: int):
+    """s_t = x·t for t = 0 … T−1 against the reference t (x* = 1): the prefix loss over n frames is
+    (x − 1)²·Σ_{t<n} t², so short horizons give *smaller* losses at the same x."""
+    x = torch.tensor([x0], dtype=torch.float64, requires_grad=True)
+    t = torch.arange(frames, dtype=torch.float64)
+    problem = Problem(variables={"x": x}, states=lambda: (x * t).view(frames, 1), estimates=lambda: {"x": float(x)})
+
+    def loss(s, n=None):
+        n = frames if n is None else n
+        return ((s[:n, 0] - t[:n]) ** 2).sum()
+    return x, problem, loss
+
+
+def test_the_curriculum_compares_growing_prefixes_and_keeps_only_full_horizon_iterates():
+    from risp_tasks.tasks.loop import horizon
+
+    x, problem, loss = _line_fit(3.0, 6)
+    h = optimize(problem, loss, optimizer="sgd", lr=1e-3, momentum=0.0, iterations=8, timer=Timer(), progress=False,
+                 grow=4, frames=6)
+    assert h["frames_compared"] == [horizon(i, 4, 6) for i in range(8)] == [2, 3, 4, 5, 6, 6, 6, 6]
+    # the first (two-frame) iterate has the lowest loss of the history, but it is not a full-horizon loss
+    assert h["loss"][0] == min(h["loss"])
+    assert h["best_iteration"] >= 4 and h["final_loss"] == pytest.approx(float(loss(problem.states().detach())))
+    assert 1.0 < float(x.detach()) < 3.0  # it descended towards x* = 1
+
+
+def test_a_curriculum_needs_the_frame_count():
+    from risp_data.errors import RispError
+
+    _, problem, loss = _line_fit(3.0, 6)
+    with pytest.raises(RispError, match="number of compared frames"):
+        optimize(problem, loss, optimizer="sgd", lr=1e-3, momentum=0.0, iterations=2, timer=Timer(), progress=False,
+                 grow=2)
+
+
+def test_the_state_loss_on_a_prefix_is_the_loss_of_those_frames():
+    from risp_data.envs import get_environment
+    from risp_tasks.tasks.loop import make_loss
+
+    env = get_environment("quadrotor")
+    g = torch.Generator().manual_seed(0)
+    states = torch.randn(7, len(env.state_names), generator=g, dtype=torch.float64)
+    keep = [0, 2, 4, 6]
+    ref = env.state_to_target(torch.randn(4, len(env.state_names), generator=g, dtype=torch.float64))
+    loss = make_loss("state", env, keep, ref, None, None)
+    alone = make_loss("state", env, keep[:3], ref[:3], None, None)
+    assert float(loss(states, 3)) == pytest.approx(float(alone(states)))
+    assert float(loss(states, 3)) != pytest.approx(float(loss(states)))
+
+
+@pytest.mark.parametrize("kw, message", [(dict(task="sysid", grow_horizon=-1), "--grow-horizon must be >= 0"),
+                                         (dict(task="estimate", grow_horizon=5), "--grow-horizon is for sysid")])
+def test_a_bad_grow_horizon_is_a_clear_error(kw, message):
+    from risp_data.errors import RispError
+    from risp_tasks.tasks.config import TaskConfig
+
+    with pytest.raises(RispError, match=message):
+        TaskConfig(video="v.mp4", **kw)

@@ -115,6 +115,20 @@ def test_warm_start_runs_the_state_loss_before_the_render_loss(quad, tmp_path):
     assert r["initial"] == s["initial"]  # "initial" stays the random guess, before the warm start
 
 
+def test_grow_horizon_compares_growing_prefixes_of_the_video(quad, tmp_path):
+    """--grow-horizon G: the loss of iteration i compares the first min(T, 2 + (T − 2)·i // G) frames (recorded in
+    result.json), and the result is a full-horizon iterate."""
+    model, video = quad
+    kw = dict(model=model, actions=_stem(video) + ".actions.csv", init="random", seed=1, plots=False)
+    r = _run("sysid", video, tmp_path / "grow", loss="state", iterations=6, grow_horizon=4, **kw)
+    assert r["frames_compared"] == [2, 3, 4, 5, 6, 6]
+    assert r["best_iteration"] in (4, 5, 6)
+    plain = _run("sysid", video, tmp_path / "plain", loss="state", iterations=1, **kw)
+    # the same start (one seeded guess), but the first loss is that of two frames, not of all six
+    assert r["initial"] == plain["initial"] and "frames_compared" not in plain
+    assert r["loss"][0] != pytest.approx(plain["loss"][0], rel=1e-6)
+
+
 @pytest.mark.parametrize("loss", ["state", "pixelwise"])
 def test_warm_start_is_for_the_render_loss_only(loss):
     from risp_data.errors import RispError

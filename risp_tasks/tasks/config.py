@@ -34,6 +34,9 @@ class TaskConfig:
     # render loss: first this many iterations of the state loss (same variables and optimiser settings), so that
     # the render-loss descent starts where N's per-frame estimates put it (docs/tasks.md §Warm start)
     warm_start: int = 0
+    # horizon curriculum: over the first this many iterations the loss compares the first 2, 3, … kept frames, then
+    # all of them (loop.horizon; docs/tasks.md §Horizon curriculum); 0: every iteration compares all frames
+    grow_horizon: int = 0
     seed: int = 0
     every: int = 1
     fps: float | None = None  # resample the video to this rate
@@ -63,6 +66,10 @@ class TaskConfig:
             raise RispError(f"unknown optimizer {self.optimizer!r}; choose one of: rmsprop, adam, sgd")
         if self.iterations < 0 or not self.lr > 0 or self.every < 1 or self.horizon < 1 or self.spp < 1:
             raise RispError("iterations must be >= 0, lr > 0, every >= 1, horizon >= 1 and spp >= 1")
+        if self.grow_horizon < 0:
+            raise RispError(f"--grow-horizon must be >= 0, got {self.grow_horizon}")
+        if self.grow_horizon and self.task not in ("sysid", "imitate"):
+            raise RispError(f"--grow-horizon is for sysid and imitate (a video's frames), not {self.task}")
         if self.warm_start < 0:
             raise RispError(f"--warm-start must be >= 0, got {self.warm_start}")
         if self.warm_start and self.loss != "render":

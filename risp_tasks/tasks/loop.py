@@ -6,6 +6,9 @@
     L_pixelwise(θ) = mean_t ‖R(s_t(θ)) − I_t‖²         ∇Sim's image loss (a baseline)
     L_perceptual(θ) = mean_t ‖F(R(s_t(θ))) − F(I_t)‖²   a feature loss (a baseline; F: risp_tasks.tasks.features)
 
+With ``--grow-horizon G`` the sums run over the first n(i) compared frames at iteration i (a horizon curriculum,
+:func:`horizon`), n(i) = min(T, 2 + ⌊(T − 2)·i / G⌋) for i < G and T afterwards.
+
 s_t(θ): the simulated environment state at kept frame t; τ: the environment's state → network-target map
 (x, y, z, sin/cos of angles, …); N: the frozen network; R: the differentiable renderer in the train domain's
 nominal look; I_t: the reference frames at the network's resolution.
@@ -52,46 +55,73 @@ class Problem:
 
 def make_loss(mode: str, env, keep: list[int], ref_targets: torch.Tensor | None, truth_targets: torch.Tensor | None,
               ref_images: torch.Tensor | None, predictor=None, renderer=None, timer: Timer | None = None,
-              features=None) -> Callable[[torch.Tensor], torch.Tensor]:
-    """loss(states (n_source, S)) -> scalar for one of the modes above, on the frames ``keep``; ``features``: F of
-    the perceptual mode (a frozen torch module, images (B, H, W, 3) -> (B, D))."""
+              features=None) -> Callable[..., torch.Tensor]:
+    """loss(states (n_source, S), n=None) -> scalar for one of the modes above, on the frames ``keep`` (only their
+    first ``n`` when given: the horizon curriculum); ``features``: F of the perceptual mode (a frozen torch module,
+    images (B, H, W, 3) -> (B, D))."""
     timer = timer or Timer()
 
     def target_error(pred_targets, goal):
         return ((pred_targets - goal) ** 2).sum(-1).mean()
 
+    def first(n):  # the compared frames' indices and the slice of the per-frame references that goes with them
+        n = len(keep) if n is None else n
+        return keep[:n], slice(0, n)
+
     if mode == "state":
-        return lambda s: target_error(env.state_to_target(s[keep]), ref_targets.to(s.dtype))
+        def state_loss(s, n=None):
+            idx, sl = first(n)
+            return target_error(env.state_to_target(s[idx]), ref_targets[sl].to(s.dtype))
+        return state_loss
     if mode == "oracle":
         if truth_targets is None:
             raise RispError("--loss oracle needs ground-truth states (--truth)")
-        return lambda s: target_error(env.state_to_target(s[keep]), truth_targets.to(s.dtype))
+
+        def oracle_loss(s, n=None):
+            idx, sl = first(n)
+            return target_error(env.state_to_target(s[idx]), truth_targets[sl].to(s.dtype))
+        return oracle_loss
     if mode == "render":
-        def render_loss(s):
+        def render_loss(s, n=None):
+            idx, sl = first(n)
             with timer.section("rendering"):
-                images = renderer(s[keep], seed=0)
+                images = renderer(s[idx], seed=0)
             with timer.section("network"):
                 targets = predictor.predict(images)[1]
-            return target_error(targets.to(s.dtype), ref_targets.to(s.dtype))
+            return target_error(targets.to(s.dtype), ref_targets[sl].to(s.dtype))
         return render_loss
     if mode == "pixelwise":
-        def pixel_loss(s):
+        def pixel_loss(s, n=None):
+            idx, sl = first(n)
             with timer.section("rendering"):
-                images = renderer(s[keep], seed=0)
-            return ((images - ref_images) ** 2).mean().to(s.dtype)
+                images = renderer(s[idx], seed=0)
+            return ((images - ref_images[sl]) ** 2).mean().to(s.dtype)
         return pixel_loss
     if mode == "perceptual":
         with torch.no_grad():
             goal = features(ref_images)  # F(I_t), once
 
-        def perceptual_loss(s):
+        def perceptual_loss(s, n=None):
+            idx, sl = first(n)
             with timer.section("rendering"):
-                images = renderer(s[keep], seed=0)
+                images = renderer(s[idx], seed=0)
             with timer.section("network"):
                 f = features(images)
-            return ((f - goal) ** 2).mean().to(s.dtype)
+            return ((f - goal[sl]) ** 2).mean().to(s.dtype)
         return perceptual_loss
     raise RispError(f"unknown loss {mode!r}")
+
+
+def horizon(iteration: int, grow: int, frames: int) -> int:
+    """Compared frames at ``iteration`` of a horizon curriculum over ``grow`` iterations
+    (docs/tasks.md §Horizon curriculum): n(i) = min(T, 2 + ⌊(T − 2)·i / G⌋) for i < G, T afterwards (T = ``frames``, G = ``grow``; G = 0: always T).
+
+    Why: an open-loop rollout that starts a little wrong can leave what the early frames show (the quadrotor
+    flies out of the camera's view), and an image loss is flat there.  Fitting the first frames first keeps the
+    descent where the loss has a gradient, and each extension starts from a rollout that already follows them."""
+    if iteration >= grow or frames <= 2:
+        return frames
+    return min(frames, 2 + (frames - 2) * iteration // grow)
 
 
 def make_optimizer(name: str, params, lr: float, momentum: float) -> torch.optim.Optimizer:
@@ -103,7 +133,7 @@ def make_optimizer(name: str, params, lr: float, momentum: float) -> torch.optim
 
 
 def optimize(problem: Problem, loss: Callable, *, optimizer: str, lr: float, momentum: float, iterations: int,
-             timer: Timer, progress: bool = True) -> dict:
+             timer: Timer, progress: bool = True, grow: int = 0, frames: int | None = None) -> dict:
     """Minimise ``loss(problem.states())`` over ``problem.variables``; returns the per-iteration history.
 
     The variables are left at the *best* iterate by the task's own loss, not the last: with a fixed step size a
@@ -111,6 +141,10 @@ def optimize(problem: Problem, loss: Callable, *, optimizer: str, lr: float, mom
     the parameters that best explain the video wants the ones that did.  ``final_loss`` is that iterate's loss,
     ``last_loss`` the last iterate's, ``best_iteration`` its index (``iterations`` = the point after the last
     step).  The selection uses only the optimised loss, never ground truth.
+
+    ``grow`` > 0 (with ``frames``, the number of compared frames T): the horizon curriculum — iteration i compares
+    the first :func:`horizon` (i, grow, T) frames; only full-horizon iterates compete for the best, and
+    ``frames_compared`` records n(i) per iteration.
     """
     from tqdm import tqdm
 
@@ -118,17 +152,22 @@ def optimize(problem: Problem, loss: Callable, *, optimizer: str, lr: float, mom
     opt = make_optimizer(optimizer, leaves, lr, momentum) if leaves and iterations else None
     history, seconds = [], []
     best_value, best_iteration, best_leaves = float("inf"), iterations, None
+    if grow and frames is None:
+        raise RispError("a horizon curriculum needs the number of compared frames")
+    compared = []
     bar = tqdm(range(iterations), desc="optimizing", unit="it", disable=not progress, leave=False)
     for it in bar:
         start = time.perf_counter()
         opt.zero_grad()
         with timer.section("simulation"):
             states = problem.states()
-        value = loss(states)
+        n = horizon(it, grow, frames) if grow else None
+        value = loss(states) if n is None else loss(states, n)
         if not torch.isfinite(value):
             raise RispError("the loss became NaN/inf (try a smaller --lr)")
         history.append(float(value.detach()))
-        if history[-1] < best_value:  # the variables that gave this loss, before the step moves them
+        compared.append(n)
+        if (n is None or n == frames) and history[-1] < best_value:  # the variables that gave this loss, before the step moves them
             best_value, best_iteration = history[-1], it
             best_leaves = [v.detach().clone() for v in leaves]
         with timer.section("backward"):
@@ -148,5 +187,8 @@ def optimize(problem: Problem, loss: Callable, *, optimizer: str, lr: float, mom
         final = best_value
     else:
         best_iteration = iterations
-    return {"loss": history, "final_loss": final, "last_loss": last, "best_iteration": best_iteration,
-            "seconds_per_iteration": seconds}
+    out = {"loss": history, "final_loss": final, "last_loss": last, "best_iteration": best_iteration,
+           "seconds_per_iteration": seconds}
+    if grow:
+        out["frames_compared"] = compared
+    return out

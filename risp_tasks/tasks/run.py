@@ -135,7 +135,8 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
         warm = optimize(problem, state_loss, optimizer=cfg.optimizer, lr=cfg.lr, momentum=cfg.momentum,
                         iterations=cfg.warm_start, timer=timer, progress=cfg.progress)
     history = optimize(problem, loss, optimizer=cfg.optimizer, lr=cfg.lr, momentum=cfg.momentum,
-                       iterations=cfg.iterations, timer=timer, progress=cfg.progress)
+                       iterations=cfg.iterations, timer=timer, progress=cfg.progress, grow=cfg.grow_horizon,
+                       frames=len(loss_frames))
     with torch.no_grad():
         final_states = problem.states().detach().clone()
 
@@ -150,6 +151,8 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
                     "seconds_per_iteration": history["seconds_per_iteration"], "sections_s": timer.seconds},
         "versions": versions(), "info": problem.info,
     }
+    if "frames_compared" in history:
+        result["frames_compared"] = history["frames_compared"]
     if warm is not None:
         result["warm_start"] = {"iterations": cfg.warm_start, "loss": warm["loss"], "final_loss": warm["final_loss"],
                                 "seconds_per_iteration": warm["seconds_per_iteration"]}
