@@ -6,8 +6,9 @@ wind and its known commands; `estimate` turns it into a measured-data trajectory
 * ``test_names_wind_with_a_trained_network`` (slow): the acceptance test.  It needs a trained quadrotor network
   (set RISP_TASK_QUADROTOR_MODEL to its model.pt); without one it is skipped.  It is not given a briefly trained
   fixture network: the same pipeline with the demo network (400 images; 17.7° attitude error on this video, while
-  the 3 N wind is worth a 5.8° tilt) answered `unexplained` with a wind fit pointing along −y — a network that
-  fits a CI budget cannot pass it honestly (docs/tasks.md §Video → diagnosis has the measurements).
+  the 3 N wind is worth a 5.8° tilt) answered `unexplained` with a wind fit pointing along −y, and a 10000-image
+  `stride2` network (6.4°) with a wind fit along +x that is not yet significant (ΔBIC −7.4) — a network that fits
+  a CI budget cannot pass it honestly (docs/RESULTS.md §Video → diagnosis has the measurements).
 """
 
 import json
