@@ -427,3 +427,30 @@ def test_cube_rest_height_formula():
     v = cube.meshes(torch.from_numpy(s))[0].vertices.numpy()
     R = cube.rigid_pose(torch.from_numpy(s))[0].numpy()
     np.testing.assert_allclose(-v[..., 2].min(-1), cube.CUBE_SIDE / 2 * np.abs(R[:, 2, :]).sum(-1), atol=1e-12)
+
+
+def test_euler_angles_have_finite_gradients_at_gimbal_lock():
+    """A cube resting on a side face has pitch ±π/2: there |R₂₀| = 1, asin' is infinite and atan2's gradient
+    0/0 (R₀₀ = R₁₀ = 0).  The gradient of anything smooth computed through the angles must stay finite (a NaN made
+    whole table cells fail), and the angles must stay what they were away from the pole."""
+    import math
+
+    import torch
+
+    from risp_data.envs.rotations import euler_to_matrix, matrix_to_euler, quat_to_euler, quat_to_matrix
+
+    for pitch in (math.pi / 2, -math.pi / 2):
+        R = euler_to_matrix(*(torch.tensor(a, dtype=torch.float64) for a in (0.3, pitch, 0.2)))
+        R = torch.where(R.abs() < 1e-12, 0.0, torch.where((R.abs() - 1).abs() < 1e-12, R.sign(), R))  # on the pole
+        assert float(R[0, 0]) == float(R[1, 0]) == 0.0 and abs(float(R[2, 0])) == 1.0
+        R.requires_grad_(True)
+        angles = matrix_to_euler(R)
+        assert abs(abs(float(angles[1].detach())) - math.pi / 2) < 1e-7
+        (torch.sin(angles) + torch.cos(angles)).sum().backward()
+        assert torch.isfinite(R.grad).all(), R.grad
+    g = torch.Generator().manual_seed(0)
+    q = torch.nn.functional.normalize(torch.randn(200, 4, generator=g, dtype=torch.float64), dim=-1)
+    R = quat_to_matrix(q)
+    reference = torch.stack([torch.atan2(R[:, 1, 0], R[:, 0, 0]), torch.asin(-R[:, 2, 0]),
+                             torch.atan2(R[:, 2, 1], R[:, 2, 2])], -1)
+    assert torch.allclose(quat_to_euler(q), reference, atol=1e-12, rtol=0)

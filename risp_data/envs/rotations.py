@@ -24,11 +24,24 @@ def euler_to_matrix(yaw: torch.Tensor, pitch: torch.Tensor, roll: torch.Tensor) 
 
 
 def matrix_to_euler(R: torch.Tensor) -> torch.Tensor:
-    """Inverse of :func:`euler_to_matrix` (pitch in [-pi/2, pi/2]); returns (..., 3) = (yaw, pitch, roll)."""
-    yaw = torch.atan2(R[..., 1, 0], R[..., 0, 0])
-    pitch = torch.asin(torch.clamp(-R[..., 2, 0], -1.0, 1.0))
-    roll = torch.atan2(R[..., 2, 1], R[..., 2, 2])
+    """Inverse of :func:`euler_to_matrix` (pitch in [-pi/2, pi/2]); returns (..., 3) = (yaw, pitch, roll).
+
+    At gimbal lock (|R₂₀| = 1: pitch ±π/2, a cube resting on a side face) the angles are not differentiable;
+    the gradient there is made finite instead of NaN: the asin argument is clamped to ±(1 − ε) (ε the dtype's
+    machine epsilon; the value moves by at most √(2ε): 2e-8 rad in float64), and atan2(0, 0) gets a zero
+    gradient (:func:`_atan2`).  Without this one resting cube made a whole task's gradient NaN."""
+    one = 1.0 - torch.finfo(R.dtype).eps if R.is_floating_point() else 1.0
+    yaw = _atan2(R[..., 1, 0], R[..., 0, 0])
+    pitch = torch.asin(torch.clamp(-R[..., 2, 0], -one, one))
+    roll = _atan2(R[..., 2, 1], R[..., 2, 2])
     return torch.stack([yaw, pitch, roll], -1)
+
+
+def _atan2(y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """atan2(y, x), with a zero instead of a NaN gradient at y = x = 0 (where atan2's gradient (x, −y)/(x² + y²)
+    is 0/0): such entries are evaluated at (0, 1), i.e. the angle 0 (torch.atan2(+0, +0) is 0 as well)."""
+    zero = (x == 0) & (y == 0)
+    return torch.atan2(torch.where(zero, torch.zeros_like(y), y), torch.where(zero, torch.ones_like(x), x))
 
 
 def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
