@@ -114,7 +114,8 @@ def make_loss(mode: str, env, keep: list[int], ref_targets: torch.Tensor | None,
 
 def horizon(iteration: int, grow: int, frames: int) -> int:
     """Compared frames at ``iteration`` of a horizon curriculum over ``grow`` iterations
-    (docs/tasks.md §Horizon curriculum): n(i) = min(T, 2 + ⌊(T − 2)·i / G⌋) for i < G, T afterwards (T = ``frames``, G = ``grow``; G = 0: always T).
+    (docs/tasks.md §Horizon curriculum): n(i) = min(T, 2 + ⌊(T − 2)·i / G⌋) for i < G, T afterwards
+    (T = ``frames``, G = ``grow``; G = 0: always T).
 
     Why: an open-loop rollout that starts a little wrong can leave what the early frames show (the quadrotor
     flies out of the camera's view), and an image loss is flat there.  Fitting the first frames first keeps the
@@ -167,7 +168,8 @@ def optimize(problem: Problem, loss: Callable, *, optimizer: str, lr: float, mom
             raise RispError("the loss became NaN/inf (try a smaller --lr)")
         history.append(float(value.detach()))
         compared.append(n)
-        if (n is None or n == frames) and history[-1] < best_value:  # the variables that gave this loss, before the step moves them
+        # only full-horizon losses compete; keep the variables that gave this loss, before the step moves them
+        if (n is None or n == frames) and history[-1] < best_value:
             best_value, best_iteration = history[-1], it
             best_leaves = [v.detach().clone() for v in leaves]
         with timer.section("backward"):
