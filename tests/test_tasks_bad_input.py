@@ -160,3 +160,9 @@ def test_warm_start_with_another_loss_is_one_error_line(quad, tmp_path):
     line = _invoke(["sysid", quad[1], "--model", quad[0], "--actions", os.path.splitext(quad[1])[0] + ".actions.csv",
                     "--loss", "state", "--warm-start", "5"], tmp_path)
     assert "--warm-start is for --loss render" in line
+
+
+def test_grow_horizon_outside_sysid_and_imitate_is_one_error_line(quad, tmp_path):
+    """`--grow-horizon` grows the compared frames of a video: `estimate` (no optimisation) refuses it, one line."""
+    line = _invoke(["estimate", quad[1], "--model", quad[0], "--grow-horizon", "5"], tmp_path)
+    assert "--grow-horizon is for sysid and imitate" in line
