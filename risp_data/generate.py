@@ -188,14 +188,14 @@ def sample_inputs(env, domain: str, seed: int, index: int) -> SampleInputs:
     return SampleInputs(index=index, state=state, config=config, render_seed=render_seed)
 
 
-def _jsonable(obj: Any) -> Any:
+def jsonable(obj: Any) -> Any:
     """Plain-JSON copy of ``obj`` (numpy scalars/arrays become numbers/lists)."""
     if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
+        return {str(k): jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
+        return [jsonable(v) for v in obj]
     if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
+        return jsonable(obj.tolist())
     if isinstance(obj, np.generic):
         return obj.item()
     return obj
@@ -222,7 +222,7 @@ def render_sample(renderer, env, job: RenderJob, index: int) -> Sample:
         "render_seed": inp.render_seed,
         "state_names": list(env.state_names),
         "psi_names": list(renderer.psi_names),
-        "aux": _jsonable(inp.config.aux),
+        "aux": jsonable(inp.config.aux),
         "resolution": job.resolution,
         "spp": job.spp,
         "variant": getattr(renderer, "variant", job.variant),
@@ -301,7 +301,7 @@ def new_manifest(job: RenderJob, variant: str) -> dict[str, Any]:
         "state_low": [float(v) for v in env.state_low],
         "state_high": [float(v) for v in env.state_high],
         "versions": package_versions(),
-        "args": _jsonable(dataclasses.asdict(job)),
+        "args": jsonable(dataclasses.asdict(job)),
         "created": utc_now(),
         "shards": [],
     }

@@ -71,6 +71,8 @@ def _validate(cfg: AblationConfig) -> None:
             raise RispError(f"unknown regularizer {r!r} in --regs; choose from: {', '.join(REGULARIZERS)}")
     if cfg.n_train < 1 or cfg.n_eval < 1:
         raise RispError("--n-train and --n-eval must be >= 1")
+    if cfg.seed < 0 or (cfg.batch_size is not None and cfg.batch_size < 1):
+        raise RispError("--seed must be >= 0 and --batch-size >= 1")
 
 
 def _job(cfg: AblationConfig, out: str, n: int, domain: str, seed: int, jacobian: bool):
@@ -105,7 +107,7 @@ def _render_pooled_locked(job, pool: list, variant: str, progress: bool) -> str:
     from tqdm.auto import tqdm
 
     from risp_data.envs import get_environment
-    from risp_data.generate import make_renderer, prepare_folder, sample_inputs
+    from risp_data.generate import jsonable, make_renderer, prepare_folder, sample_inputs
     from risp_data.shards.manifest import save_manifest
     from risp_data.shards.sample import Sample
     from risp_data.shards.writer import write_shard
@@ -130,7 +132,7 @@ def _render_pooled_locked(job, pool: list, variant: str, progress: bool) -> str:
                 image, jac = renderer.render(inp.state, config, inp.render_seed, jacobian=job.jacobian)
                 meta = {"env": job.env, "domain": job.domain, "index": i, "seed": job.seed,
                         "render_seed": inp.render_seed, "state_names": list(env.state_names),
-                        "psi_names": psi_names, "aux": _jsonable(config.aux), "resolution": job.resolution,
+                        "psi_names": psi_names, "aux": jsonable(config.aux), "resolution": job.resolution,
                         "spp": job.spp, "jacobian": job.jacobian, "psi_pool_index": i % len(pool)}
                 samples.append(Sample(index=i, image=np.asarray(image, np.float32),
                                       jacobian=None if jac is None else np.asarray(jac, np.float32),
@@ -140,18 +142,6 @@ def _render_pooled_locked(job, pool: list, variant: str, progress: bool) -> str:
             manifest["shards"] = [r for r in manifest["shards"] if r["index"] != shard] + [rec]
             save_manifest(job.out, manifest)
     return job.out
-
-
-def _jsonable(obj):
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, np.generic):
-        return obj.item()
-    return obj
 
 
 def run_ablation(cfg: AblationConfig, progress: bool = True) -> dict:

@@ -116,9 +116,11 @@ def find_dataset(folder: str, need_jacobian: bool) -> str:
         if os.path.isfile(path):
             try:
                 with open(path) as f:
-                    sets[os.path.join(folder, name)] = json.load(f)
+                    manifest = json.load(f)
             except (OSError, ValueError):
                 continue  # an unreadable manifest is not a data set to offer
+            if isinstance(manifest, dict):  # valid JSON that is not an object is not a manifest either
+                sets[os.path.join(folder, name)] = manifest
     if len(sets) == 1:
         return next(iter(sets))
     usable = [p for p, m in sets.items() if m.get("domain") == "train" and (m.get("jacobian") or not need_jacobian)]

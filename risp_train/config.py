@@ -121,6 +121,8 @@ def validate(cfg: TrainConfig) -> None:
         raise RispError(f"--gamma-ramp must be in [0, 1], got {cfg.gamma_ramp}")
     if cfg.gamma_start is not None and not 0 <= cfg.gamma_start < 1:
         raise RispError(f"--gamma-start must be in [0, 1), got {cfg.gamma_start}")
+    if cfg.seed < 0:
+        raise RispError(f"--seed must be >= 0, got {cfg.seed}")
     if cfg.workers < 0 or cfg.checkpoint_every < 0 or cfg.threads < 0:
         raise RispError("--workers, --threads and --checkpoint-every must be >= 0")
     if cfg.stem != "auto" and cfg.stem not in STEM_FACTOR:

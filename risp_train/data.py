@@ -168,15 +168,6 @@ def steps_per_epoch(shards: ShardSet, seed: int, epoch: int, batch_size: int, wo
 # ------------------------------------------------------------------------------------------ streams
 
 
-def _raise_with_url(exn: Exception) -> bool:
-    """webdataset handler: one RispError naming the shard for any read or decode failure."""
-    if isinstance(exn, RispError):
-        raise exn
-    url = next((a for a in reversed(getattr(exn, "args", ())) if isinstance(a, str) and a.endswith(".tar")), None)
-    msg = str(exn.args[0]) if getattr(exn, "args", None) else type(exn).__name__
-    raise RispError(f"corrupt or truncated webdataset shard {url or '<unknown>'}: {msg}") from None
-
-
 def _shuffle_buffer(src: Iterator[dict], size: int, seed_words: list[int]) -> Iterator[dict]:
     """Bounded-memory shuffle: keep ``size`` raw samples, emit a random one per new arrival."""
     rng = np.random.default_rng(np.random.SeedSequence(seed_words))
@@ -218,7 +209,7 @@ class WdsStream(torch.utils.data.IterableDataset):
     def __iter__(self) -> Iterator[dict]:
         import webdataset as wds
 
-        from risp_data.shards.wds import shard_check_for_urls
+        from risp_data.shards.wds import _raise_with_url, shard_check_for_urls
 
         urls = list(self.urls)
         if self.shuffle:

@@ -132,6 +132,8 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
 
     if cfg.metric not in METRICS:
         raise RispError(f"unknown --metric {cfg.metric!r}; choose one of: {', '.join(METRICS)}")
+    if cfg.seed < 0 or cfg.batch_size < 1 or (cfg.limit is not None and cfg.limit < 1):
+        raise RispError("--seed must be >= 0, --batch-size >= 1 and --limit >= 1")
     ckpt = load_checkpoint(cfg.model)
     shards = open_shards(cfg.shards, cfg.format)
     check_compatible(ckpt, cfg.model, env=shards.env, state_names=shards.state_names, resolution=shards.resolution)

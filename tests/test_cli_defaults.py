@@ -65,3 +65,22 @@ def test_find_dataset_picks_the_one_training_set_or_lists_them(tmp_path):
         find_dataset(str(tmp_path / "empty"), need_jacobian=False)
     with pytest.raises(RispError, match="does not exist"):
         find_dataset(str(tmp_path / "missing"), need_jacobian=False)
+
+
+def test_find_dataset_skips_a_manifest_that_is_not_a_json_object(tmp_path):
+    one = _dataset(tmp_path / "a" / "cube-train")
+    _dataset(tmp_path / "a" / "cube-target", domain="target", jacobian=False)
+    os.makedirs(tmp_path / "a" / "odd")
+    (tmp_path / "a" / "odd" / "manifest.json").write_text("[]")  # valid JSON, not a manifest
+    assert find_dataset(str(tmp_path / "a"), need_jacobian=True) == one
+
+
+def test_eval_with_a_negative_seed_or_batch_is_one_error_line(tmp_path):
+    from click.testing import CliRunner
+
+    from risp_train.cli import cli
+
+    for args, words in ((["--seed", "-1"], "--seed must be >= 0"), (["--batch-size", "0"], "--batch-size >= 1")):
+        res = CliRunner().invoke(cli, ["eval", str(tmp_path / "model.pt"), str(tmp_path / "shards"), *args])
+        lines = [ln for ln in res.output.splitlines() if ln.strip()]
+        assert res.exit_code != 0 and len(lines) == 1 and lines[0].startswith("Error: ") and words in lines[0], res.output

@@ -48,3 +48,23 @@ def test_disk_full_while_writing_the_report(flights, tmp_path, monkeypatch):
     line = _one_error_line(_run(flights, out, "--no-plots"))
     assert "report.json" in line and "No space left on device" in line
     assert not list(out.glob("report.*"))
+
+
+@pytest.mark.parametrize("extra,words", [(["--max-segments", "0"], "--max-segments"),
+                                         (["--rollout-horizon", "0"], "--rollout-horizon"),
+                                         (["--seed", "-1"], "--seed must be >= 0")])
+def test_out_of_range_counts_and_seed_are_one_line_and_leave_no_report(flights, tmp_path, extra, words):
+    line = _one_error_line(_run(flights, tmp_path / "report", *extra))
+    assert words in line
+    assert not (tmp_path / "report").exists()
+
+
+def test_diagnose_leaves_the_callers_torch_generator_as_it_was(flights, tmp_path):
+    import torch
+
+    torch.manual_seed(1234)
+    expected = torch.rand(3)
+    torch.manual_seed(1234)
+    res = _run(flights, tmp_path / "report", "--seed", "7")
+    assert res.exit_code == 0, res.output
+    assert torch.equal(torch.rand(3), expected)  # without the fork, diagnose's manual_seed(7) would reseed it

@@ -166,3 +166,39 @@ def test_grow_horizon_outside_sysid_and_imitate_is_one_error_line(quad, tmp_path
     """`--grow-horizon` grows the compared frames of a video: `estimate` (no optimisation) refuses it, one line."""
     line = _invoke(["estimate", quad[1], "--model", quad[0], "--grow-horizon", "5"], tmp_path)
     assert "--grow-horizon is for sysid and imitate" in line
+
+
+def test_negative_seed_is_one_error_line(quad, tmp_path):
+    model, video = quad
+    line = _invoke(["sysid", video, "--model", model, "--seed", "-1"], tmp_path)
+    assert "--seed must be >= 0" in line
+
+
+@pytest.mark.parametrize("content,words", [({"state": ["up", "down"]}, "'state' must be a list of numbers"),
+                                           ({"env_state": [[0.0, 1.0], [2.0]]}, "'env_state' must be a list of numbers"),
+                                           ({"env_state": [0.0, 0.0]}, "'env_state' must have 6 entries, got 2")])
+def test_control_initial_state_that_is_not_a_state(quad, tmp_path, content, words):
+    from risp_tasks.video import read_video, write_video
+
+    model, video = quad
+    write_video(tmp_path / "goal", read_video(video).frames[-1:], fps=10)
+    (tmp_path / "s0.json").write_text(json.dumps(content))
+    line = _invoke(["control", str(tmp_path / "goal" / "frame_00000.png"), "--model", model,
+                    "--initial-state", str(tmp_path / "s0.json")], tmp_path)
+    assert "s0.json" in line and words in line, line
+
+
+@pytest.mark.parametrize("params,words", [('{"mass": "heavy"}', "'mass' must be a finite number"),
+                                          ('{"mass": [3.0]}', "'mass' must be a finite number"),
+                                          ('{"mass": NaN}', "'mass' must be a finite number"),
+                                          ("[3.0]", "must be a JSON object")])
+def test_make_video_params_that_are_not_numbers(tmp_path, params, words):
+    from risp_tasks.cli import cli
+
+    out = tmp_path / "v.mp4"
+    res = CliRunner().invoke(cli, ["make-video", "--env", "quadrotor", "--out", str(out), "--frames", "2",
+                                   "--resolution", "8", "--params", params, "--quiet"])
+    lines = [ln for ln in res.output.splitlines() if ln.strip()]
+    assert res.exit_code != 0 and len(lines) == 1 and lines[0].startswith("Error: "), res.output
+    assert words in lines[0], lines[0]
+    assert not out.exists() and not [p for p in os.listdir(tmp_path) if p != "v.mp4"]

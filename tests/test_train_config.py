@@ -31,7 +31,8 @@ def test_explicit_gamma_wins_and_none_regularizer_has_no_weight():
 
 
 @pytest.mark.parametrize("kw", [dict(preset="huge"), dict(reg="l2"), dict(gamma=-1.0), dict(lr=0.0), dict(gamma_start=1.0),
-                                dict(gamma_start=-0.1), dict(gamma_ramp=1.5), dict(stem="resnet")])
+                                dict(gamma_start=-0.1), dict(gamma_ramp=1.5), dict(stem="resnet"),
+                                dict(seed=-1)])
 def test_bad_configuration_is_a_clear_error(kw):
     with pytest.raises(RispError):
         make_config("s", "o", **kw)

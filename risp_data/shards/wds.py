@@ -222,8 +222,8 @@ def _raise_with_url(exn: Exception) -> bool:
     """webdataset handler: turn a tar-level failure into one RispError naming the shard file."""
     if isinstance(exn, RispError):
         raise exn
-    url = next((a for a in reversed(exn.args) if isinstance(a, str) and a.endswith(".tar")), None)
-    msg = str(exn.args[0]) if exn.args else type(exn).__name__
+    url = next((a for a in reversed(getattr(exn, "args", ())) if isinstance(a, str) and a.endswith(".tar")), None)
+    msg = str(exn.args[0]) if getattr(exn, "args", None) else type(exn).__name__
     raise RispError(f"corrupt or truncated webdataset shard {url or '<unknown>'}: {msg}") from None
 
 

@@ -164,10 +164,18 @@ def diagnose(cfg: DiagnoseConfig) -> dict:
     Runs single-threaded: the simulators' many tiny batched ops are 10–100× slower with intra-op
     threads on a loaded 2-core machine (thread hand-off dominates); the previous setting is restored.
     """
+    if int(cfg.seed) < 0:
+        raise RispError(f"--seed must be >= 0, got {cfg.seed}")
+    if cfg.max_segments < 1 or (cfg.rollout_horizon is not None and cfg.rollout_horizon < 1):
+        raise RispError("--max-segments and --rollout-horizon must be >= 1")
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        return _diagnose(cfg)
+        # nothing below draws from torch's global RNG; seeded in a fork so that stray use is reproducible
+        # and the caller's generator is left as it was
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(int(cfg.seed))
+            return _diagnose(cfg)
     finally:
         torch.set_num_threads(threads)
 
@@ -189,7 +197,6 @@ def check_out(out: str | None) -> None:
 
 def _diagnose(cfg: DiagnoseConfig) -> dict:
     t0 = time.perf_counter()
-    torch.manual_seed(int(cfg.seed))  # nothing below draws from it; set so that stray use is reproducible
     overrides = {"side": cfg.side, "mass": cfg.mass} if cfg.env == "cube" else {}
     trajs = load_measured(cfg.data, cfg.env, overrides=overrides, limit=cfg.limit)
     if cfg.horizon < 1:

@@ -117,6 +117,8 @@ def validate(cfg: TableConfig) -> None:
         raise RispError("--iterations must be >= 0 and --lr > 0")
     if cfg.control_start not in CONTROL_STARTS:
         raise RispError(f"unknown control start {cfg.control_start!r}; choose one of: {', '.join(CONTROL_STARTS)}")
+    if cfg.seed < 0:
+        raise RispError(f"--seed must be >= 0, got {cfg.seed}")
     if cfg.jobs < 0:
         raise RispError(f"--jobs must be >= 0 (0: one per available CPU), got {cfg.jobs}")
     if cfg.executor not in ("local", "ray"):

@@ -66,6 +66,8 @@ class TaskConfig:
             raise RispError(f"unknown optimizer {self.optimizer!r}; choose one of: rmsprop, adam, sgd")
         if self.iterations < 0 or not self.lr > 0 or self.every < 1 or self.horizon < 1 or self.spp < 1:
             raise RispError("iterations must be >= 0, lr > 0, every >= 1, horizon >= 1 and spp >= 1")
+        if self.seed < 0:
+            raise RispError(f"--seed must be >= 0, got {self.seed}")
         if self.grow_horizon < 0:
             raise RispError(f"--grow-horizon must be >= 0, got {self.grow_horizon}")
         if self.grow_horizon and self.task not in ("sysid", "imitate"):

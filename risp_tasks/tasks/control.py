@@ -23,16 +23,30 @@ def read_initial_state(path: str | None, sim) -> torch.Tensor:
         return sim.default_state(1, torch.float64)
     data = read_json(path, "initial-state")
     if "state" in data:
-        s = torch.tensor(data["state"], dtype=torch.float64).reshape(1, -1)
+        s = _numbers(data["state"], path, "state").reshape(1, -1)
         if s.shape[1] != len(sim.state_names):
             raise RispError(f"{path}: 'state' must have {len(sim.state_names)} entries ({', '.join(sim.state_names[:6])}, …)")
     elif "env_state" in data:
-        s = initial_sim_state(sim, torch.tensor(data["env_state"], dtype=torch.float64), None, 1.0)
+        from risp_data.envs import get_environment
+
+        n_env = len(get_environment(sim.env).state_names)
+        e = _numbers(data["env_state"], path, "env_state").reshape(-1)
+        if e.numel() != n_env:
+            raise RispError(f"{path}: 'env_state' must have {n_env} entries, got {e.numel()}")
+        s = initial_sim_state(sim, e, None, 1.0)
     else:
         raise RispError(f"{path}: initial-state JSON needs the key 'state' or 'env_state'")
     if not torch.isfinite(s).all():
         raise RispError(f"{path}: initial state contains NaN/inf")
     return s
+
+
+def _numbers(value, path: str, key: str) -> torch.Tensor:
+    """A flat list of numbers as float64, or one error line (strings, nested or ragged lists)."""
+    try:
+        return torch.tensor(value, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError):
+        raise RispError(f"{path}: {key!r} must be a list of numbers") from None
 
 
 def build(ctx: Context) -> Problem:

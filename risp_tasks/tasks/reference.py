@@ -77,10 +77,14 @@ def _params(cfg: ReferenceConfig, sim, rng, effect, effect_values) -> torch.Tens
     if cfg.params:
         try:
             given = json.loads(cfg.params)
-            assert isinstance(given, dict)
-        except (ValueError, AssertionError):
-            raise RispError(f"--params must be a JSON object of parameter values, got {cfg.params!r}") from None
+        except ValueError:
+            given = None
+        if not isinstance(given, dict):
+            raise RispError(f"--params must be a JSON object of parameter values, got {cfg.params!r}")
         for name, value in given.items():
+            # bool is an int in Python: reject it with the strings and lists
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise RispError(f"--params: {name!r} must be a finite number, got {value!r}")
             p[0, sim.param_index(name)] = float(value)
     if effect and effect_values is not None:
         names = [n for n in sim.param_names if n.startswith(effect + ".")]
@@ -162,8 +166,8 @@ def make_reference(cfg: ReferenceConfig) -> dict:
     from .inputs import read_camera, render_environment, write_actions
     from .simulate import timeline
 
-    if cfg.frames < 2 or not cfg.fps > 0 or cfg.resolution < 2:
-        raise RispError("--frames must be >= 2, --fps > 0 and --resolution >= 2")
+    if cfg.frames < 2 or not cfg.fps > 0 or cfg.resolution < 2 or cfg.seed < 0:
+        raise RispError("--frames must be >= 2, --fps > 0, --resolution >= 2 and --seed >= 0")
     drawn = render_environment(cfg.env, cfg.mesh)
     rng = np.random.default_rng(cfg.seed)
     effect, effect_values = _parse_effect(cfg.effect, cfg.env)
