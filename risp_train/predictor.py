@@ -58,7 +58,10 @@ class RispPredictor(nn.Module):
 
 def predictor_from_checkpoint(ckpt: dict, path: str = "<checkpoint>") -> RispPredictor:
     try:
-        net = ResNet18(ModelConfig.from_dict(ckpt["model_config"]))
+        # the layers' default initialisation draws from torch's global generator and is then overwritten:
+        # draw in a fork so that loading a model leaves the caller's random stream as it was
+        with torch.random.fork_rng(devices=[]):
+            net = ResNet18(ModelConfig.from_dict(ckpt["model_config"]))
         net.load_state_dict(ckpt["model"])
         norm = Normalization.from_dict(ckpt["normalization"])
     except (KeyError, RuntimeError, TypeError, ValueError) as e:

@@ -256,3 +256,17 @@ def test_reference_flight_compensates_a_steady_wind(tmp_path):
     assert np.abs(wind[-30:] - calm[-30:]).max() < 0.05, np.abs(wind - calm).max(0)
     assert np.abs(wind - calm).max() > 0.02  # the wind did push it before the integral caught up
     assert np.abs(np.subtract(runs["wind"]["actions"], runs["calm"]["actions"])).max() > 0.05
+
+
+def test_loading_a_model_leaves_the_global_torch_stream_alone(quad):
+    """The network's default initialisation (overwritten by the checkpoint) must not consume the caller's
+    random numbers: a task's seeded draws are then the same whether or not a model was loaded first."""
+    import torch
+
+    from risp_train.predictor import load
+
+    torch.manual_seed(5)
+    expected = torch.rand(3)
+    torch.manual_seed(5)
+    load(quad[0])
+    assert torch.equal(torch.rand(3), expected)

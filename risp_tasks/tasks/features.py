@@ -58,8 +58,10 @@ class VGGBlock(torch.nn.Module):
     def __init__(self, weights: str):
         super().__init__()
         layers: list[torch.nn.Module] = []
-        for spec in VGG_BLOCK:
-            layers += [torch.nn.MaxPool2d(2)] if spec == "pool" else [torch.nn.Conv2d(*spec, 3, padding=1), torch.nn.ReLU()]
+        with torch.random.fork_rng(devices=[]):  # default init, overwritten below: leave the global stream alone
+            for spec in VGG_BLOCK:
+                layers += ([torch.nn.MaxPool2d(2)] if spec == "pool"
+                           else [torch.nn.Conv2d(*spec, 3, padding=1), torch.nn.ReLU()])
         self.features = torch.nn.Sequential(*layers)
         if not os.path.isfile(weights):
             raise RispError(f"{weights}: perceptual weights file not found")

@@ -81,6 +81,8 @@ def make_loss(mode: str, env, keep: list[int], ref_targets: torch.Tensor | None,
             idx, sl = first(n)
             return target_error(env.state_to_target(s[idx]), truth_targets[sl].to(s.dtype))
         return oracle_loss
+    # Every render uses sampler seed 0 (common random numbers): the image loss is then a deterministic
+    # function of the state, so iterates — and the best-iterate rule — are compared on the same noise.
     if mode == "render":
         def render_loss(s, n=None):
             idx, sl = first(n)
