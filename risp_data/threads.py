@@ -9,7 +9,9 @@ run's arithmetic (and its bitwise resume) does not depend on what else the machi
 
 from __future__ import annotations
 
+import contextlib
 import os
+from typing import Iterator
 
 
 def available_cpus() -> int:
@@ -38,3 +40,16 @@ def set_torch_threads(threads: int | None, *, workers: int = 0, processes: int =
     if torch.get_num_threads() != n:
         torch.set_num_threads(n)
     return n
+
+
+@contextlib.contextmanager
+def torch_threads(n: int) -> Iterator[None]:
+    """Run the block with ``n`` torch intra-op threads, then restore the previous count (also on error)."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)

@@ -168,16 +168,13 @@ def diagnose(cfg: DiagnoseConfig) -> dict:
         raise RispError(f"--seed must be >= 0, got {cfg.seed}")
     if cfg.max_segments < 1 or (cfg.rollout_horizon is not None and cfg.rollout_horizon < 1):
         raise RispError("--max-segments and --rollout-horizon must be >= 1")
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        # nothing below draws from torch's global RNG; seeded in a fork so that stray use is reproducible
-        # and the caller's generator is left as it was
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(int(cfg.seed))
-            return _diagnose(cfg)
-    finally:
-        torch.set_num_threads(threads)
+    from risp_data.threads import torch_threads
+
+    # nothing below draws from torch's global RNG; seeded in a fork so that stray use is reproducible
+    # and the caller's generator is left as it was
+    with torch_threads(1), torch.random.fork_rng(devices=[]):
+        torch.manual_seed(int(cfg.seed))
+        return _diagnose(cfg)
 
 
 def check_out(out: str | None) -> None:

@@ -204,12 +204,10 @@ def _simulate_generic(sim, params, k, n_traj, samples, dt, rng):
 # ------------------------------------------------------------------------------------------------
 def make_synthetic(cfg: SynthConfig, out_dir: str | os.PathLike) -> dict:
     """Write ``cfg.n_traj`` measured trajectories (CSV + sidecar) and ``truth.json``; returns the truth."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # tiny batched ops: see run.diagnose
-    try:
+    from risp_data.threads import torch_threads
+
+    with torch_threads(1):  # tiny batched ops: see run.diagnose
         return _make_synthetic(cfg, out_dir)
-    finally:
-        torch.set_num_threads(threads)
 
 
 def _make_synthetic(cfg: SynthConfig, out_dir: str | os.PathLike) -> dict:

@@ -135,6 +135,12 @@ class Simulator:
     def to_env_state(self, states: torch.Tensor) -> torch.Tensor:
         raise NotImplementedError
 
+    def check_full_states(self, states) -> None:
+        """One clear error unless ``states`` is a tensor of full simulator states (..., X)."""
+        if not torch.is_tensor(states) or states.shape[-1] != len(self.state_names):
+            shape = tuple(states.shape) if torch.is_tensor(states) else type(states).__name__
+            raise RispError(f"states must have shape (..., {len(self.state_names)}), got {shape}")
+
     def check_inputs(self, params, s0, actions, steps) -> None:
         """Clear errors naming the argument for wrong shapes, NaNs and out-of-range values."""
         if not isinstance(steps, int) or steps < 0:

@@ -247,9 +247,7 @@ class HandSimulator(Simulator):
 
     def to_env_state(self, states: torch.Tensor) -> torch.Tensor:
         """Full states (..., 26) -> joint angles (..., 13), the risp_data hand state vector."""
-        if not torch.is_tensor(states) or states.shape[-1] != len(self.state_names):
-            shape = tuple(states.shape) if torch.is_tensor(states) else type(states).__name__
-            raise RispError(f"states must have shape (..., {len(self.state_names)}), got {shape}")
+        self.check_full_states(states)
         return states[..., :N_JOINTS]
 
     def default_state(self, batch: int = 1, dtype: torch.dtype = torch.float64) -> torch.Tensor:

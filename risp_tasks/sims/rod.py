@@ -396,9 +396,7 @@ class RodSimulator(Simulator):
 
     def to_env_state(self, states: torch.Tensor) -> torch.Tensor:
         """Full states (..., 360) -> centreline height [m] at the 10 sensors (..., 10)."""
-        if not torch.is_tensor(states) or states.shape[-1] != len(self.state_names):
-            shape = tuple(states.shape) if torch.is_tensor(states) else type(states).__name__
-            raise RispError(f"states must have shape (..., {len(self.state_names)}), got {shape}")
+        self.check_full_states(states)
         idx = _model(states.dtype).sensor_index
         return states[..., idx].mean(-1)
 
