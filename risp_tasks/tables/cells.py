@@ -66,6 +66,8 @@ def estimation(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> 
     images, true = load_images(art.test_shards(env_name, repeat))
     n = len(images)
     info: dict = {}
+    if m.loss == "state":
+        return {"na": "in estimation `ours-state` is `ours`: N(I) itself, no simulator to fit"}
     if m.name == "oracle":
         pred = true
     elif m.name == "random":
@@ -107,8 +109,8 @@ def _task_run(cfg, art: Artifacts, task: str, env_name: str, method: str, repeat
     # every method needs a network: the tasks read the initial state from N(first two frames); the
     # non-network methods use the `ours` network for that only
     model = art.network(env_name, m.network or "reg")
-    loss = {None: "state", "render": "render", "pixelwise": "pixelwise", "perceptual": "perceptual",
-            "oracle": "oracle"}[m.loss]
+    loss = {None: "state", "render": "render", "state": "state", "pixelwise": "pixelwise",
+            "perceptual": "perceptual", "oracle": "oracle"}[m.loss]
     # optimisers start at the seeded random guess (``start="random"``) or, for control, at the neutral actions
     init = "default" if m.name == "average" or (start == "neutral" and m.loss is not None) else "random"
     iterations = 0 if m.loss is None else cfg.iterations

@@ -13,6 +13,9 @@ Every method is one :class:`Method` value; the cells read its fields and never b
 * ``ours-no-grad`` — RISP's loss ‖N(R(s)) − N(I)‖² with N trained with ``--reg none``.
 * ``ours``         — the same with N trained with the table's regularizer (``TableConfig.reg``, default the
                      paper's surrogate).
+* ``ours-state``   — the ``ours`` network read once per reference frame, and the simulated states fitted to
+                     those readings: ‖s(θ) − N(I)‖ (the tasks' ``state`` loss, ``risp-task``'s default; no rendering
+                     in the loop).  Estimation: N/A, it is ``ours`` there (N(I) itself).
 * ``oracle``       — the ground-truth states (estimation: zero error by definition; tasks: the ``oracle`` loss).
 """
 
@@ -26,7 +29,7 @@ from risp_data.errors import RispError
 @dataclass(frozen=True)
 class Method:
     name: str
-    loss: str | None  # None (no optimisation) | pixelwise | perceptual | render | oracle
+    loss: str | None  # None (no optimisation) | pixelwise | perceptual | render | state | oracle
     network: str | None = None  # None | "none" (ours-no-grad) | "reg" (ours: TableConfig.reg)
     init: str = "default"  # initial guess of the optimising methods: default (average) | random
     description: str = ""
@@ -39,6 +42,7 @@ METHOD_SPECS: dict[str, Method] = {m.name: m for m in (
     Method("perceptual", "perceptual", description="feature loss of a conv extractor"),
     Method("ours-no-grad", "render", network="none", description="RISP network trained with --reg none"),
     Method("ours", "render", network="reg", description="RISP network trained with the regularizer"),
+    Method("ours-state", "state", network="reg", description="the `ours` network, state loss (risp-task's default)"),
     Method("oracle", "oracle", description="ground-truth states"),
 )}
 METHODS: tuple[str, ...] = tuple(METHOD_SPECS)

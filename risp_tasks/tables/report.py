@@ -114,7 +114,8 @@ def markdown(report: dict) -> str:
         lines += ["", f"- N: the `ours` network (`{report['ours_regularizer']}` regularizer); figure: sampling.png."]
     else:
         lines += ["", f"- `ours`: network trained with the `{report['ours_regularizer']}` regularizer "
-                      f"(risp-train preset `{cfg['train_preset']}`); `ours-no-grad`: `--reg none`.",
+                      f"(risp-train preset `{cfg['train_preset']}`), `render` loss ‖N(R(s)) − N(I)‖; `ours-no-grad`: `--reg none`; "
+                      "`ours-state`: the `ours` network, `state` loss ‖s − N(I)‖ (no rendering).",
                   "- `perceptual` feature extractor: " + (f"`{report['perceptual_extractor']}` (risp_tasks/tasks/features.py)."
                                                           if report["perceptual_extractor"] else "not used in this table.")]
     from .sampling import SAMPLING_FRAMES
