@@ -185,7 +185,7 @@ def test_risp_loss_combines_terms(setup):
     net, x, tangents, y, _ = setup
     for reg in ("none", "surrogate", "exact", "stochastic"):
         terms = risp_loss(net, x, y, reg, 2.0, tangents, torch.Generator().manual_seed(0))
-        assert float(terms.total) == pytest.approx(float(terms.error + 2.0 * terms.reg), rel=1e-12)
+        assert float(terms.total.detach()) == pytest.approx(float((terms.error + 2.0 * terms.reg).detach()), rel=1e-12)
         assert (float(terms.reg) > 0) == (reg != "none")
     with pytest.raises(ValueError):
         risp_loss(net, x, y, "bogus", 1.0, tangents)
