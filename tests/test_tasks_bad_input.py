@@ -202,3 +202,26 @@ def test_make_video_params_that_are_not_numbers(tmp_path, params, words):
     assert res.exit_code != 0 and len(lines) == 1 and lines[0].startswith("Error: "), res.output
     assert words in lines[0], lines[0]
     assert not out.exists() and not [p for p in os.listdir(tmp_path) if p != "v.mp4"]
+
+
+def test_rod_initial_state_cannot_be_sensor_heights(tmp_path):
+    """initial_sim_state starts the rod at rest whatever its sensor heights: refuse them rather than ignore them."""
+    from risp_data.errors import RispError
+    from risp_tasks.sims import get_simulator
+    from risp_tasks.tasks.control import read_initial_state
+
+    (tmp_path / "s0.json").write_text(json.dumps({"env_state": [0.1] * 10}))
+    with pytest.raises(RispError, match="cannot be given as 'env_state'"):
+        read_initial_state(str(tmp_path / "s0.json"), get_simulator("rod"))
+    rest = get_simulator("rod").default_state(1)
+    (tmp_path / "full.json").write_text(json.dumps({"state": rest[0].tolist()}))
+    assert read_initial_state(str(tmp_path / "full.json"), get_simulator("rod")).shape == (1, 360)
+
+
+def test_make_video_params_with_a_huge_integer(tmp_path):
+    from risp_tasks.cli import cli
+
+    res = CliRunner().invoke(cli, ["make-video", "--env", "quadrotor", "--out", str(tmp_path / "v.mp4"), "--frames",
+                                   "2", "--resolution", "8", "--params", '{"mass": 1' + "0" * 400 + "}", "--quiet"])
+    lines = [ln for ln in res.output.splitlines() if ln.strip()]
+    assert res.exit_code != 0 and len(lines) == 1 and "'mass' must be a finite number" in lines[0], res.output

@@ -63,11 +63,11 @@ def estimation(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> 
     from risp_train.evaluate import per_image_error, state_differences, summarize_groups
 
     env, m = get_environment(env_name), get_method(method)
+    if m.loss == "state":
+        return {"na": "in estimation `ours-state` is `ours`: N(I) itself, no simulator to fit"}
     images, true = load_images(art.test_shards(env_name, repeat))
     n = len(images)
     info: dict = {}
-    if m.loss == "state":
-        return {"na": "in estimation `ours-state` is `ours`: N(I) itself, no simulator to fit"}
     if m.name == "oracle":
         pred = true
     elif m.name == "random":

@@ -29,6 +29,10 @@ def read_initial_state(path: str | None, sim) -> torch.Tensor:
     elif "env_state" in data:
         from risp_data.envs import get_environment
 
+        if sim.env == "rod":  # initial_sim_state starts the rod at rest: sensor heights cannot set its 360 values
+            raise RispError(f"{path}: the rod's initial state cannot be given as 'env_state' (sensor heights); "
+                            f"give 'state' ({len(sim.state_names)} values) or leave --initial-state out (rest)")
+
         n_env = len(get_environment(sim.env).state_names)
         e = _numbers(data["env_state"], path, "env_state").reshape(-1)
         if e.numel() != n_env:

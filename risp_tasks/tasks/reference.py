@@ -82,9 +82,12 @@ def _params(cfg: ReferenceConfig, sim, rng, effect, effect_values) -> torch.Tens
         if not isinstance(given, dict):
             raise RispError(f"--params must be a JSON object of parameter values, got {cfg.params!r}")
         for name, value in given.items():
-            # bool is an int in Python: reject it with the strings and lists
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise RispError(f"--params: {name!r} must be a finite number, got {value!r}")
+            try:  # bool is an int in Python: rejected with the strings and lists; float() overflows on huge ints
+                ok = not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(float(value))
+            except OverflowError:
+                ok = False
+            if not ok:
+                raise RispError(f"--params: {name!r} must be a finite number, got {str(value)[:40]!r}")
             p[0, sim.param_index(name)] = float(value)
     if effect and effect_values is not None:
         names = [n for n in sim.param_names if n.startswith(effect + ".")]
