@@ -209,7 +209,7 @@ class WdsStream(torch.utils.data.IterableDataset):
     def __iter__(self) -> Iterator[dict]:
         import webdataset as wds
 
-        from risp_data.shards.wds import _raise_with_url, shard_check_for_urls
+        from risp_data.shards.wds import raise_with_url, shard_check_for_urls
 
         urls = list(self.urls)
         if self.shuffle:
@@ -220,11 +220,11 @@ class WdsStream(torch.utils.data.IterableDataset):
         if self.split:
             stages += [wds.split_by_node, wds.split_by_worker]
         # tars → raw samples, each shard's samples checked against its manifest record (count, range, env)
-        stages.append(shard_check_for_urls(list(self.urls), handler=_raise_with_url).samples)
+        stages.append(shard_check_for_urls(list(self.urls), handler=raise_with_url).samples)
         if self.shuffle and self.shuffle_buffer > 1:
             words = [self.seed, self.epoch, self.rank, worker, 0xB0F]
             stages.append(lambda src: _shuffle_buffer(src, self.shuffle_buffer, words))
-        stages.append(wds.map(_decoder(self.need_jacobian), handler=_raise_with_url))
+        stages.append(wds.map(_decoder(self.need_jacobian), handler=raise_with_url))
         return iter(wds.DataPipeline(*stages))
 
 

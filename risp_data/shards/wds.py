@@ -218,7 +218,7 @@ def wds_urls(folder: str) -> list[str]:
     return urls
 
 
-def _raise_with_url(exn: Exception) -> bool:
+def raise_with_url(exn: Exception) -> bool:
     """webdataset handler: turn a tar-level failure into one RispError naming the shard file."""
     if isinstance(exn, RispError):
         raise exn
@@ -236,7 +236,7 @@ class ShardCheck:
 
     def __init__(self, expected: dict[str, tuple[int, int]], env: str, handler=None):
         self.expected = {os.path.normpath(u): r for u, r in expected.items()}
-        self.env, self.handler = env, handler or _raise_with_url
+        self.env, self.handler = env, handler or raise_with_url
 
     def _check_sample(self, url: str, raw: dict[str, Any]) -> None:
         start, stop = self.expected[os.path.normpath(url)]
@@ -299,5 +299,5 @@ def iter_wds(folder: str) -> Iterator[dict[str, Any]]:
     if not urls:
         return iter(())
     pipeline = wds.DataPipeline(wds.SimpleShardList(urls), shard_check(folder).samples,
-                                wds.map(decode_wds_sample, handler=_raise_with_url))
+                                wds.map(decode_wds_sample, handler=raise_with_url))
     return iter(pipeline)
