@@ -29,6 +29,13 @@ def _invoke(args, tmp_path):
     return lines[0]
 
 
+def _error_line(res):
+    """The one `Error:` line of a failed CLI run (commands without the task options _invoke adds)."""
+    lines = [ln for ln in res.output.splitlines() if ln.strip()]
+    assert res.exit_code != 0 and len(lines) == 1 and lines[0].startswith("Error: "), res.output
+    return lines[0]
+
+
 def _actions(video):
     return os.path.splitext(video)[0] + ".actions.csv"
 
@@ -198,9 +205,7 @@ def test_make_video_params_that_are_not_numbers(tmp_path, params, words):
     out = tmp_path / "v.mp4"
     res = CliRunner().invoke(cli, ["make-video", "--env", "quadrotor", "--out", str(out), "--frames", "2",
                                    "--resolution", "8", "--params", params, "--quiet"])
-    lines = [ln for ln in res.output.splitlines() if ln.strip()]
-    assert res.exit_code != 0 and len(lines) == 1 and lines[0].startswith("Error: "), res.output
-    assert words in lines[0], lines[0]
+    assert words in _error_line(res)
     assert not out.exists() and not [p for p in os.listdir(tmp_path) if p != "v.mp4"]
 
 
@@ -223,5 +228,4 @@ def test_make_video_params_with_a_huge_integer(tmp_path):
 
     res = CliRunner().invoke(cli, ["make-video", "--env", "quadrotor", "--out", str(tmp_path / "v.mp4"), "--frames",
                                    "2", "--resolution", "8", "--params", '{"mass": 1' + "0" * 400 + "}", "--quiet"])
-    lines = [ln for ln in res.output.splitlines() if ln.strip()]
-    assert res.exit_code != 0 and len(lines) == 1 and "'mass' must be a finite number" in lines[0], res.output
+    assert "'mass' must be a finite number" in _error_line(res)
