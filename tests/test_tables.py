@@ -17,6 +17,7 @@ from risp_data.errors import RispError
 from risp_tasks.tables.config import make_config
 from risp_tasks.tables.grid import Cell, cell_path, run_folder, run_table
 from risp_tasks.tables.methods import METHODS
+from risp_tasks.tables.report import markdown
 from risp_tasks.tasks.features import VGG_BLOCK, FilterBank, feature_extractor
 
 pytestmark = pytest.mark.timeout(300)
@@ -121,6 +122,11 @@ def test_regularizer_comparison(cache, tmp_path):
     for reg in cfg.methods:
         err, sec = report["cells"]["cube"][reg], report["seconds_per_epoch"]["cube"][reg]
         assert math.isfinite(err["mean"]) and sec["mean"] > 0, (reg, err, sec)
+    # issue 8: per state group in its unit, not only the L1 that mixes metres and radians
+    assert set(report["groups"]) == {"cube position [m]", "cube attitude [deg]"}
+    for reg in cfg.methods:
+        assert math.isfinite(report["groups"]["cube attitude [deg]"][reg]["mean"]), reg
+    assert "| regularizer | cube position [m] | cube attitude [deg] |" in markdown(report)
     # same data and budget, different regularizers: four different networks
     models = {json.load(open(cell_path(report["folder"], Cell("cube", r, 0))))["model"] for r in cfg.methods}
     assert len(models) == 4

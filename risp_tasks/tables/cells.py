@@ -204,7 +204,7 @@ def regularizers(cfg, art: Artifacts, env_name: str, reg: str, repeat: int) -> d
     import json
 
     from risp_data.envs import get_environment
-    from risp_train.evaluate import per_image_error, state_differences
+    from risp_train.evaluate import per_image_error, state_differences, summarize_groups
     from risp_train.predictor import load
 
     env = get_environment(env_name)
@@ -218,6 +218,7 @@ def regularizers(cfg, art: Artifacts, env_name: str, reg: str, repeat: int) -> d
     per_epoch = np.diff([0.0, *ends])
     per_epoch = per_epoch[per_epoch > 0]  # a resumed run restarts its clock
     return {"value": float(e.mean()), "std_images": float(e.std()), "n": len(images), "metric": "l1",
+            "groups": summarize_groups(env_name, pred.numpy(), true.numpy()),  # metres, degrees, … (issue 8)
             "seconds_per_epoch": float(np.median(per_epoch)) if len(per_epoch) else None, "model": path}
 
 

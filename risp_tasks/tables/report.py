@@ -35,7 +35,7 @@ def aggregate(results: list[dict], env: str, method: str, field: str = "value") 
 
 
 def group_cells(cfg: TableConfig, results: list[dict]) -> dict:
-    """The estimation table per state group, in its unit (issue 8: position m, attitude ° geodesic, hand joints
+    """The estimation and regularizer tables per state group, in its unit (issue 8: position m, attitude ° geodesic, hand joints
     rad, rod sensors m): {"<env> <group> [<unit>]": {method: mean ± std over repeats of the repeat's mean}}."""
     from risp_train.evaluate import STATE_GROUPS
 
@@ -64,7 +64,7 @@ def build_report(cfg: TableConfig, results: list[dict]) -> dict:
         for m in cfg.methods:
             table[env][m]["paper"] = published(cfg.table, env, m)
     extra = {}
-    if cfg.table == "estimation":
+    if cfg.table in ("estimation", "regularizers"):
         extra["groups"] = group_cells(cfg, results)
     if cfg.table == "regularizers":
         extra["seconds_per_epoch"] = {env: {m: aggregate(results, env, m, "seconds_per_epoch") for m in cfg.methods}
@@ -104,7 +104,7 @@ def markdown(report: dict) -> str:
     lines += _rows(report["rows"], envs, methods, report["cells"], paper=report["rows"] == "method", notes=notes)
     if report.get("groups"):
         lines += ["", "Per state group, in its unit (the mean error of a repeat's images; mean ± std over repeats):", ""]
-        lines += _rows("method", list(report["groups"]), methods, report["groups"], paper=False, notes=notes)
+        lines += _rows(report["rows"], list(report["groups"]), methods, report["groups"], paper=False, notes=notes)
     if regs:
         lines += ["", "Median wall time per training epoch [s] (mean ± std over repeats; under load, see below):", ""]
         lines += _rows("regularizer", envs, methods, report["seconds_per_epoch"], paper=False, notes=notes)
