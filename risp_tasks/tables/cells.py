@@ -114,7 +114,7 @@ def _task_run(cfg, art: Artifacts, task: str, env_name: str, method: str, repeat
     # optimisers start at the seeded random guess (``start="random"``) or, for control, at the neutral actions
     init = "default" if m.name == "average" or (start == "neutral" and m.loss is not None) else "random"
     iterations = 0 if m.loss is None else cfg.iterations
-    with tempfile.TemporaryDirectory(dir=art.root) as tmp:
+    with tempfile.TemporaryDirectory(prefix=".tmp-cell-", dir=art.root) as tmp:
         tcfg = TaskConfig(task=task, video=video or ref["video"], out=os.path.join(tmp, "result"), model=model,
                           loss=loss, init=init, iterations=iterations, seed=cfg.seed + repeat,
                           actions=None if task == "control" else ref["actions"], truth=truth or ref["truth"],
@@ -172,7 +172,7 @@ def control(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> dic
         s0 = torch.tensor(truth["sim_states"][0], dtype=torch.float64)[None]
     else:  # large states (the rod) are not stored: its reference videos start at rest, as initial_sim_state does
         s0 = initial_sim_state(sim, torch.tensor(truth["env_states"][0], dtype=torch.float64), None, truth["fps"])
-    with tempfile.TemporaryDirectory(dir=art.root) as tmp:
+    with tempfile.TemporaryDirectory(prefix=".tmp-cell-", dir=art.root) as tmp:
         goal_png, init_json, goal_json = (os.path.join(tmp, n) for n in ("goal.png", "initial.json", "goal.json"))
         frame = read_video(ref["video"], resolution=cfg.resolution).frames[horizon]
         Image.fromarray(to_uint8(frame)).save(goal_png)
