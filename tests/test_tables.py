@@ -122,6 +122,8 @@ def test_regularizer_comparison(cache, tmp_path):
     for reg in cfg.methods:
         err, sec = report["cells"]["cube"][reg], report["seconds_per_epoch"]["cube"][reg]
         assert math.isfinite(err["mean"]) and sec["mean"] > 0, (reg, err, sec)
+        cell = json.load(open(cell_path(report["folder"], Cell("cube", reg, 0))))
+        assert cell["timed_epochs"] == 1, cell  # the cube's γ starts at half the run: the second of 2 epochs
     # issue 8: per state group in its unit, not only the L1 that mixes metres and radians
     assert set(report["groups"]) == {"cube position [m]", "cube attitude [deg]"}
     for reg in cfg.methods:
@@ -133,6 +135,22 @@ def test_regularizer_comparison(cache, tmp_path):
     assert os.path.getsize(os.path.join(report["folder"], "regularizers.png")) > 1000
     with pytest.raises(RispError, match="unknown regularizer 'ours'"):
         make_config("regularizers", methods=("ours",))
+
+
+def test_regularizer_epoch_time_counts_only_epochs_with_the_regularizer_on():
+    """A late start (γ from half the run) must not let the cheap early epochs into the median."""
+    from risp_tasks.tables.cells import regularized_epoch_seconds
+
+    history = [{"epoch": e, "seconds": t} for e, t in enumerate([10.0, 20.0, 80.0, 140.0])]
+    assert regularized_epoch_seconds(history, {"steps_per_epoch": [5, 5, 5, 5], "gamma_start": 0.5}) == [60.0, 60.0]
+    assert regularized_epoch_seconds(history, {"steps_per_epoch": [5, 5, 5, 5], "gamma_start": 0.0}) == [
+        10.0, 10.0, 60.0, 60.0]
+    # a start inside epoch 1 (step 7 of 20): epoch 1 is partly unregularized, so the window begins at epoch 2
+    assert regularized_epoch_seconds(history, {"steps_per_epoch": [5, 5, 5, 5], "gamma_start": 0.35}) == [60.0, 60.0]
+    # a resumed run restarts its clock: the negative difference is dropped, the next epochs count
+    resumed = [{"epoch": 0, "seconds": 10.0}, {"epoch": 1, "seconds": 20.0}, {"epoch": 2, "seconds": 5.0},
+               {"epoch": 3, "seconds": 65.0}]
+    assert regularized_epoch_seconds(resumed, {"steps_per_epoch": [5, 5, 5, 5], "gamma_start": 0.5}) == [60.0]
 
 
 def test_rod_temporal_sampling_ablation(cache, tmp_path):

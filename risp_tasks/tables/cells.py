@@ -197,10 +197,30 @@ def sim_env_names(env_name: str) -> tuple[str, ...]:
     return get_environment(env_name).state_names
 
 
+def regularized_epoch_seconds(history: list[dict], run_config: dict) -> list[float]:
+    """Wall seconds of each epoch trained with the regularizer on: epoch e counts when its first step is at or after
+    the start of γ(t), start_fraction · total steps (risp_train.regularizers.gamma_at).  Before it every regularizer
+    trains as `none`, so a median over all epochs of a late-start schedule (the quadrotor's and the cube's start at
+    half the run) would average the two costs.  A `none` run is timed over the same window (its config records the
+    environment's start too).  Epochs of a resumed run whose clock restarted (negative differences) are dropped."""
+    steps = list(run_config["steps_per_epoch"])
+    start = float(run_config.get("gamma_start") or 0.0) * sum(steps)
+    first_step = np.concatenate([[0], np.cumsum(steps)[:-1]])
+    ends = {h["epoch"]: h["seconds"] for h in history if h.get("epoch", -1) >= 0}
+    out, previous = [], 0.0
+    for e in range(len(steps)):
+        if e not in ends:
+            break
+        seconds, previous = ends[e] - previous, ends[e]
+        if first_step[e] >= start and seconds > 0:
+            out.append(float(seconds))
+    return out
+
+
 def regularizers(cfg, art: Artifacts, env_name: str, reg: str, repeat: int) -> dict:
     """The regularizer comparison (the paper's future work): a network trained with ``reg`` on the same training
     set with the same budget (epochs, batch, γ preset) and training seed ``seed + repeat``; its estimation error
-    on repeat k's target-domain images and its median wall time per epoch (risp-train's history.json)."""
+    on repeat k's target-domain images and its median wall time per epoch with the regularizer on."""
     import json
 
     from risp_data.envs import get_environment
@@ -213,13 +233,13 @@ def regularizers(cfg, art: Artifacts, env_name: str, reg: str, repeat: int) -> d
     with torch.no_grad():
         pred = load(path)(images).to(torch.float64)
     e = per_image_error(state_differences(pred.numpy(), true.numpy(), env.state_names), "l1")
-    with open(os.path.join(os.path.dirname(path), "history.json")) as f:
-        ends = [h["seconds"] for h in json.load(f) if h.get("epoch", -1) >= 0]
-    per_epoch = np.diff([0.0, *ends])
-    per_epoch = per_epoch[per_epoch > 0]  # a resumed run restarts its clock
+    run = os.path.dirname(path)
+    with open(os.path.join(run, "history.json")) as f, open(os.path.join(run, "config.json")) as g:
+        per_epoch = regularized_epoch_seconds(json.load(f), json.load(g))
     return {"value": float(e.mean()), "std_images": float(e.std()), "n": len(images), "metric": "l1",
             "groups": summarize_groups(env_name, pred.numpy(), true.numpy()),  # metres, degrees, … (issue 8)
-            "seconds_per_epoch": float(np.median(per_epoch)) if len(per_epoch) else None, "model": path}
+            "seconds_per_epoch": float(np.median(per_epoch)) if per_epoch else None,
+            "timed_epochs": len(per_epoch), "model": path}
 
 
 def sampling(cfg, art: Artifacts, env_name: str, scheme: str, repeat: int) -> dict:

@@ -106,7 +106,7 @@ def markdown(report: dict) -> str:
         lines += ["", "Per state group, in its unit (the mean error of a repeat's images; mean ± std over repeats):", ""]
         lines += _rows(report["rows"], list(report["groups"]), methods, report["groups"], paper=False, notes=notes)
     if regs:
-        lines += ["", "Median wall time per training epoch [s] (mean ± std over repeats; under load, see below):", ""]
+        lines += ["", "Median wall time per training epoch with the regularizer on [s] (mean ± std over repeats; under load, see below):", ""]
         lines += _rows("regularizer", envs, methods, report["seconds_per_epoch"], paper=False, notes=notes)
         lines += ["", f"- Networks: risp-train preset `{cfg['train_preset']}`, γ its per-environment default; "
                       "figure: regularizers.png."]
