@@ -35,8 +35,9 @@ def aggregate(results: list[dict], env: str, method: str, field: str = "value") 
 
 
 def group_cells(cfg: TableConfig, results: list[dict]) -> dict:
-    """The estimation and regularizer tables per state group, in its unit (issue 8: position m, attitude ° geodesic, hand joints
-    rad, rod sensors m): {"<env> <group> [<unit>]": {method: mean ± std over repeats of the repeat's mean}}."""
+    """The estimation and regularizer tables per state group, in its unit (issue 8: position m, attitude °
+    geodesic, hand joints rad, rod sensors m): {"<env> <group> [<unit>]": {row: mean ± std over repeats of the
+    repeat's mean}}."""
     from risp_train.evaluate import STATE_GROUPS
 
     columns: dict = {}
@@ -106,7 +107,8 @@ def markdown(report: dict) -> str:
         lines += ["", "Per state group, in its unit (the mean error of a repeat's images; mean ± std over repeats):", ""]
         lines += _rows(report["rows"], list(report["groups"]), methods, report["groups"], paper=False, notes=notes)
     if regs:
-        lines += ["", "Median wall time per training epoch with the regularizer on [s] (mean ± std over repeats; under load, see below):", ""]
+        lines += ["", "Median wall time per training epoch with the regularizer on [s] "
+                      "(mean ± std over repeats; under load, see below):", ""]
         lines += _rows("regularizer", envs, methods, report["seconds_per_epoch"], paper=False, notes=notes)
         lines += ["", f"- Networks: risp-train preset `{cfg['train_preset']}`, γ its per-environment default; "
                       "figure: regularizers.png."]
