@@ -123,9 +123,10 @@ def markdown(report: dict) -> str:
     from .sampling import SAMPLING_FRAMES
 
     frames = SAMPLING_FRAMES if report["rows"] == "scheme" else cfg["frames"]
+    # the regularizer table trains and evaluates networks: no videos, no optimisation
+    tasks = "" if regs else f"{frames} video frames, {cfg['iterations']} optimisation iterations, "
     lines += [f"- Sizes: {cfg['n_train']} training samples, {cfg['n_test']} test images per repeat, "
-              f"{frames} video frames, {cfg['iterations']} optimisation iterations, spp {cfg['spp']}, "
-              f"{cfg['resolution']}×{cfg['resolution']}, seed {cfg['seed']}.",
+              f"{tasks}spp {cfg['spp']}, {cfg['resolution']}×{cfg['resolution']}, seed {cfg['seed']}.",
               f"- Compute: {report['seconds']:.0f} s summed over cells (max 1-min load average "
               f"{report['loadavg_max']:.1f}: timings taken under load).",
               f"- † Paper numbers: {report['paper_source']}."]
