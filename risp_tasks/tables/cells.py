@@ -41,6 +41,18 @@ def average_state(env, shards_dir: str) -> torch.Tensor:
     return env.target_to_state(env.state_to_target(states).mean(0, keepdim=True))[0]
 
 
+def prediction_errors(env, pred: torch.Tensor, true: torch.Tensor) -> dict:
+    """A cell's state errors on its test images: the paper's per-image L1 (angles wrapped; mean, std over images)
+    and the per-group errors in their units (issue 8: metres, degrees geodesic, radians)."""
+    from risp_train.evaluate import per_image_error, state_differences, summarize_groups
+
+    diff = state_differences(pred.numpy(), true.numpy(), env.state_names)
+    e = per_image_error(diff, "l1")
+    return {"value": float(e.mean()), "std_images": float(e.std()), "n": len(pred), "metric": "l1",
+            "per_dim_mae": np.abs(diff).mean(0).tolist(), "state_names": list(env.state_names),
+            "groups": summarize_groups(env.name, pred.numpy(), true.numpy())}
+
+
 def optimise_states(cfg, env, images: torch.Tensor, init: torch.Tensor, loss_name: str) -> torch.Tensor:
     """Per-image analysis by synthesis: s ← argmin ‖R(s) − I‖² (pixelwise) or ‖F(R(s)) − F(I)‖² (perceptual),
     R = risp_data.diff_render in the train domain's nominal look, through the tasks' one loop."""
@@ -60,7 +72,6 @@ def optimise_states(cfg, env, images: torch.Tensor, init: torch.Tensor, loss_nam
 
 def estimation(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> dict:
     from risp_data.envs import get_environment
-    from risp_train.evaluate import per_image_error, state_differences, summarize_groups
 
     env, m = get_environment(env_name), get_method(method)
     if m.loss == "state":
@@ -88,11 +99,7 @@ def estimation(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> 
             pred = optimise_states(cfg, env, images, avg.expand(n, -1), m.loss)
             if m.name == "perceptual":
                 info["extractor"] = feature_extractor(cfg.perceptual_weights).name
-    diff = state_differences(pred.numpy(), true.numpy(), env.state_names)
-    e = per_image_error(diff, "l1")
-    return {"value": float(e.mean()), "std_images": float(e.std()), "n": n, "metric": "l1",
-            "per_dim_mae": np.abs(diff).mean(0).tolist(), "state_names": list(env.state_names),
-            "groups": summarize_groups(env_name, pred.numpy(), true.numpy()), **info}  # metres, degrees, …
+    return {**prediction_errors(env, pred, true), **info}
 
 
 # ------------------------------------------------------------------------------------------ tasks
@@ -224,7 +231,6 @@ def regularizers(cfg, art: Artifacts, env_name: str, reg: str, repeat: int) -> d
     import json
 
     from risp_data.envs import get_environment
-    from risp_train.evaluate import per_image_error, state_differences, summarize_groups
     from risp_train.predictor import load
 
     env = get_environment(env_name)
@@ -232,12 +238,10 @@ def regularizers(cfg, art: Artifacts, env_name: str, reg: str, repeat: int) -> d
     images, true = load_images(art.test_shards(env_name, repeat))
     with torch.no_grad():
         pred = load(path)(images).to(torch.float64)
-    e = per_image_error(state_differences(pred.numpy(), true.numpy(), env.state_names), "l1")
     run = os.path.dirname(path)
     with open(os.path.join(run, "history.json")) as f, open(os.path.join(run, "config.json")) as g:
         per_epoch = regularized_epoch_seconds(json.load(f), json.load(g))
-    return {"value": float(e.mean()), "std_images": float(e.std()), "n": len(images), "metric": "l1",
-            "groups": summarize_groups(env_name, pred.numpy(), true.numpy()),  # metres, degrees, … (issue 8)
+    return {**prediction_errors(env, pred, true),
             "seconds_per_epoch": float(np.median(per_epoch)) if per_epoch else None,
             "timed_epochs": len(per_epoch), "model": path}
 
