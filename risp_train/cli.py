@@ -43,6 +43,7 @@ def cli():
 @click.option("--threads", type=int, default=0, show_default=True, help="torch threads per rank (0: the CPUs left after --workers; 1 on a shared 2-core machine).")
 @click.option("--device", default="auto", show_default=True, help="auto (CUDA when torch sees a GPU), cpu, cuda or cuda:N.")
 @click.option("--format", "fmt", default="auto", show_default=True, help="Read wds or zarr shards (auto: wds if present).")
+@click.option("--cache", default="auto", show_default=True, help="memory: decode the data once and train from memory; stream: decode every epoch; auto: memory when it needs at most half of the available memory.")
 @click.option("--checkpoint-every", type=int, default=0, show_default=True, help="Also checkpoint every N steps (0: epoch ends only).")
 @click.option("--val", type=click.Path(), default=None, help="Held-out shard folder evaluated at each epoch end.")
 @click.option("--resume", is_flag=True, help="Continue the run in --out from its last checkpoint.")
@@ -50,8 +51,9 @@ def cli():
 @click.option("--allow-incomplete", is_flag=True, help="Train on an unfinished shard folder's complete shards.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def fit(shards, out, reg, gamma, gamma_ramp, gamma_start, preset, epochs, batch_size, lr, weight_decay, width, seed, workers,
-        threads, device, fmt, checkpoint_every, val, resume, overwrite, allow_incomplete, quiet):
-    """Train on the shard folder SHARDS (streamed; resolution from its manifest).
+        threads, device, fmt, cache, checkpoint_every, val, resume, overwrite, allow_incomplete, quiet):
+    """Train on the shard folder SHARDS (decoded once into memory where it fits, else streamed; resolution from
+    its manifest).
 
     SHARDS may also be a folder holding data sets (e.g. shards/ after `risp-data render`): the one data set in
     it, or its one train-domain set with Jacobians, is used; otherwise the error lists what it holds."""
@@ -68,7 +70,7 @@ def fit(shards, out, reg, gamma, gamma_ramp, gamma_start, preset, epochs, batch_
         out = os.path.join("runs", f"{os.path.basename(os.path.normpath(shards))}-{reg}-s{seed}")
     cfg = make_config(shards, out, preset=preset, reg=reg, gamma=gamma, gamma_ramp=gamma_ramp, gamma_start=gamma_start,
                       epochs=epochs, batch_size=batch_size, lr=lr, weight_decay=weight_decay, width=width, seed=seed,
-                      workers=workers, threads=threads, device=device, format=fmt,
+                      workers=workers, threads=threads, device=device, format=fmt, cache=cache,
                       checkpoint_every=checkpoint_every, val=val)
     if rank0:
         click.echo(f"data: {shards}; preset: {preset} ({why}); regularizer: {describe_regularizer(cfg, shards)}; "

@@ -60,6 +60,7 @@ class TrainConfig:
     blocks: tuple[int, int, int, int] = (2, 2, 2, 2)
     stem: str = "auto"  # auto | imagenet | stride2 | small (auto: model.stem_for_resolution)
     format: str = "auto"  # auto | wds | zarr
+    cache: str = "auto"  # auto | memory | stream: decode the data once into memory, or stream it (memory.py)
     shuffle_buffer: int = 256  # samples held by each worker's shuffle buffer
     stats_samples: int = 256  # samples streamed for the normalization statistics
     checkpoint_every: int = 0  # also checkpoint every N optimizer steps (0: only at epoch ends)
@@ -125,6 +126,8 @@ def validate(cfg: TrainConfig) -> None:
         raise RispError(f"--seed must be >= 0, got {cfg.seed}")
     if cfg.workers < 0 or cfg.checkpoint_every < 0 or cfg.threads < 0:
         raise RispError("--workers, --threads and --checkpoint-every must be >= 0")
+    if cfg.cache not in ("auto", "memory", "stream"):
+        raise RispError(f"unknown --cache {cfg.cache!r}; choose one of: auto, memory, stream")
     if cfg.stem != "auto" and cfg.stem not in STEM_FACTOR:
         raise RispError(f"unknown stem {cfg.stem!r}; choose auto, {', '.join(STEM_FACTOR)}")
 

@@ -200,11 +200,12 @@ class WdsStream(torch.utils.data.IterableDataset):
     """One epoch of decoded samples for this rank, split over DataLoader workers (see the module doc)."""
 
     def __init__(self, urls: tuple[str, ...], seed: int, epoch: int, shuffle_buffer: int, need_jacobian: bool,
-                 rank: int, shuffle: bool = True, split: bool = True):
+                 rank: int, shuffle: bool = True, split: bool = True, split_nodes: bool = True):
         super().__init__()
         self.urls, self.seed, self.epoch = urls, seed, epoch
         self.shuffle_buffer, self.need_jacobian, self.rank, self.shuffle = shuffle_buffer, need_jacobian, rank, shuffle
         self.split = split  # False: every sample of every shard, in order (statistics, evaluation)
+        self.split_nodes = split_nodes  # False: split over DataLoader workers only (each rank reads every shard)
 
     def __iter__(self) -> Iterator[dict]:
         import webdataset as wds
@@ -218,7 +219,7 @@ class WdsStream(torch.utils.data.IterableDataset):
         worker = 0 if info is None else info.id
         stages: list[Any] = [wds.SimpleShardList(urls)]
         if self.split:
-            stages += [wds.split_by_node, wds.split_by_worker]
+            stages += [wds.split_by_node, wds.split_by_worker] if self.split_nodes else [wds.split_by_worker]
         # tars → raw samples, each shard's samples checked against its manifest record (count, range, env)
         stages.append(shard_check_for_urls(list(self.urls), handler=raise_with_url).samples)
         if self.shuffle and self.shuffle_buffer > 1:

@@ -30,6 +30,7 @@ from . import checkpoint as ckpt_io
 from .config import RESUME_FIELDS, TrainConfig, resolved_gamma, resolved_gamma_start
 from .data import (ShardSet, check_complete, check_environment, iter_batches, make_loader, manifest_hash, open_shards,
                    sample_counts, steps_per_epoch)
+from .memory import load_memory_set, memory_batches, memory_steps_per_epoch, resolve_cache
 from .model import ModelConfig, ResNet18, build_model, stem_for_resolution
 from .normalization import Normalization, StatsAccumulator
 from .regularizers import gamma_at, psi_scale, risp_loss
@@ -169,23 +170,21 @@ def fit(cfg: TrainConfig, *, resume: bool = False, progress: bool = True,
 
     Refuses an incomplete shard folder unless ``allow_incomplete`` and a folder holding a run unless
     ``resume`` or ``overwrite`` (docs/cli-train.md). The run uses one fixed torch thread count
-    (``cfg.threads``; 0: the CPUs left after the data workers, risp_data.threads) and gives the caller's
-    setting back when it returns.
+    (``cfg.threads``; 0: the CPUs left after the data workers — none while training from memory —,
+    risp_data.threads) and gives the caller's setting back when it returns.
     """
     device = resolve_device(cfg.device)  # before anything is written: a bad --device leaves no run folder
     dist_info = init_distributed()
     before = torch.get_num_threads()
-    threads = set_torch_threads(cfg.threads, workers=cfg.workers,
-                                processes=int(os.environ.get("LOCAL_WORLD_SIZE", str(dist_info.world_size))))
     try:
-        return _fit(cfg, dist_info, threads, device=device, resume=resume, progress=progress,
+        return _fit(cfg, dist_info, device=device, resume=resume, progress=progress,
                     stop_after_step=stop_after_step,
                     overwrite=overwrite, allow_incomplete=allow_incomplete)
     finally:
         torch.set_num_threads(before)
 
 
-def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, device: torch.device, resume: bool, progress: bool,
+def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: bool, progress: bool,
          stop_after_step: int | None, overwrite: bool, allow_incomplete: bool) -> str:
     from risp_data.envs import get_environment
 
@@ -209,7 +208,23 @@ def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, device: torch.devic
     psi_std = psi_scale(shards.env)  # σ_ψ: the regularizer measures ψ in standard deviations (regularizers.py)
     mhash = manifest_hash(shards.manifest)
 
-    plan = [steps_per_epoch(shards, cfg.seed, e, cfg.batch_size, world, cfg.workers) for e in range(cfg.epochs)]
+    cache = resolve_cache(cfg.cache, shards, need_j)  # memory | stream (memory.py); a resume keeps its own below
+    last_path = os.path.join(cfg.out, LAST)
+    state = None
+    if resume and not overwrite and os.path.exists(last_path):
+        state = ckpt_io.load_checkpoint(last_path)
+        stored_cache = state.get("cache", "stream")  # checkpoints from before the cache streamed
+        if cfg.cache == "auto":
+            cache = stored_cache
+        elif cfg.cache != stored_cache:
+            raise RispError(f"cannot resume {last_path} with --cache {cfg.cache}: it was trained with --cache "
+                            f"{stored_cache} (another sample order); pass --cache {stored_cache} or auto")
+    threads = set_torch_threads(cfg.threads, workers=0 if cache == "memory" else cfg.workers,
+                                processes=int(os.environ.get("LOCAL_WORLD_SIZE", str(world))))
+    if cache == "memory":
+        plan = [memory_steps_per_epoch(shards.num_samples, cfg.batch_size, world)] * cfg.epochs
+    else:
+        plan = [steps_per_epoch(shards, cfg.seed, e, cfg.batch_size, world, cfg.workers) for e in range(cfg.epochs)]
     total_steps = sum(plan)
     if total_steps == 0:
         raise RispError(f"--batch-size {cfg.batch_size} is larger than the samples each of the {world} process(es) "
@@ -219,11 +234,8 @@ def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, device: torch.devic
     check_run_folder(cfg.out, resume, overwrite)
     os.makedirs(cfg.out, exist_ok=True)
     remove_temporaries(cfg.out)  # half-written checkpoints/logs of a killed run (never under their names)
-    last_path = os.path.join(cfg.out, LAST)
     csv_path = os.path.join(cfg.out, "losses.csv")
-    state = None
-    if os.path.exists(last_path):
-        state = ckpt_io.load_checkpoint(last_path)
+    if state is not None:
         ckpt_io.check_compatible(state, last_path, env=shards.env, state_names=env.state_names,
                                  resolution=shards.resolution)
         if state.get("manifest_hash") != mhash:
@@ -274,7 +286,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, device: torch.devic
             "model": net.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),
             "progress": {"epoch": epoch, "batch": batch, "global_step": step, "total_steps": total_steps,
                          "complete": complete},
-            "history": history, "world_size": world, "workers": cfg.workers, "threads": threads,
+            "history": history, "world_size": world, "workers": cfg.workers, "threads": threads, "cache": cache,
             "device": str(device), "torch_version": torch.__version__,
             "epoch_sums": [float(v) for v in sums] if batch > 0 else [0.0, 0.0, 0.0],
             "samples": sample_counts(shards),
@@ -285,7 +297,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, device: torch.devic
                     {"config": cfg.to_dict(), "model_config": model_cfg.to_dict(), "gamma": gamma,
                      "gamma_start": gamma_start, "env": shards.env,
                      "manifest_hash": mhash, "normalization": norm.to_dict(), "world_size": world,
-                     "threads": threads, "device": str(device), "steps_per_epoch": plan,
+                     "threads": threads, "cache": cache, "device": str(device), "steps_per_epoch": plan,
                      "samples": sample_counts(shards)})
     from tqdm.auto import tqdm
 
@@ -299,14 +311,22 @@ def _fit(cfg: TrainConfig, dist_info: Dist, threads: int, *, device: torch.devic
         if new:
             writer.writeheader()
     t_start = time.perf_counter()
+    mset = None
+    if cache == "memory":  # decoded once (checksums and all); the epochs below only index it
+        mset = load_memory_set(shards, need_jacobian=need_j, workers=cfg.workers, state_dim=env.state_dim,
+                               progress=progress and rank == 0)
     try:
         for epoch in range(epoch0, cfg.epochs):
             skip = batch0 if epoch == epoch0 else 0
             if skip >= plan[epoch]:
                 continue
-            loader = make_loader(shards, seed=cfg.seed, epoch=epoch, batch_size=cfg.batch_size, workers=cfg.workers,
-                                 need_jacobian=need_j, rank=rank, world_size=world,
-                                 shuffle_buffer=cfg.shuffle_buffer, state_dim=env.state_dim)
+            if mset is not None:
+                loader = memory_batches(mset, seed=cfg.seed, epoch=epoch, batch_size=cfg.batch_size, rank=rank,
+                                        world_size=world)
+            else:
+                loader = make_loader(shards, seed=cfg.seed, epoch=epoch, batch_size=cfg.batch_size,
+                                     workers=cfg.workers, need_jacobian=need_j, rank=rank, world_size=world,
+                                     shuffle_buffer=cfg.shuffle_buffer, state_dim=env.state_dim)
             sums[:] = 0.0
             if skip and partial_sums is not None:  # resumed mid-epoch: the steps before the checkpoint count too
                 sums[:] = partial_sums

@@ -92,7 +92,8 @@ class Artifacts:
         shards = self.train_shards(env)
         reg = cfg.reg if which == "reg" else which
         tcfg = make_config(shards, "", preset=cfg.train_preset, reg=reg, epochs=cfg.epochs, width=cfg.width,
-                           batch_size=cfg.batch_size, seed=cfg.seed if seed is None else seed, workers=cfg.workers)
+                           batch_size=cfg.batch_size, seed=cfg.seed if seed is None else seed, workers=cfg.workers,
+                           cache="memory", threads=1)  # one thread, as every cell (grid.py); memory: a fixed order
         out = os.path.join(self.root, "runs", f"{env}-{reg}-{network_key(tcfg, env, manifest_hash(open_shards(shards).manifest))}")
         model = os.path.join(out, MODEL)
         if not os.path.exists(model):

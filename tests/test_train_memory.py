@@ -1,0 +1,150 @@
+"""risp-train's in-memory training data (risp_train/memory.py) on tiny real shards.
+
+What must hold: the decoded tensors are the streamed samples, value for value, in either shard format; a run
+from memory is bitwise the run that streams the zarr store (same batch plan); it resumes bitwise; ``auto``
+falls back to streaming when memory is short; damage is one clear error, as on the streamed path.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+import torch
+
+from risp_data.errors import RispError
+from risp_train.config import make_config
+from risp_train.data import iter_batches, open_shards
+from risp_train.memory import (estimate_bytes, load_memory_set, memory_batches, memory_steps_per_epoch,
+                               resolve_cache)
+from risp_train.train import TrainingStopped, fit
+
+from test_train_pipeline import _render
+
+
+@pytest.fixture(scope="module")
+def shards(tmp_path_factory):
+    root = tmp_path_factory.mktemp("memory-shards")
+    return {"train": _render(root / "train", 48, 16, 5), "root": root}
+
+
+def _cfg(shards, out, **kw):
+    base = dict(epochs=2, batch_size=8, width=4, workers=0, lr=3e-3, shuffle_buffer=8, stats_samples=32,
+                reg="stochastic", gamma=0.5)
+    base.update(kw)
+    return make_config(shards["train"], str(out), preset="cpu", **base)
+
+
+def _weights(path):
+    return torch.load(path, weights_only=True)["model"]
+
+
+def _assert_same_weights(a, b):
+    wa, wb = _weights(a), _weights(b)
+    assert wa.keys() == wb.keys()
+    for k in wa:
+        torch.testing.assert_close(wa[k], wb[k], rtol=0, atol=0, msg=k)
+
+
+@pytest.mark.parametrize("fmt, workers", [("wds", 0), ("wds", 2), ("zarr", 1)])
+def test_memory_set_holds_the_streamed_samples(shards, fmt, workers):
+    s = open_shards(shards["train"], fmt)
+    m = load_memory_set(s, need_jacobian=True, workers=workers, state_dim=6)
+    assert len(m) == 48 and m.nbytes == estimate_bytes(s, True)
+    assert m.keys == tuple(f"s{i:08d}" for i in range(48))  # shard order, as the zarr store counts
+    streamed = {}
+    for b in iter_batches(s, 7, need_jacobian=True, state_dim=6):
+        for i, key in enumerate(b["key"]):
+            streamed[key] = {f: b[f][i] for f in ("image", "state", "psi", "jacobian")}
+    assert set(streamed) == set(m.keys)
+    for p, key in enumerate(m.keys):
+        for f, t in (("image", m.image), ("state", m.state), ("psi", m.psi), ("jacobian", m.jacobian)):
+            torch.testing.assert_close(t[p], streamed[key][f], rtol=0, atol=0, msg=f"{key} {f}")
+    assert m.jacobian.abs().sum() > 0 and m.image.dtype == torch.float32 and m.state.dtype == torch.float64
+
+
+def test_memory_batches_are_the_zarr_plan_and_cover_an_epoch(shards):
+    m = load_memory_set(open_shards(shards["train"]), need_jacobian=False)
+    assert m.jacobian is None
+    for world in (1, 2):
+        steps = memory_steps_per_epoch(len(m), 8, world)
+        seen = []
+        for rank in range(world):
+            batches = list(memory_batches(m, seed=3, epoch=1, batch_size=8, rank=rank, world_size=world))
+            assert len(batches) == steps and all(len(b["key"]) == 8 for b in batches)
+            seen += [k for b in batches for k in b["key"]]
+        assert len(seen) == len(set(seen)) == steps * 8 * world  # no sample twice within an epoch
+    order = lambda e: [k for b in memory_batches(m, seed=3, epoch=e, batch_size=8) for k in b["key"]]  # noqa: E731
+    assert order(0) != order(1) and order(1) == order(1)  # a new permutation per epoch, a fixed one per (seed, epoch)
+
+
+def test_training_from_memory_is_the_zarr_stream_run(shards, tmp_path):
+    """Same batch plan, same decoded values → bitwise the same network as streaming the zarr store."""
+    streamed = fit(_cfg(shards, tmp_path / "zs", format="zarr", cache="stream"), progress=False)
+    memory = fit(_cfg(shards, tmp_path / "zm", format="zarr", cache="memory"), progress=False)
+    from_wds = fit(_cfg(shards, tmp_path / "wm", format="wds", cache="memory", workers=2), progress=False)
+    _assert_same_weights(streamed, memory)
+    _assert_same_weights(memory, from_wds)  # the two formats decode to the same floats
+    assert json.load(open(tmp_path / "zm" / "config.json"))["cache"] == "memory"
+    assert torch.load(memory, weights_only=True)["cache"] == "memory"
+    assert json.load(open(tmp_path / "zs" / "config.json"))["cache"] == "stream"
+    # the streamed webdataset run shuffles shards and a buffer: another order, so other weights
+    wds_stream = fit(_cfg(shards, tmp_path / "ws", format="wds", cache="stream"), progress=False)
+    assert any(not torch.equal(a, b) for a, b in zip(_weights(wds_stream).values(), _weights(memory).values()))
+
+
+def test_memory_run_resumes_bitwise_and_keeps_its_cache(shards, tmp_path):
+    kw = dict(cache="memory", checkpoint_every=5, epochs=2)  # 6 steps per epoch
+    a = fit(_cfg(shards, tmp_path / "a", **kw), progress=False)
+    cfg_b = _cfg(shards, tmp_path / "b", **kw)
+    with pytest.raises(TrainingStopped):
+        fit(cfg_b, progress=False, stop_after_step=8)
+    with pytest.raises(RispError, match="--cache memory"):  # another sample order cannot continue this run
+        fit(_cfg(shards, tmp_path / "b", **dict(kw, cache="stream")), resume=True, progress=False)
+    b = fit(_cfg(shards, tmp_path / "b", **dict(kw, cache="auto")), resume=True, progress=False)  # auto: the run's own
+    _assert_same_weights(a, b)
+
+
+def test_auto_streams_when_memory_is_short_and_memory_refuses_clearly(shards):
+    s = open_shards(shards["train"])
+    need = estimate_bytes(s, True)
+    assert resolve_cache("auto", s, True, available=4 * need) == "memory"
+    assert resolve_cache("auto", s, True, available=need) == "stream"  # more than half of what is free
+    assert resolve_cache("stream", s, True, available=10 * need) == "stream"
+    with pytest.raises(RispError, match="--cache stream"):
+        resolve_cache("memory", s, True, available=need // 2)
+    with pytest.raises(RispError, match="unknown --cache"):
+        resolve_cache("disk", s, True)
+    with pytest.raises(RispError, match="unknown --cache"):
+        make_config(shards["train"], "x", preset="cpu", cache="disk")
+
+
+def test_memory_fit_uses_every_cpu_for_torch(shards, tmp_path, monkeypatch):
+    """The data workers only decode before training: from memory they do not count against torch's threads."""
+    import risp_data.threads as threads_mod
+
+    monkeypatch.setattr(threads_mod, "available_cpus", lambda: 2)
+    mem = fit(_cfg(shards, tmp_path / "m", cache="memory", workers=2, epochs=1, threads=0), progress=False)
+    stream = fit(_cfg(shards, tmp_path / "s", cache="stream", workers=2, epochs=1, threads=0), progress=False)
+    assert torch.load(mem, weights_only=True)["threads"] == 2
+    assert torch.load(stream, weights_only=True)["threads"] == 1
+
+
+def test_damaged_shard_is_one_error_before_training(shards, tmp_path):
+    folder = tmp_path / "damaged"
+    shutil.copytree(shards["train"], folder)
+    tar = sorted((folder / "wds").glob("*.tar"))[1]
+    import tarfile
+
+    with tarfile.open(tar) as t:
+        member = next(m for m in t.getmembers() if m.name.endswith("image.exr"))
+    data = bytearray(tar.read_bytes())
+    data[member.offset_data + 100:member.offset_data + 164] = bytes(64)  # inside an image: its sha256 fails
+    tar.write_bytes(bytes(data))
+    out = tmp_path / "run"
+    with pytest.raises(RispError) as e:
+        fit(make_config(str(folder), str(out), preset="cpu", epochs=1, batch_size=8, width=4, workers=0,
+                        format="wds", cache="memory", stats_samples=8), progress=False)
+    assert "\n" not in str(e.value) and "shard" in str(e.value)
+    assert not (out / "model.pt").exists() and not (out / "last.pt").exists()
