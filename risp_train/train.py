@@ -147,14 +147,15 @@ def _write_json(path: str, obj) -> None:
     write_text_atomic(path, json.dumps(obj, indent=1, sort_keys=True) + "\n")
 
 
-def check_run_folder(out: str, resume: bool, overwrite: bool) -> None:
+def check_run_folder(out: str, resume: bool, overwrite: bool, remove: bool = True) -> None:
     """Refuse a run folder that holds a model or checkpoint unless ``--resume`` or ``--overwrite`` says what
-    to do with it; with ``--overwrite`` remove them (after every other check has passed)."""
+    to do with it; with ``--overwrite`` remove them (after every other check has passed; ``remove=False``: only
+    check)."""
     held = [name for name in (MODEL, LAST) if os.path.exists(os.path.join(out, name))]
     if resume and overwrite:
         raise RispError("--resume and --overwrite exclude each other")
     if overwrite:
-        for name in held:
+        for name in held if remove else ():
             os.unlink(os.path.join(out, name))
     elif held and not resume:
         raise RispError(f"{out} already holds a run ({', '.join(held)}); pass --resume to continue it, "
@@ -231,6 +232,11 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
                         f"and {cfg.workers} worker(s) read from {len(shards.counts)} shard(s) of {shards.folder}; "
                         "lower --batch-size or --workers, or render more samples")
 
+    check_run_folder(cfg.out, resume, overwrite, remove=False)  # refuse before the decode below, delete nothing
+    mset = None
+    if cache == "memory":  # decoded once (checksums and all) before anything is written; the epochs only index it
+        mset = load_memory_set(shards, need_jacobian=need_j, workers=cfg.workers, state_dim=env.state_dim,
+                               progress=progress and rank == 0)
     check_run_folder(cfg.out, resume, overwrite)
     os.makedirs(cfg.out, exist_ok=True)
     remove_temporaries(cfg.out)  # half-written checkpoints/logs of a killed run (never under their names)
@@ -311,10 +317,6 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
         if new:
             writer.writeheader()
     t_start = time.perf_counter()
-    mset = None
-    if cache == "memory":  # decoded once (checksums and all); the epochs below only index it
-        mset = load_memory_set(shards, need_jacobian=need_j, workers=cfg.workers, state_dim=env.state_dim,
-                               progress=progress and rank == 0)
     try:
         for epoch in range(epoch0, cfg.epochs):
             skip = batch0 if epoch == epoch0 else 0

@@ -143,8 +143,11 @@ def test_damaged_shard_is_one_error_before_training(shards, tmp_path):
     data[member.offset_data + 100:member.offset_data + 164] = bytes(64)  # inside an image: its sha256 fails
     tar.write_bytes(bytes(data))
     out = tmp_path / "run"
+    out.mkdir()
+    (out / "model.pt").write_bytes(b"an earlier model")  # --overwrite must not remove it before the data is read
     with pytest.raises(RispError) as e:
         fit(make_config(str(folder), str(out), preset="cpu", epochs=1, batch_size=8, width=4, workers=0,
-                        format="wds", cache="memory", stats_samples=8), progress=False)
-    assert "\n" not in str(e.value) and "shard" in str(e.value)
-    assert not (out / "model.pt").exists() and not (out / "last.pt").exists()
+                        format="wds", cache="memory", stats_samples=8), progress=False, overwrite=True)
+    assert "\n" not in str(e.value) and "sha256" in str(e.value) and "shard" in str(e.value), e.value
+    assert sorted(p.name for p in out.iterdir()) == ["model.pt"]  # nothing written, nothing lost
+    assert (out / "model.pt").read_bytes() == b"an earlier model"
