@@ -55,6 +55,9 @@ def test_every_method_estimation(cache, tmp_path):
     assert report["perceptual_extractor"] == "filterbank"
     runs = sorted(os.listdir(os.path.join(cache, "runs")))
     assert cfg.reg != "none" and any("-none-" in r for r in runs) and any(f"-{cfg.reg}-" in r for r in runs)
+    for r in runs:  # trained from memory (a fixed sample order) on one thread, like every cell
+        run_cfg = json.load(open(os.path.join(cache, "runs", r, "config.json")))
+        assert run_cfg["cache"] == "memory" and run_cfg["threads"] == 1, (r, run_cfg["cache"], run_cfg["threads"])
     md = open(report["files"][0]).read()
     assert "| oracle | 0 ± 0 |" in md and "filterbank" in md
     # per state group in its unit (issue 8): the cube's position [m] and geodesic attitude [deg]
