@@ -171,8 +171,8 @@ def fit(cfg: TrainConfig, *, resume: bool = False, progress: bool = True,
 
     Refuses an incomplete shard folder unless ``allow_incomplete`` and a folder holding a run unless
     ``resume`` or ``overwrite`` (docs/cli-train.md). The run uses one fixed torch thread count
-    (``cfg.threads``; 0: the CPUs left after the data workers — none while training from memory —,
-    risp_data.threads) and gives the caller's setting back when it returns.
+    (``cfg.threads``; 0: the CPUs left after the data workers, risp_data.threads) and gives the caller's
+    setting back when it returns.
     """
     device = resolve_device(cfg.device)  # before anything is written: a bad --device leaves no run folder
     dist_info = init_distributed()
@@ -220,7 +220,10 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
         elif cfg.cache != stored_cache:
             raise RispError(f"cannot resume {last_path} with --cache {cfg.cache}: it was trained with --cache "
                             f"{stored_cache} (another sample order); pass --cache {stored_cache} or auto")
-    threads = set_torch_threads(cfg.threads, workers=0 if cache == "memory" else cfg.workers,
+    # the same default from memory, although its workers only decode before the first step: a second torch thread
+    # is 1.6x faster on an idle 2-core machine but 2-3x slower than one when the cores are shared (OpenMP's
+    # threads spin; docs/PERFORMANCE.md §Training data in memory): --threads 2 is the user's call
+    threads = set_torch_threads(cfg.threads, workers=cfg.workers,
                                 processes=int(os.environ.get("LOCAL_WORLD_SIZE", str(world))))
     if cache == "memory":
         plan = [memory_steps_per_epoch(shards.num_samples, cfg.batch_size, world)] * cfg.epochs

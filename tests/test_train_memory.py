@@ -31,7 +31,7 @@ def shards(tmp_path_factory):
 
 def _cfg(shards, out, **kw):
     base = dict(epochs=2, batch_size=8, width=4, workers=0, lr=3e-3, shuffle_buffer=8, stats_samples=32,
-                reg="stochastic", gamma=0.5)
+                reg="stochastic", gamma=0.5, threads=1)  # one thread whatever the workers: bitwise comparisons
     base.update(kw)
     return make_config(shards["train"], str(out), preset="cpu", **base)
 
@@ -120,15 +120,17 @@ def test_auto_streams_when_memory_is_short_and_memory_refuses_clearly(shards):
         make_config(shards["train"], "x", preset="cpu", cache="disk")
 
 
-def test_memory_fit_uses_every_cpu_for_torch(shards, tmp_path, monkeypatch):
-    """The data workers only decode before training: from memory they do not count against torch's threads."""
+def test_memory_fit_keeps_the_thread_default_and_honours_threads(shards, tmp_path, monkeypatch):
+    """From memory the default thread count is the streamed path's (CPUs − workers: one torch thread on a shared
+    2-core machine, where a second one spins against other work), and --threads N is taken as given."""
     import risp_data.threads as threads_mod
 
     monkeypatch.setattr(threads_mod, "available_cpus", lambda: 2)
-    mem = fit(_cfg(shards, tmp_path / "m", cache="memory", workers=2, epochs=1, threads=0), progress=False)
-    stream = fit(_cfg(shards, tmp_path / "s", cache="stream", workers=2, epochs=1, threads=0), progress=False)
-    assert torch.load(mem, weights_only=True)["threads"] == 2
-    assert torch.load(stream, weights_only=True)["threads"] == 1
+    default = fit(_cfg(shards, tmp_path / "m", cache="memory", workers=1, epochs=1, threads=0), progress=False)
+    two = fit(_cfg(shards, tmp_path / "t", cache="memory", workers=1, epochs=1, threads=2), progress=False)
+    assert torch.load(default, weights_only=True)["threads"] == 1
+    assert torch.load(two, weights_only=True)["threads"] == 2
+    assert json.load(open(tmp_path / "t" / "config.json"))["threads"] == 2
 
 
 def test_damaged_shard_is_one_error_before_training(shards, tmp_path):
