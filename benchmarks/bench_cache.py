@@ -9,7 +9,7 @@ machine's speed drifts, so every round runs each once):
     stream w1 t1   streamed webdataset, 1 DataLoader worker, 1 torch thread (the tables' and RESULTS' runs)
     stream w2 t1   streamed, risp-train's default of 2 workers (torch threads: the CPUs left, 1 here)
     memory t1      decoded once into memory (2 decoding workers), 1 torch thread
-    memory t2      the same with 2 torch threads (the default from memory on a 2-core machine)
+    memory t2      the same with `--threads 2` (for a training that has the 2-core machine to itself)
 
 and prints, per configuration, the median over rounds of the whole run's wall time (normalization statistics,
 decoding into memory where it applies, every step, checkpoints) and of the median step, with the load average.
