@@ -147,6 +147,11 @@ def effective_workers(n_shards: int, world_size: int, workers: int) -> int:
     return max(0, min(workers, per_rank))
 
 
+def map_style_steps(n: int, batch_size: int, world_size: int) -> int:
+    """Full batches per rank and epoch of a map-style source of n samples (zarr, memory): ⌊⌊N / W⌋ / B⌋."""
+    return (n // world_size) // batch_size
+
+
 def steps_per_epoch(shards: ShardSet, seed: int, epoch: int, batch_size: int, world_size: int, workers: int) -> int:
     """Full batches every rank can produce in ``epoch`` (the minimum over ranks).
 
@@ -154,7 +159,7 @@ def steps_per_epoch(shards: ShardSet, seed: int, epoch: int, batch_size: int, wo
     For zarr, each rank gets ⌊N / W⌋ samples, i.e. ⌊⌊N/W⌋ / B⌋ batches.
     """
     if shards.format == "zarr":
-        return (shards.num_samples // world_size) // batch_size
+        return map_style_steps(shards.num_samples, batch_size, world_size)
     order = epoch_shard_order(len(shards.counts), seed, epoch)
     counts = np.asarray(shards.counts)[order]
     nw = max(1, effective_workers(len(counts), world_size, workers))

@@ -163,10 +163,4 @@ def memory_batches(mset: MemorySet, *, seed: int, epoch: int, batch_size: int, r
         yield mset.batch(positions)
 
 
-def memory_steps_per_epoch(n: int, batch_size: int, world_size: int) -> int:
-    """Full batches per rank and epoch: ⌊⌊N / W⌋ / B⌋, as for the zarr store."""
-    return (n // world_size) // batch_size
-
-
-__all__ = ["CACHE_MODES", "MemorySet", "available_memory", "estimate_bytes", "load_memory_set", "memory_batches",
-           "memory_steps_per_epoch", "resolve_cache"]
+__all__ = ["CACHE_MODES", "MemorySet", "available_memory", "estimate_bytes", "load_memory_set", "memory_batches", "resolve_cache"]

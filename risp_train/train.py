@@ -28,9 +28,9 @@ from risp_data.errors import RispError
 
 from . import checkpoint as ckpt_io
 from .config import RESUME_FIELDS, TrainConfig, resolved_gamma, resolved_gamma_start
-from .data import (ShardSet, check_complete, check_environment, iter_batches, make_loader, manifest_hash, open_shards,
-                   sample_counts, steps_per_epoch)
-from .memory import load_memory_set, memory_batches, memory_steps_per_epoch, resolve_cache
+from .data import (ShardSet, check_complete, check_environment, iter_batches, make_loader, manifest_hash,
+                   map_style_steps, open_shards, sample_counts, steps_per_epoch)
+from .memory import load_memory_set, memory_batches, resolve_cache
 from .model import ModelConfig, ResNet18, build_model, stem_for_resolution
 from .normalization import Normalization, StatsAccumulator
 from .regularizers import gamma_at, psi_scale, risp_loss
@@ -226,7 +226,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
     threads = set_torch_threads(cfg.threads, workers=cfg.workers,
                                 processes=int(os.environ.get("LOCAL_WORLD_SIZE", str(world))))
     if cache == "memory":
-        plan = [memory_steps_per_epoch(shards.num_samples, cfg.batch_size, world)] * cfg.epochs
+        plan = [map_style_steps(shards.num_samples, cfg.batch_size, world)] * cfg.epochs
     else:
         plan = [steps_per_epoch(shards, cfg.seed, e, cfg.batch_size, world, cfg.workers) for e in range(cfg.epochs)]
     total_steps = sum(plan)

@@ -15,9 +15,8 @@ import torch
 
 from risp_data.errors import RispError
 from risp_train.config import make_config
-from risp_train.data import iter_batches, open_shards
-from risp_train.memory import (estimate_bytes, load_memory_set, memory_batches, memory_steps_per_epoch,
-                               resolve_cache)
+from risp_train.data import iter_batches, map_style_steps, open_shards
+from risp_train.memory import estimate_bytes, load_memory_set, memory_batches, resolve_cache
 from risp_train.train import TrainingStopped, fit
 
 from test_train_pipeline import _render
@@ -68,7 +67,7 @@ def test_memory_batches_are_the_zarr_plan_and_cover_an_epoch(shards):
     m = load_memory_set(open_shards(shards["train"]), need_jacobian=False)
     assert m.jacobian is None
     for world in (1, 2):
-        steps = memory_steps_per_epoch(len(m), 8, world)
+        steps = map_style_steps(len(m), 8, world)
         seen = []
         for rank in range(world):
             batches = list(memory_batches(m, seed=3, epoch=1, batch_size=8, rank=rank, world_size=world))
@@ -153,3 +152,14 @@ def test_damaged_shard_is_one_error_before_training(shards, tmp_path):
     assert "\n" not in str(e.value) and "sha256" in str(e.value) and "shard" in str(e.value), e.value
     assert sorted(p.name for p in out.iterdir()) == ["model.pt"]  # nothing written, nothing lost
     assert (out / "model.pt").read_bytes() == b"an earlier model"
+
+
+def test_cli_unknown_cache_is_one_error_line(shards, tmp_path):
+    from click.testing import CliRunner
+
+    from risp_train.cli import cli
+
+    out = tmp_path / "run"
+    r = CliRunner().invoke(cli, ["fit", shards["train"], "--out", str(out), "--cache", "disk", "--quiet"])
+    assert r.exit_code != 0 and "unknown --cache 'disk'" in r.output and r.output.strip().count("\n") == 0, r.output
+    assert not out.exists()
