@@ -126,6 +126,10 @@ class StateRenderer:
             return [dr.grad(leaf) for leaf in leaves]
 
         materials = list(keys)
+        # dr.wrap maps a tensor to the Dr.Jit backend of its torch device (CPU tensors to LLVM arrays): with
+        # cuda_ad_rgb the vertices must travel to the GPU, and the image and gradients come back to the caller's
+        # device
+        backend = torch.device("cuda") if self.renderer.variant.startswith("cuda") else torch.device("cpu")
 
         class RenderFrame(torch.autograd.Function):
             @staticmethod
@@ -133,14 +137,16 @@ class StateRenderer:
                 ctx.seed = seed
                 ctx.save_for_backward(*verts)
                 with _quiet(mi):
-                    return primal(dict(zip(materials, verts)), seed)
+                    image = primal(dict(zip(materials, [v.to(backend) for v in verts])), seed)
+                return image.to(verts[0].device)
 
             @staticmethod
             def backward(ctx, grad_image):
                 verts = ctx.saved_tensors
                 with _quiet(mi):
-                    grads = vjp(dict(zip(materials, verts)), grad_image.contiguous(), ctx.seed)
-                return (None, *[g.reshape(v.shape) for g, v in zip(grads, verts)])
+                    grads = vjp(dict(zip(materials, [v.to(backend) for v in verts])),
+                                grad_image.to(backend).contiguous(), ctx.seed)
+                return (None, *[g.reshape(v.shape).to(v.device) for g, v in zip(grads, verts)])
 
         def render_frame(vertices: dict, seed: int) -> torch.Tensor:
             return RenderFrame.apply(seed, *[vertices[m] for m in materials])

@@ -27,18 +27,31 @@ def init_mitsuba(variant: str | None = None) -> str:
     """Set the Mitsuba variant and return its name (idempotent).
 
     ``variant=None`` picks ``cuda_ad_rgb`` when a CUDA GPU is usable, else ``llvm_ad_rgb``; an explicit
-    variant wins.  Unknown or unavailable variants raise :class:`RispError`.
+    variant wins.  Unknown or unavailable variants raise :class:`RispError`.  A libLLVM is needed only for
+    ``llvm_ad_rgb``: a GPU machine without one renders with ``cuda_ad_rgb``.
     """
     global _CHOSEN
     if variant is not None and variant not in VARIANTS:
         raise RispError(f"unknown Mitsuba variant {variant!r}; choose one of: {', '.join(VARIANTS)}")
     if variant is None and _CHOSEN is not None:
         return _CHOSEN
-    ensure_llvm()
+    try:
+        ensure_llvm()
+        llvm_error = None
+    except RispError as e:
+        # a GPU machine may have no libLLVM at all: only llvm_ad_rgb needs it
+        if variant == "llvm_ad_rgb":
+            raise
+        llvm_error = e
     import mitsuba as mi
 
     if variant is None:
-        variant = "cuda_ad_rgb" if _cuda_usable() else "llvm_ad_rgb"
+        if _cuda_usable():
+            variant = "cuda_ad_rgb"
+        elif llvm_error is not None:
+            raise llvm_error
+        else:
+            variant = "llvm_ad_rgb"
     if variant == "cuda_ad_rgb" and not _cuda_usable():
         raise RispError("variant 'cuda_ad_rgb' needs a usable CUDA GPU; none was found (use llvm_ad_rgb)")
     if mi.variant() != variant:

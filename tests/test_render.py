@@ -115,6 +115,25 @@ def test_init_mitsuba():
         init_mitsuba("scalar_spectral")
 
 
+def test_init_mitsuba_without_llvm(monkeypatch):
+    """No libLLVM: the LLVM variant (asked for, or picked for want of a GPU) fails with the LLVM error's one
+    line; a CUDA machine would go on without it (checked on a GPU by benchmarks/gpu_check.py)."""
+    from risp_data import mitsuba_setup
+
+    def no_llvm():
+        raise RispError("no libLLVM >= 16 found for Dr.Jit's CPU backend (found: none)")
+
+    monkeypatch.setattr(mitsuba_setup, "ensure_llvm", no_llvm)
+    monkeypatch.setattr(mitsuba_setup, "_CHOSEN", None)
+    with pytest.raises(RispError, match="no libLLVM"):
+        mitsuba_setup.init_mitsuba("llvm_ad_rgb")
+    monkeypatch.setattr(mitsuba_setup, "_cuda_usable", lambda: False)
+    with pytest.raises(RispError, match="no libLLVM"):
+        mitsuba_setup.init_mitsuba()
+    with pytest.raises(RispError, match="needs a usable CUDA GPU"):
+        mitsuba_setup.init_mitsuba("cuda_ad_rgb")
+
+
 def _fd_check(r, state, config, seed):
     """Relative error of every J_j against same-seed central differences; also returns ‖FD_j‖."""
     image, J = r.render(state, config, seed=seed)
