@@ -95,6 +95,9 @@ def test_render_losses_differentiate_through_renderer_and_network(quad, tmp_path
     assert np.isfinite(r["loss"]).all() and abs(r["loss"][1] - r["loss"][0]) > 1e-9 * abs(r["loss"][0]), r["loss"]
     assert r["final_loss"] == min(r["loss"] + [r["last_loss"]])
     assert r["timings"]["sections_s"]["rendering"] > 0
+    from risp_data.mitsuba_setup import init_mitsuba
+
+    assert r["versions"]["mitsuba_variant"] == init_mitsuba()  # the backend that rendered is on record
     if loss == "perceptual":
         assert r["info"]["perceptual_extractor"] == "filterbank"
 

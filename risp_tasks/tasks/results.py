@@ -27,7 +27,8 @@ def versions() -> dict:
     import torch
 
     out = {"python": platform.python_version(), "torch": torch.__version__, "mitsuba": mitsuba.__version__,
-           "drjit": drjit.__version__, "numpy": np.__version__}
+           "drjit": drjit.__version__, "numpy": np.__version__,
+           "mitsuba_variant": mitsuba.variant()}  # None when the task rendered nothing (the state loss)
     try:
         root = Path(__file__).resolve().parents[2]
         out["risp_commit"] = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True,
