@@ -13,6 +13,13 @@ VARIANTS: tuple[str, ...] = ("llvm_ad_rgb", "cuda_ad_rgb")
 _CHOSEN: str | None = None
 
 
+def _cuda_driver_present() -> bool:
+    """True when the CUDA driver library (libcuda) is installed; cheap, imports nothing."""
+    import ctypes.util
+
+    return ctypes.util.find_library("cuda") is not None
+
+
 def _cuda_usable() -> bool:
     """True when Dr.Jit can drive a CUDA device (no exception, at least one device)."""
     try:
@@ -39,8 +46,9 @@ def init_mitsuba(variant: str | None = None) -> str:
         ensure_llvm()
         llvm_error = None
     except RispError as e:
-        # a GPU machine may have no libLLVM at all: only llvm_ad_rgb needs it
-        if variant == "llvm_ad_rgb":
+        # a GPU machine may have no libLLVM at all: only llvm_ad_rgb needs it.  Without a CUDA driver, fail before
+        # Dr.Jit is imported (its own attempt to load the missing library would print lines of its own)
+        if variant == "llvm_ad_rgb" or (variant is None and not _cuda_driver_present()):
             raise
         llvm_error = e
     import mitsuba as mi

@@ -128,6 +128,10 @@ def test_init_mitsuba_without_llvm(monkeypatch):
     with pytest.raises(RispError, match="no libLLVM"):
         mitsuba_setup.init_mitsuba("llvm_ad_rgb")
     monkeypatch.setattr(mitsuba_setup, "_cuda_usable", lambda: False)
+    monkeypatch.setattr(mitsuba_setup, "_cuda_driver_present", lambda: False)
+    with pytest.raises(RispError, match="no libLLVM"):
+        mitsuba_setup.init_mitsuba()
+    monkeypatch.setattr(mitsuba_setup, "_cuda_driver_present", lambda: True)  # a driver but no usable GPU
     with pytest.raises(RispError, match="no libLLVM"):
         mitsuba_setup.init_mitsuba()
     with pytest.raises(RispError, match="needs a usable CUDA GPU"):
