@@ -15,14 +15,7 @@ out=${2:-gpu-check}
 N=${N:-1000}            # training samples rendered on the GPU
 EPOCHS=${EPOCHS:-5}     # epochs of each fit
 WORKERS=${WORKERS:-1}   # render worker processes sharing the GPU
-mkdir -p "$out"
-work=$(mktemp -d)
-export PYTHONUNBUFFERED=1
-step() { echo "== $1 ($(date +%T))"; }
-
-step "machine"
-nvidia-smi -L
-python3 -c "import torch, drjit as dr; print('torch', torch.__version__, torch.cuda.get_device_name(0)); print('drjit', dr.__version__, 'CUDA backend:', dr.has_backend(dr.JitBackend.CUDA))"
+source "$(dirname "$0")/gpu_common.sh"
 
 step "1. cuda_ad_rgb vs llvm_ad_rgb"
 timeout 240 python3 benchmarks/gpu_check.py compare "$ref" --json "$out/gpu_check.json" 2>&1 | tail -n 12

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The `paper` training preset on one CUDA GPU, as far as a short lease allows (docs/PERFORMANCE.md §On a GPU):
 #
-#   N=10000 EPOCHS=14 bash benchmarks/gpu_paper_preset.sh OUTDIR [ENV]
+#   N=10000 EPOCHS=12 bash benchmarks/gpu_paper_preset.sh OUTDIR [ENV]
 #
 # 1. renders ENV's train set (N samples with J, seed 1), 200 target-domain and 200 unseen train-domain images
 #    (seeds 2 and 3: the same states and looks as the CPU runs of docs/RESULTS.md), with cuda_ad_rgb;
@@ -14,16 +14,9 @@ set -u
 out=$1
 env=${2:-quadrotor}
 N=${N:-10000}
-EPOCHS=${EPOCHS:-14}
+EPOCHS=${EPOCHS:-12}
 WORKERS=${WORKERS:-12}
-mkdir -p "$out"
-work=$(mktemp -d)
-export PYTHONUNBUFFERED=1
-step() { echo "== $1 ($(date +%T))"; }
-
-step "machine"
-nvidia-smi -L
-python3 -c "import torch, drjit as dr, mitsuba as mi; print('torch', torch.__version__, torch.cuda.get_device_name(0)); print('drjit', dr.__version__, 'mitsuba', mi.__version__)"
+source "$(dirname "$0")/gpu_common.sh"
 
 step "1. render $env on the GPU"
 /usr/bin/time -f "render train $N with J, $WORKERS workers: %e s" timeout 240 python3 -m risp_data.cli render --env "$env" --n "$N" \
