@@ -25,7 +25,7 @@ step "2. risp-data render on the GPU"
   --out "$work/cube-train" --format wds --workers "$WORKERS" --shard-size 250 --seed 1 --quiet 2>&1 | tail -n 3
 /usr/bin/time -f "render target 200: %e s" timeout 120 python3 -m risp_data.cli render --env cube --n 200 \
   --out "$work/cube-target" --domain target --no-jacobian --format wds --workers "$WORKERS" --shard-size 100 --seed 2 --quiet 2>&1 | tail -n 3
-python3 -c "import json,sys; m=json.load(open(sys.argv[1])); print('manifest variant:', m.get('variant'), 'samples:', m.get('n'))" "$work/cube-train/manifest.json"
+show_manifest "$work/cube-train"
 
 for preset in paper cpu; do
   step "3. risp-train fit on the GPU ($preset preset's network, $EPOCHS epochs of $N)"

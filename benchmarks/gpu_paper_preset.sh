@@ -21,12 +21,13 @@ source "$(dirname "$0")/gpu_common.sh"
 step "1. render $env on the GPU"
 /usr/bin/time -f "render train $N with J, $WORKERS workers: %e s" timeout 240 python3 -m risp_data.cli render --env "$env" --n "$N" \
   --out "$work/$env-train" --format wds --workers "$WORKERS" --shard-size 250 --seed 1 --quiet 2>&1 | tail -n 2
-for s in "target 2" "val 3"; do set -- $s
-  dom=$([ "$1" = target ] && echo target || echo train)
+render_test() {  # NAME DOMAIN SEED: 200 images without J
   /usr/bin/time -f "render $1 200: %e s" timeout 60 python3 -m risp_data.cli render --env "$env" --n 200 --out "$work/$env-$1" \
-    --domain "$dom" --no-jacobian --format wds --workers 4 --shard-size 100 --seed "$2" --quiet 2>&1 | tail -n 2
-done
-python3 -c "import json,sys; m=json.load(open(sys.argv[1])); print('manifest variant:', m.get('variant'), 'samples:', m.get('n'))" "$work/$env-train/manifest.json"
+    --domain "$2" --no-jacobian --format wds --workers 4 --shard-size 100 --seed "$3" --quiet 2>&1 | tail -n 2
+}
+render_test target target 2
+render_test val train 3
+show_manifest "$work/$env-train"
 
 step "2. risp-train fit (preset by the hardware), $EPOCHS epochs"
 /usr/bin/time -f "fit: %e s" timeout 330 python3 -m risp_train.cli fit "$work/$env-train" --out "$work/run" \
