@@ -91,10 +91,7 @@ def intersection_segments(Vs: list, Fs: list, eps: float = 1e-9):
         face.append(np.arange(len(F)))
         idx.append(F + sum(len(np.asarray(v).reshape(-1, 3)) for v in Vs[:i]))
     T, owner, face, idx = (np.concatenate(c) for c in (T, owner, face, idx))
-    lo, hi = T.min(1), T.max(1)
-    i, j = np.triu_indices(len(T), 1)
-    ok = np.all((lo[i] <= hi[j]) & (lo[j] <= hi[i]), axis=1)
-    i, j = i[ok], j[ok]
+    i, j = overlapping_boxes(T.min(1), T.max(1))
     shared = (idx[i][:, :, None] == idx[j][:, None, :]).any((1, 2))
     i, j = i[~shared], j[~shared]
     empty = np.zeros((0, 3))
@@ -152,6 +149,35 @@ def intersection_segments(Vs: list, Fs: list, eps: float = 1e-9):
             bary(A, x0), bary(A, x1), bary(B, x0), bary(B, x1))
 
 
+def overlapping_boxes(lo: np.ndarray, hi: np.ndarray):
+    """All pairs i < j of axis-aligned boxes (lo, hi: (n, 3)) that overlap, in lexicographic order of (i, j) (that
+    of ``np.triu_indices``).
+
+    Sweep and prune: after sorting by the lower bound along one axis, box i can only meet the boxes that start
+    before it ends, a contiguous run found by one binary search, so the candidates are the pairs that overlap
+    along that axis rather than all n(n − 1)/2 (the quadrotor's 1320 triangles: 870 000 pairs, ≈ 0.1 s per frame).
+    """
+    n = len(lo)
+    best = None
+    for axis in range(lo.shape[1]):  # sweep along the axis that leaves the fewest candidates
+        order = np.argsort(lo[:, axis], kind="stable")
+        end = np.searchsorted(lo[order, axis], hi[order, axis], side="right")  # sorted boxes k+1 .. end-1 start before k ends
+        count = np.maximum(end - np.arange(n) - 1, 0)
+        if best is None or count.sum() < best[1].sum():
+            best = order, count
+    order, count = best
+    first = np.repeat(np.arange(n), count)
+    offset = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    a, b = order[first], order[first + 1 + offset]
+    i, j = np.minimum(a, b), np.maximum(a, b)
+    for axis in range(lo.shape[1]):  # one axis at a time: each test shrinks the next one's candidates
+        lo_k, hi_k = np.ascontiguousarray(lo[:, axis]), np.ascontiguousarray(hi[:, axis])
+        ok = (lo_k[i] <= hi_k[j]) & (lo_k[j] <= hi_k[i])
+        i, j = i[ok], j[ok]
+    keep = np.lexsort((j, i))
+    return i[keep], j[keep]
+
+
 class FlatEdgesMixin:
     """Mix into a Mitsuba ``PSIntegrator`` subclass: replaces ``render_primarily_visible_silhouette``
     (module docstring)."""
@@ -165,15 +191,16 @@ class FlatEdgesMixin:
         shapes = list(scene.silhouette_shapes())
         with dr.suspend_grad():
             viewpoint = np.array(dr.slice(sensor.world_transform() @ mi.Point3f(0)), np.float64).ravel()
+            # every shape's vertices and faces, read from Dr.Jit once for the three edge kinds below
+            meshes = [(dr.detach(shape.vertex_positions_buffer()).numpy(), shape.faces_buffer().numpy())
+                      for shape in shapes]
             tables = []
-            for i, shape in enumerate(shapes):
-                V = dr.detach(shape.vertex_positions_buffer()).numpy()
-                F = shape.faces_buffer().numpy()
+            for i, (V, F) in enumerate(meshes):
                 din, dout, crease, w = edge_table(V, F, viewpoint)
                 tables.append((np.full(len(din), i, np.uint32), din, dout, crease, w))
         cat = [np.concatenate(c) for c in zip(*tables)] if tables else []
-        others = (self._render_point_light_shadows(scene, sensor, sampler, spp, shapes)
-                  + self._render_intersections(scene, sensor, sampler, spp, shapes))
+        others = (self._render_point_light_shadows(scene, sensor, sampler, spp, shapes, meshes)
+                  + self._render_intersections(scene, sensor, sampler, spp, shapes, meshes))
         if not tables or len(cat[0]) == 0 or cat[4].sum() <= 0:  # no edge in view (its shadow may be)
             return others
         shape_idx, din, dout, crease, w = cat
@@ -216,7 +243,7 @@ class FlatEdgesMixin:
         film.put_block(block)
         return film.develop() + others
 
-    def _render_intersections(self, scene, sensor, sampler, spp, shapes):
+    def _render_intersections(self, scene, sensor, sampler, spp, shapes, meshes):
         """Boundary term (1) of the curves where two parts interpenetrate (a sticker's wall entering the cube's face):
         in the image one side shows triangle A, the other triangle B, and the curve is no mesh edge.
 
@@ -234,9 +261,9 @@ class FlatEdgesMixin:
         aovs = self.aov_names()
         zero = dr.zeros(mi.TensorXf, (film.crop_size()[1], film.crop_size()[0], film.base_channels_count() + len(aovs)))
         with dr.suspend_grad():
-            Vs = [dr.detach(sh.vertex_positions_buffer()).numpy() for sh in shapes]
-            Fs = [sh.faces_buffer().numpy() for sh in shapes]
-            x0, x1, sa, fa, sb, fb, ba0, ba1, bb0, bb1 = intersection_segments(Vs, Fs)
+            if not meshes:
+                return zero
+            x0, x1, sa, fa, sb, fb, ba0, ba1, bb0, bb1 = intersection_segments(*zip(*meshes))
             if len(x0) == 0:
                 return zero
             viewpoint = np.array(dr.slice(sensor.world_transform() @ mi.Point3f(0)), np.float64).ravel()
@@ -369,7 +396,7 @@ class FlatEdgesMixin:
         return dr.select(visible, ΔL * weight, 0), wavelengths
 
 
-    def _render_point_light_shadows(self, scene, sensor, sampler, spp, shapes):
+    def _render_point_light_shadows(self, scene, sensor, sampler, spp, shapes, meshes):
         """Boundary term (1) of shadow edges cast by point lights and seen directly by the camera.
 
         For an edge of a mesh that is a silhouette seen from the light at L, the shadow boundary passes through
@@ -396,9 +423,7 @@ class FlatEdgesMixin:
                 ds0, _ = light.sample_direction(dr.zeros(mi.Interaction3f), mi.Point2f(0))
                 L = np.array(dr.slice(dr.detach(ds0.p)), np.float64).ravel()
                 tables = []
-                for i, shape in enumerate(shapes):
-                    V = dr.detach(shape.vertex_positions_buffer()).numpy()
-                    F = shape.faces_buffer().numpy()
+                for i, (V, F) in enumerate(meshes):
                     din, _, _, w = edge_table(V, F, L, creases=False)
                     tables.append((np.full(len(din), i, np.uint32), din, w))
             shape_idx, din, w = [np.concatenate(c) for c in zip(*tables)]

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from risp_data.flat_projective import edge_table, intersection_segments
+from risp_data.flat_projective import edge_table, intersection_segments, overlapping_boxes
 
 # unit cube, outward-wound triangles (two per face)
 CUBE_V = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float)
@@ -37,6 +37,25 @@ def test_crossing_triangles_give_their_common_segment():
         assert np.allclose(p, x0[0], atol=1e-9)
     # triangles of one mesh that share a vertex are not crossings
     assert len(intersection_segments([np.r_[a, b[:2]]], [np.array([[0, 1, 2], [2, 3, 4]])])[0]) == 0
+
+
+@pytest.mark.parametrize("n", [0, 1, 2, 7, 300])
+def test_sweep_and_prune_finds_every_overlapping_box_pair_in_triu_order(n):
+    """The broad phase of intersection_segments against all n(n-1)/2 pairs: the same pairs in the same order
+    (the order fixes which segment a random number samples), touching and identical boxes included."""
+    rng = np.random.default_rng(n)
+    centre, half = rng.normal(size=(n, 3)), rng.uniform(0, 0.4, (n, 3))
+    lo, hi = centre - half, centre + half
+    if n >= 7:
+        lo[1], hi[1] = lo[0], hi[0]  # identical boxes
+        lo[2, 0] = hi[3, 0]  # touching along x
+        hi[4] = lo[4]  # a degenerate box
+    i, j = np.triu_indices(n, 1)
+    ok = np.all((lo[i] <= hi[j]) & (lo[j] <= hi[i]), axis=1)
+    got_i, got_j = overlapping_boxes(lo, hi)
+    assert np.array_equal(got_i, i[ok]) and np.array_equal(got_j, j[ok])
+    if n == 300:
+        assert 0 < ok.sum() < len(i)  # some pairs overlap, some do not: the comparison means something
 
 
 def test_boundary_term_is_selectable_and_leaves_the_image_alone():
