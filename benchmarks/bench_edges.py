@@ -9,19 +9,13 @@ the whole function, which runs once per frame in every render-mode backward pass
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 
 import numpy as np
+from bench_tasks import _median_time  # run as a script, so benchmarks/ is on the path
 
 
 def _median_ms(fn, repeats: int) -> float:
-    out = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        out.append(time.perf_counter() - start)
-    return 1e3 * statistics.median(out)
+    return 1e3 * _median_time(fn, repeats)
 
 
 def all_pairs(lo: np.ndarray, hi: np.ndarray):

@@ -158,20 +158,24 @@ def overlapping_boxes(lo: np.ndarray, hi: np.ndarray):
     along that axis rather than all n(n − 1)/2 (the quadrotor's 1320 triangles: 870 000 pairs, ≈ 0.1 s per frame).
     """
     n = len(lo)
-    best = None
-    for axis in range(lo.shape[1]):  # sweep along the axis that leaves the fewest candidates
+
+    def sweep(axis):
+        """Boxes in order of lo[:, axis]; count[k]: how many later boxes start before sorted box k ends."""
         order = np.argsort(lo[:, axis], kind="stable")
-        end = np.searchsorted(lo[order, axis], hi[order, axis], side="right")  # sorted boxes k+1 .. end-1 start before k ends
-        count = np.maximum(end - np.arange(n) - 1, 0)
-        if best is None or count.sum() < best[1].sum():
-            best = order, count
-    order, count = best
+        end = np.searchsorted(lo[order, axis], hi[order, axis], side="right")
+        return order, np.maximum(end - np.arange(n) - 1, 0)
+
+    sweeps = [sweep(axis) for axis in range(lo.shape[1])]
+    axis = int(np.argmin([count.sum() for _, count in sweeps]))  # the axis that leaves the fewest candidates
+    order, count = sweeps[axis]
     first = np.repeat(np.arange(n), count)
     offset = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
     a, b = order[first], order[first + 1 + offset]
     i, j = np.minimum(a, b), np.maximum(a, b)
-    for axis in range(lo.shape[1]):  # one axis at a time: each test shrinks the next one's candidates
-        lo_k, hi_k = np.ascontiguousarray(lo[:, axis]), np.ascontiguousarray(hi[:, axis])
+    for other in range(lo.shape[1]):  # the sweep axis overlaps by construction; test the others one at a time
+        if other == axis:
+            continue
+        lo_k, hi_k = np.ascontiguousarray(lo[:, other]), np.ascontiguousarray(hi[:, other])
         ok = (lo_k[i] <= hi_k[j]) & (lo_k[j] <= hi_k[i])
         i, j = i[ok], j[ok]
     keep = np.lexsort((j, i))
