@@ -10,7 +10,7 @@ from risp_tasks.diagnose import candidates as cands
 from risp_tasks.diagnose.adapter import Observer
 from risp_tasks.diagnose.fit import _jacobian, channel_sigma, estimate_noise, make_segments, residuals
 from risp_tasks.diagnose.run import split_trajectories
-from risp_tasks.diagnose.select import Score, decide
+from risp_tasks.diagnose.select import Score, decide, estimate_note
 from risp_tasks.diagnose.synth import SynthConfig, make_synthetic
 from risp_tasks.measured import load_measured
 
@@ -89,6 +89,22 @@ def test_decision_rule():
     assert decide(base, [good, weak], [pair]).cause == "wind+air_drag"
     pair_marginal = _score("wind+air_drag", 9990.0, 4, 1.0)
     assert decide(base, [good, weak], [pair_marginal]).cause == "wind"
+
+
+def test_unexplained_estimates_name_the_estimate_noise():
+    """Issue 10: an `unexplained` verdict on a network's estimates from a video names the estimate noise; other
+    verdicts, and data without the `estimated_by` provenance, keep their reason."""
+    base, weak = _score("base", 20000.0, 0, 2.0), _score("air_drag", 19900.0, 1, 1.99)
+    unexplained = decide(base, [weak], [])
+    by = {"task": "risp-task estimate", "model": {"path": "runs/q/model.pt", "sha256": "ab" * 32}}
+    noise = {"lag1_correlation_estimate": {"position": 0.0, "velocity": 0.99}}
+    noted = estimate_note(unexplained, by, noise)
+    assert noted.cause == "unexplained" and noted.reason.startswith(unexplained.reason)
+    assert "estimate noise" in noted.reason and "runs/q/model.pt" in noted.reason and "velocity 0.99" in noted.reason
+    assert "estimate" not in unexplained.reason  # the plain verdict says nothing of estimates
+    assert estimate_note(unexplained, None, noise) == unexplained
+    named = decide(base, [_score("wind", 10000.0, 3, 1.0), weak], [])
+    assert estimate_note(named, by, noise) == named
 
 
 def test_wind_bounds_scale_with_weight_and_bound_values_are_flagged():

@@ -59,6 +59,10 @@ def test_estimate_writes_measured_csv_that_diagnose_reads(quad, tmp_path):
     saved = json.load(open(tmp_path / "est" / "result.json"))
     assert saved["video"]["sha256"] == r["video"]["sha256"] and len(saved["model"]["sha256"]) == 64
     assert "state_rmse_network" in saved["errors"] and saved["seed"] == 0
+    # the sidecar says these are a network's readings of a video (diagnose names their noise: select.estimate_note)
+    by = traj.sidecar.get("estimated_by")
+    assert by["task"] == "risp-task estimate" and by["model"]["sha256"] == saved["model"]["sha256"]
+    assert by["video"]["sha256"] == saved["video"]["sha256"] and by["video"]["frames"] == 6
 
 
 @pytest.mark.parametrize("task, loss, extra", [

@@ -205,6 +205,24 @@ def bound_flag(model, name: str, value: float) -> dict:
     return {}
 
 
+def estimate_note(decision: Decision, estimated_by: dict | None, noise_info: dict) -> Decision:
+    """An ``unexplained`` verdict on a trajectory that ``risp-task estimate`` read from a video (the sidecar's
+    ``estimated_by``) names the estimates' own error as a possible reason.  A network's reading of an unseen look
+    errs by a bias that drifts slowly with the motion (lag-1 correlation near 1), not by the white noise the
+    noise floor assumes, so a residual above that floor may be the reading's error rather than missing physics
+    (docs/tasks.md §Video → diagnosis).  Other verdicts are returned unchanged."""
+    if decision.cause != "unexplained" or not estimated_by:
+        return decision
+    model = (estimated_by.get("model") or {}).get("path") if isinstance(estimated_by, dict) else None
+    phi = {g: v for g, v in (noise_info.get("lag1_correlation_estimate") or {}).items() if v > 0}
+    corr = (" (lag-1 correlation of the smoothing residuals: " + ", ".join(f"{g} {v:.2f}" for g, v in phi.items()) + ")"
+            if phi else "")
+    return Decision("unexplained", decision.selected, decision.best_candidate,
+                    f"{decision.reason}; the data are a network's estimates from a video (risp-task estimate"
+                    f"{', model ' + str(model) if model else ''}), whose errors are correlated in time{corr}, not the "
+                    f"white noise the floor assumes: the residual may be the estimate noise rather than missing physics")
+
+
 def runner_up_note(decision: Decision, scores: list[Score]) -> tuple[Decision, dict | None]:
     """A named cause whose nearest rival (a model that does not contain it) is within ΔBIC < DELTA_BIC_MIN
     keeps its name — it is still the best — but the reason says the data hardly separate the two."""

@@ -164,7 +164,9 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
     try:
         folder.write_json("result.json", result)
         if cfg.task == "estimate":
-            _write_estimate_csv(folder.path("trajectory.csv"), ctx, final_states)
+            _write_estimate_csv(folder.path("trajectory.csv"), ctx, final_states,
+                                {"task": "risp-task estimate", "model": result["model"],
+                                 "video": {k: result["video"][k] for k in ("path", "sha256", "frames", "fps")}})
         if cfg.task in ("imitate", "control"):
             from .inputs import write_actions
 
@@ -201,8 +203,10 @@ def _errors(cfg, env, sim, truth, keep, loss_frames, initial_states, final_state
     return out
 
 
-def _write_estimate_csv(path: str, ctx: Context, states: torch.Tensor) -> None:
-    """docs/measured-data.md columns for the quadrotor, cube and hand (the rod: t, z0 … z9)."""
+def _write_estimate_csv(path: str, ctx: Context, states: torch.Tensor, provenance: dict) -> None:
+    """docs/measured-data.md columns for the quadrotor, cube and hand (the rod: t, z0 … z9).  The sidecar's
+    ``estimated_by`` records that these are a network's readings of a video (which network, which video), so
+    that ``diagnose`` can say so when it cannot explain them (select.estimate_note)."""
     from risp_data.envs.rotations import euler_to_quat
 
     from ..measured import write_trajectory_csv
@@ -211,7 +215,7 @@ def _write_estimate_csv(path: str, ctx: Context, states: torch.Tensor) -> None:
     t = np.asarray(ctx.keep, np.float64) / ctx.fps
     cols: dict[str, np.ndarray] = {"t": t}
     sim, env = ctx.sim, ctx.env
-    sidecar = {"env": env.name}
+    sidecar = {"env": env.name, "estimated_by": provenance}
     if env.name in ("quadrotor", "cube"):
         q = euler_to_quat(*torch.from_numpy(s[:, 3:6]).unbind(-1)).numpy()
         q = q * np.where(np.cumsum(np.r_[1, np.sign((q[1:] * q[:-1]).sum(1))] < 0) % 2 == 1, -1, 1)[:, None]
