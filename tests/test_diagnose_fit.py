@@ -101,10 +101,43 @@ def test_unexplained_estimates_name_the_estimate_noise():
     noted = estimate_note(unexplained, by, noise)
     assert noted.cause == "unexplained" and noted.reason.startswith(unexplained.reason)
     assert "estimate noise" in noted.reason and "runs/q/model.pt" in noted.reason and "velocity 0.99" in noted.reason
+    assert "position" not in noted.reason  # only the groups whose estimated correlation is not zero are quoted
+    # odd provenance (a hand-written sidecar): a plain model path, no model, no correlation estimate
+    for odd in ({"model": "m.pt"}, {"task": "risp-task estimate"}, ["not", "a", "dict"]):
+        reason = estimate_note(unexplained, odd, {}).reason
+        assert "estimate noise" in reason and "bias that drifts" in reason
+    assert "m.pt" in estimate_note(unexplained, {"model": "m.pt"}, {}).reason
     assert "estimate" not in unexplained.reason  # the plain verdict says nothing of estimates
     assert estimate_note(unexplained, None, noise) == unexplained
     named = decide(base, [_score("wind", 10000.0, 3, 1.0), weak], [])
     assert estimate_note(named, by, noise) == named
+
+
+def test_diagnose_passes_the_estimates_provenance_on(quad_data, tmp_path, monkeypatch):
+    """The sidecar's `estimated_by` reaches the verdict through the whole diagnose run (run._diagnose); the
+    decision itself is forced to `unexplained`, as the motor-lag data would otherwise be named."""
+    import json
+    import shutil
+
+    from risp_tasks.diagnose import run as diagnose_run
+    from risp_tasks.diagnose.run import DiagnoseConfig, diagnose
+    from risp_tasks.diagnose.select import Decision
+
+    src, _ = quad_data
+    for f in sorted(src.glob("traj_00[01].*")):
+        shutil.copy(f, tmp_path / f.name)
+    side = tmp_path / "traj_001.json"
+    side.write_text(json.dumps({**json.loads(side.read_text()), "estimated_by": {"model": {"path": "q.pt"}}}))
+    monkeypatch.setattr(diagnose_run, "decide", lambda base, singles, pairs: Decision(
+        "unexplained", base, None, "forced"))
+    cfg = DiagnoseConfig(data=(str(tmp_path),), env="quadrotor", out=None, seed=0, effects=("wind",), max_iters=2,
+                         progress=False, plots=False)
+    report = diagnose(cfg)
+    assert report["cause"] == "unexplained" and report["reason"].startswith("forced")
+    assert "; the data are a network's estimates from a video (risp-task estimate, model q.pt)" in report["reason"]
+    side.write_text(json.dumps({k: v for k, v in json.loads(side.read_text()).items() if k != "estimated_by"}))
+    plain = diagnose(cfg)["reason"]  # without provenance: the decision's own reason (and its dependence note)
+    assert plain.startswith("forced") and "estimate" not in plain
 
 
 def test_wind_bounds_scale_with_weight_and_bound_values_are_flagged():

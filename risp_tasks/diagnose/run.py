@@ -238,7 +238,8 @@ def _diagnose(cfg: DiagnoseConfig) -> dict:
                                      phi=max(phi.values(), default=0.0))
     decision = check_dependence(decision, dependence)
     decision, runner_up = runner_up_note(decision, [ev.score for ev in evaluated.values()])
-    decision = estimate_note(decision, sc.get("estimated_by"), noise_info)
+    estimated_by = next((tr.sidecar.get("estimated_by") for tr in trajs if tr.sidecar.get("estimated_by")), None)
+    decision = estimate_note(decision, estimated_by, noise_info)
     ext_for_gain = chosen if decision.selected.name != "base" else (
         evaluated[decision.best_candidate.name] if decision.best_candidate is not None else base)
 

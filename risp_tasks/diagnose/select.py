@@ -213,14 +213,17 @@ def estimate_note(decision: Decision, estimated_by: dict | None, noise_info: dic
     (docs/tasks.md §Video → diagnosis).  Other verdicts are returned unchanged."""
     if decision.cause != "unexplained" or not estimated_by:
         return decision
-    model = (estimated_by.get("model") or {}).get("path") if isinstance(estimated_by, dict) else None
+    model = estimated_by.get("model") if isinstance(estimated_by, dict) else None
+    model = model.get("path") if isinstance(model, dict) else model  # {path, sha256} as estimate writes it, or a path
     phi = {g: v for g, v in (noise_info.get("lag1_correlation_estimate") or {}).items() if v > 0}
-    corr = (" (lag-1 correlation of the smoothing residuals: " + ", ".join(f"{g} {v:.2f}" for g, v in phi.items()) + ")"
-            if phi else "")
+    errors = ("whose errors are correlated in time (lag-1 correlation of the smoothing residuals: "
+              + ", ".join(f"{g} {v:.2f}" for g, v in phi.items()) + "), not the white noise the floor assumes"
+              if phi else "whose errors in an unseen look are a bias that drifts with the motion, which the white-noise "
+                          "floor does not model")
     return Decision("unexplained", decision.selected, decision.best_candidate,
                     f"{decision.reason}; the data are a network's estimates from a video (risp-task estimate"
-                    f"{', model ' + str(model) if model else ''}), whose errors are correlated in time{corr}, not the "
-                    f"white noise the floor assumes: the residual may be the estimate noise rather than missing physics")
+                    f"{', model ' + str(model) if isinstance(model, str) and model else ''}), {errors}: the residual "
+                    f"may be the estimate noise rather than missing physics")
 
 
 def runner_up_note(decision: Decision, scores: list[Score]) -> tuple[Decision, dict | None]:
