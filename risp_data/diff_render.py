@@ -161,6 +161,23 @@ class StateRenderer:
             out.setdefault(m.material, []).append(m.vertices)
         return {k: torch.cat(v, 0).to(torch.float32).contiguous() for k, v in out.items()}
 
+    def in_view(self, states: torch.Tensor) -> np.ndarray:
+        """Fraction of the object's vertices inside the camera's image, per state: (T,) in [0, 1], occlusion
+        ignored.  A state at 0 has left the view: its render shows no part of the object, so an image loss
+        compares the empty scene and has no gradient that could bring the object back (docs/tasks.md §Out of
+        view).  A vertex is inside when Mitsuba's sensor samples a direction to it with non-zero density."""
+        mi, dr = self._mi, self._dr
+        sensor = self.renderer.scene.sensors()[0]
+        out = []
+        with torch.no_grad(), dr.suspend_grad():
+            for state in states:
+                V = torch.cat(list(self.vertices(state).values()), 0).double().cpu().numpy()
+                it = dr.zeros(mi.Interaction3f, len(V))
+                it.p = mi.Point3f(*[mi.Float(V[:, c].astype(np.float32)) for c in range(3)])
+                ds, _ = sensor.sample_direction(it, mi.Point2f(0))
+                out.append(float(np.mean(ds.pdf.numpy() > 0)) if len(V) else 0.0)
+        return np.asarray(out, np.float64)
+
     def __call__(self, states: torch.Tensor, seed: int = 0) -> torch.Tensor:
         """Images (T, H, W, 3) float32 linear RGB of states (T, S); differentiable w.r.t. ``states``."""
         S = self.env.state_dim

@@ -129,6 +129,8 @@ def _run(task, video, **kw):
     for name, value in result.get("errors", {}).items():
         if isinstance(value, float):
             click.echo(f"  {name} = {value:.4g}")
+    for warning in result.get("warnings", []):
+        click.echo(f"warning: {warning}")
     return result
 
 

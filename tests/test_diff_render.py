@@ -129,6 +129,37 @@ def test_bad_states_are_refused():
         r(torch.full((1, 6), float("nan")))
 
 
+def test_in_view_says_how_much_of_the_object_the_camera_sees():
+    """StateRenderer.in_view: the mid-range quadrotor lies wholly in the image, moved 50 m aside none of it, and
+    half-way out of the image's edge a part of it; run._view turns frames with none into a warning line."""
+    import types
+
+    from risp_tasks.tasks.run import _view
+
+    r = _renderer("quadrotor", res=16, spp=1)
+    env = get_environment("quadrotor")
+    mid = torch.tensor([(a + b) / 2 for a, b in zip(env.state_low, env.state_high)], dtype=torch.float64)
+    far = mid.clone()
+    far[0] += 50.0
+    edge = None
+    for dx in np.linspace(0.0, 5.0, 201):  # the first shift that puts part of the vehicle outside the image
+        s = mid.clone()
+        s[0] += dx
+        if r.in_view(s[None])[0] < 1.0:
+            edge = s.clone()
+            edge[0] += 0.05  # a little further: some of it out, not all
+            break
+    assert edge is not None
+    frac = r.in_view(torch.stack([mid, far, edge]))
+    assert frac[0] == 1.0 and frac[1] == 0.0 and 0.0 < frac[2] < 1.0, frac
+    cfg = types.SimpleNamespace(loss="render")
+    states = torch.stack([mid, mid, far])
+    view, warning = _view(cfg, r, [0, 2], states, states)
+    assert view["frames_out_of_view_final"] == [2] and view["fraction_in_view_final"] == [1.0, 0.0]
+    assert "out of the camera's view in 1 of the 2 compared frames (first: frame 2)" in warning
+    assert _view(cfg, r, [0, 1], states, states)[1] is None
+
+
 def _minimal_scene_gradient(with_floor: bool, axis: int = 1, integrator: str = "direct_projective_flat",
                             light: str = "constant", spp: int = 256, seeds: int = 3):
     """Directional derivative of Σ w ⊙ I w.r.t. translating a cube mesh, projective gradient vs same-seed

@@ -102,6 +102,11 @@ def test_render_losses_differentiate_through_renderer_and_network(quad, tmp_path
     from risp_data.mitsuba_setup import init_mitsuba
 
     assert r["versions"]["mitsuba_variant"] == init_mitsuba()  # the backend that rendered is on record
+    view = r["view"]  # how much of the vehicle each compared frame shows, before and after (docs/tasks.md §Out of view)
+    n = len(view["frames"])
+    assert n == 6 and len(view["fraction_in_view_initial"]) == n == len(view["fraction_in_view_final"])
+    assert all(0.0 <= v <= 1.0 for v in view["fraction_in_view_final"])
+    assert bool(r["warnings"]) == bool(view["frames_out_of_view_final"])
     if loss == "perceptual":
         assert r["info"]["perceptual_extractor"] == "filterbank"
 

@@ -160,6 +160,10 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
         result["info"] = {**problem.info, "perceptual_extractor": features.name}
     result["errors"] = _errors(cfg, env, sim, truth, keep, loss_frames, initial_states, final_states, predicted,
                                initial_estimates, result["estimates"])
+    result["warnings"] = []
+    if cfg.loss in IMAGE_LOSSES:
+        result["view"], warning = _view(cfg, renderer, loss_frames, initial_states, final_states)
+        result["warnings"] += [warning] if warning else []
     folder = ResultFolder(out)
     try:
         folder.write_json("result.json", result)
@@ -178,6 +182,28 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
         folder.discard()
         raise
     return result
+
+
+#: Losses that compare renders of the simulated states with the video: blind where the object is out of view.
+IMAGE_LOSSES = ("render", "pixelwise", "perceptual")
+
+
+def _view(cfg, renderer, loss_frames, initial_states, final_states) -> tuple[dict, str | None]:
+    """How much of the object the camera sees in each compared frame, before and after the optimisation
+    (StateRenderer.in_view), and a warning line when the result has frames where it sees none of it: there an
+    image loss has no gradient, and a rollout that left the view is not brought back (docs/tasks.md §Out of
+    view)."""
+    frames = list(loss_frames)
+    before = renderer.in_view(initial_states[frames].float())
+    after = renderer.in_view(final_states[frames].float())
+    out = [f for f, v in zip(frames, after) if v == 0]
+    view = {"frames": frames, "fraction_in_view_initial": before.tolist(), "fraction_in_view_final": after.tolist(),
+            "frames_out_of_view_final": out}
+    if not out:
+        return view, None
+    return view, (f"the result's simulated object is out of the camera's view in {len(out)} of the {len(frames)} "
+                  f"compared frames (first: frame {out[0]}); the {cfg.loss} loss has no gradient there — try "
+                  f"--loss state, or --grow-horizon (docs/tasks.md §Out of view)")
 
 
 def _errors(cfg, env, sim, truth, keep, loss_frames, initial_states, final_states, predicted, initial, final) -> dict:
