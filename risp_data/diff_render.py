@@ -167,16 +167,18 @@ class StateRenderer:
         compares the empty scene and has no gradient that could bring the object back (docs/tasks.md §Out of
         view).  A vertex is inside when Mitsuba's sensor samples a direction to it with non-zero density."""
         mi, dr = self._mi, self._dr
-        sensor = self.renderer.scene.sensors()[0]
-        out = []
-        with torch.no_grad(), dr.suspend_grad():
-            for state in states:
-                V = torch.cat(list(self.vertices(state).values()), 0).double().cpu().numpy()
-                it = dr.zeros(mi.Interaction3f, len(V))
-                it.p = mi.Point3f(*[mi.Float(V[:, c].astype(np.float32)) for c in range(3)])
-                ds, _ = sensor.sample_direction(it, mi.Point2f(0))
-                out.append(float(np.mean(ds.pdf.numpy() > 0)) if len(V) else 0.0)
-        return np.asarray(out, np.float64)
+        with torch.no_grad():
+            per_state = [torch.cat(list(self.vertices(state).values()), 0).cpu().numpy() for state in states]
+        if not per_state:
+            return np.zeros(0)
+        V = np.concatenate(per_state, 0)  # every state's vertices in one sensor query
+        with dr.suspend_grad():
+            it = dr.zeros(mi.Interaction3f, len(V))
+            it.p = mi.Point3f(*[mi.Float(np.ascontiguousarray(V[:, c])) for c in range(3)])
+            ds, _ = self.renderer.scene.sensors()[0].sample_direction(it, mi.Point2f(0))
+            inside = ds.pdf.numpy() > 0
+        ends = np.cumsum([len(v) for v in per_state])
+        return np.asarray([part.mean() if len(part) else 0.0 for part in np.split(inside, ends[:-1])], np.float64)
 
     def __call__(self, states: torch.Tensor, seed: int = 0) -> torch.Tensor:
         """Images (T, H, W, 3) float32 linear RGB of states (T, S); differentiable w.r.t. ``states``."""

@@ -141,15 +141,12 @@ def test_in_view_says_how_much_of_the_object_the_camera_sees():
     mid = torch.tensor([(a + b) / 2 for a, b in zip(env.state_low, env.state_high)], dtype=torch.float64)
     far = mid.clone()
     far[0] += 50.0
-    edge = None
-    for dx in np.linspace(0.0, 5.0, 201):  # the first shift that puts part of the vehicle outside the image
-        s = mid.clone()
-        s[0] += dx
-        if r.in_view(s[None])[0] < 1.0:
-            edge = s.clone()
-            edge[0] += 0.05  # a little further: some of it out, not all
-            break
-    assert edge is not None
+    shifted = mid.repeat(201, 1)
+    shifted[:, 0] += torch.linspace(0.0, 5.0, 201, dtype=torch.float64)
+    partly = np.flatnonzero(r.in_view(shifted) < 1.0)  # shifts that put part of the vehicle outside the image
+    assert len(partly) > 0
+    edge = shifted[partly[0]].clone()
+    edge[0] += 0.05  # a little further than the first: some of it out, not all
     frac = r.in_view(torch.stack([mid, far, edge]))
     assert frac[0] == 1.0 and frac[1] == 0.0 and 0.0 < frac[2] < 1.0, frac
     cfg = types.SimpleNamespace(loss="render")

@@ -160,10 +160,10 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
         result["info"] = {**problem.info, "perceptual_extractor": features.name}
     result["errors"] = _errors(cfg, env, sim, truth, keep, loss_frames, initial_states, final_states, predicted,
                                initial_estimates, result["estimates"])
-    result["warnings"] = []
+    warning = None
     if cfg.loss in IMAGE_LOSSES:
         result["view"], warning = _view(cfg, renderer, loss_frames, initial_states, final_states)
-        result["warnings"] += [warning] if warning else []
+    result["warnings"] = [warning] if warning else []
     folder = ResultFolder(out)
     try:
         folder.write_json("result.json", result)
