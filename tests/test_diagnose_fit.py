@@ -10,7 +10,7 @@ from risp_tasks.diagnose import candidates as cands
 from risp_tasks.diagnose.adapter import Observer
 from risp_tasks.diagnose.fit import _jacobian, channel_sigma, estimate_noise, make_segments, residuals
 from risp_tasks.diagnose.run import split_trajectories
-from risp_tasks.diagnose.select import Score, decide, estimate_note
+from risp_tasks.diagnose.select import Score, decide, estimate_force_note, estimate_note
 from risp_tasks.diagnose.synth import SynthConfig, make_synthetic
 from risp_tasks.measured import load_measured
 
@@ -113,21 +113,74 @@ def test_unexplained_estimates_name_the_estimate_noise():
     assert estimate_note(named, by, noise) == named
 
 
-def test_diagnose_passes_the_estimates_provenance_on(quad_data, tmp_path, monkeypatch):
-    """The sidecar's `estimated_by` reaches the verdict through the whole diagnose run (run._diagnose); the
-    decision itself is forced to `unexplained`, as the motor-lag data would otherwise be named."""
+def test_wind_on_estimates_gives_the_tilt_it_equals():
+    """Issue 10: a `wind` named on a network's estimates says which attitude bias would fit the same force:
+    β = atan(|(f_x, f_y)| / (m g)); nothing is added without provenance, for other causes, or without a mass."""
+    import math
+
+    base, weak = _score("base", 20000.0, 0, 2.0), _score("air_drag", 19900.0, 1, 1.99)
+    named = decide(base, [_score("wind", 10000.0, 3, 1.0), weak], [])
+    assert named.cause == "wind"
+    by = {"model": {"path": "runs/q/model.pt"}}
+    values = {"wind.fx": 3.0, "wind.fy": -4.0, "wind.fz": 9.0}  # f_z is along the thrust: no tilt
+    noted = estimate_force_note(named, by, values, 3.0)
+    tilt = math.degrees(math.atan(5.0 / (3.0 * 9.81)))
+    assert noted.cause == "wind" and noted.reason.startswith(named.reason)
+    assert "5.00 N on 3 kg" in noted.reason and f"a tilt of {tilt:.1f}°" in noted.reason and f"{tilt:.1f}" == "9.6"
+    assert f"{math.degrees(math.atan(10 / (3 * 9.81))):.1f}°" in estimate_force_note(
+        named, by, {"wind.fx": 10.0, "wind.fy": 0.0}, 3.0).reason  # grows with the force
+    assert estimate_force_note(named, None, values, 3.0) == named
+    assert estimate_force_note(named, by, values, None) == named
+    unexplained = decide(base, [weak], [])
+    assert estimate_force_note(unexplained, by, values, 3.0) == unexplained
+    drag = decide(base, [_score("air_drag", 10000.0, 1, 1.0)], [])
+    assert drag.cause == "air_drag" and estimate_force_note(drag, by, values, 3.0) == drag
+
+
+def _estimated_copy(quad_data, folder, sidecar):
+    """Two trajectories of the quadrotor data in ``folder``, one sidecar marked as `risp-task estimate` output."""
     import json
     import shutil
+
+    src, _ = quad_data
+    for f in sorted(src.glob("traj_00[01].*")):
+        shutil.copy(f, folder / f.name)
+    side = folder / sidecar
+    side.write_text(json.dumps({**json.loads(side.read_text()), "estimated_by": {"model": {"path": "q.pt"}}}))
+    return side
+
+
+def test_a_wind_verdict_on_estimates_carries_its_tilt_through_diagnose(quad_data, tmp_path, monkeypatch):
+    """The note reaches the report through run._diagnose, with the fitted force and the data's own mass (the
+    decision is forced to the fitted `wind` model, and kept there past the residual-dependence check)."""
+    import math
 
     from risp_tasks.diagnose import run as diagnose_run
     from risp_tasks.diagnose.run import DiagnoseConfig, diagnose
     from risp_tasks.diagnose.select import Decision
 
-    src, _ = quad_data
-    for f in sorted(src.glob("traj_00[01].*")):
-        shutil.copy(f, tmp_path / f.name)
-    side = tmp_path / "traj_001.json"
-    side.write_text(json.dumps({**json.loads(side.read_text()), "estimated_by": {"model": {"path": "q.pt"}}}))
+    _estimated_copy(quad_data, tmp_path, "traj_000.json")
+    monkeypatch.setattr(diagnose_run, "decide", lambda base, singles, pairs: Decision(
+        "wind", next(s for s in singles if s.name == "wind"), None, "forced"))
+    monkeypatch.setattr(diagnose_run, "check_dependence", lambda decision, dependence: decision)
+    report = diagnose(DiagnoseConfig(data=(str(tmp_path),), env="quadrotor", out=None, seed=0, effects=("wind",),
+                                     max_iters=2, progress=False, plots=False))
+    p, m = report["parameters"], report["fixed_parameters"]["mass"]
+    f_h = math.hypot(p["wind.fx"]["value"], p["wind.fy"]["value"])
+    assert report["cause"] == "wind" and report["reason"].startswith("forced")
+    assert f"({f_h:.2f} N on {m:.3g} kg) equals a tilt of {math.degrees(math.atan(f_h / (m * 9.81))):.1f}°" in report["reason"]
+
+
+def test_diagnose_passes_the_estimates_provenance_on(quad_data, tmp_path, monkeypatch):
+    """The sidecar's `estimated_by` reaches the verdict through the whole diagnose run (run._diagnose); the
+    decision itself is forced to `unexplained`, as the motor-lag data would otherwise be named."""
+    import json
+
+    from risp_tasks.diagnose import run as diagnose_run
+    from risp_tasks.diagnose.run import DiagnoseConfig, diagnose
+    from risp_tasks.diagnose.select import Decision
+
+    side = _estimated_copy(quad_data, tmp_path, "traj_001.json")
     monkeypatch.setattr(diagnose_run, "decide", lambda base, singles, pairs: Decision(
         "unexplained", base, None, "forced"))
     cfg = DiagnoseConfig(data=(str(tmp_path),), env="quadrotor", out=None, seed=0, effects=("wind",), max_iters=2,

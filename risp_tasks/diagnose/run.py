@@ -24,8 +24,8 @@ from .adapter import Observer, calibrate_floor
 from .fit import FitConfig, FitResult, channel_sigma, fit_model, make_segments, noise_model
 from .residuals import accel_rms, group_rms, one_step, rollout_error
 from .dependence import residual_dependence
-from .select import (RHO_MAX, Score, bound_flag, check_dependence, decide, estimate_note, held_out_score,
-                     noise_floor, runner_up_note)
+from .select import (RHO_MAX, Score, bound_flag, check_dependence, decide, estimate_force_note, estimate_note,
+                     held_out_score, noise_floor, runner_up_note)
 
 
 #: Held-out one-step residuals are scored on at most this many × --max-segments samples (a seeded subset).
@@ -240,6 +240,8 @@ def _diagnose(cfg: DiagnoseConfig) -> dict:
     decision, runner_up = runner_up_note(decision, [ev.score for ev in evaluated.values()])
     estimated_by = next((tr.sidecar.get("estimated_by") for tr in trajs if tr.sidecar.get("estimated_by")), None)
     decision = estimate_note(decision, estimated_by, noise_info)
+    fixed = dict(zip(base.fit.model.sim.param_names, (float(v) for v in base.fit.model.base)))
+    decision = estimate_force_note(decision, estimated_by, chosen.fit.values, fixed.get("mass"))
     ext_for_gain = chosen if decision.selected.name != "base" else (
         evaluated[decision.best_candidate.name] if decision.best_candidate is not None else base)
 

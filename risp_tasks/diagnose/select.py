@@ -31,6 +31,7 @@ import torch
 
 from .adapter import Observer, consistent_start
 from .fit import DTYPE, FitResult, Segments, predict, robust
+from ..sims._rigid import GRAVITY
 
 DELTA_BIC_MIN = 10.0
 MIN_RSS_REDUCTION = 0.05
@@ -224,6 +225,27 @@ def estimate_note(decision: Decision, estimated_by: dict | None, noise_info: dic
                     f"{decision.reason}; the data are a network's estimates from a video (risp-task estimate"
                     f"{', model ' + str(model) if isinstance(model, str) and model else ''}), {errors}: the residual "
                     f"may be the estimate noise rather than missing physics")
+
+
+def estimate_force_note(decision: Decision, estimated_by: dict | None, values: dict, mass: float | None,
+                        gravity: float = GRAVITY) -> Decision:
+    """A ``wind`` named on a network's estimates from a video says which attitude bias would fit the same.
+
+    Through the known thrust T ≈ m g, an attitude reading tilted by β predicts a horizontal acceleration g tan β,
+    i.e. the force m g tan β; a bias that is constant in this look (the network's error in an unseen look is
+    such a bias) is therefore one parameter with a constant force, and the fit cannot tell them apart.  The note
+    gives the tilt β = atan(|F_h| / (m g)) that the fitted horizontal force F_h = (f_x, f_y) equals, so the verdict
+    can be held against the network's attitude error (docs/tasks.md §Video → diagnosis).  Other verdicts, data
+    without the ``estimated_by`` provenance, or an unknown mass leave the decision unchanged."""
+    if not estimated_by or "wind" not in decision.selected.effects or not mass or mass <= 0:
+        return decision
+    f_h = math.hypot(float(values.get("wind.fx", 0.0)), float(values.get("wind.fy", 0.0)))
+    tilt = math.degrees(math.atan2(f_h, mass * gravity))
+    return Decision(decision.cause, decision.selected, decision.best_candidate,
+                    f"{decision.reason}; the data are a network's estimates from a video, where a constant bias of the "
+                    f"estimated attitude fits the same as a constant force: this force's horizontal part ({f_h:.2f} N "
+                    f"on {mass:.3g} kg) equals a tilt of {tilt:.1f}°, so it is wind only if the network's attitude "
+                    f"error in this look is well below that")
 
 
 def runner_up_note(decision: Decision, scores: list[Score]) -> tuple[Decision, dict | None]:
