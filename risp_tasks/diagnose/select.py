@@ -235,8 +235,9 @@ def estimate_force_note(decision: Decision, estimated_by: dict | None, values: d
     i.e. the force m g tan β; a bias that is constant in this look (the network's error in an unseen look is
     such a bias) is therefore one parameter with a constant force, and the fit cannot tell them apart.  The note
     gives the tilt β = atan(|F_h| / (m g)) that the fitted horizontal force F_h = (f_x, f_y) equals, so the verdict
-    can be held against the network's attitude error (docs/tasks.md §Video → diagnosis).  Other verdicts, data
-    without the ``estimated_by`` provenance, or an unknown mass leave the decision unchanged."""
+    can be held against the constant part of the network's thrust-axis error in that look (its yaw error and the
+    part that varies through the flight do not act like a force; docs/tasks.md §Video → diagnosis).  Other
+    verdicts, data without the ``estimated_by`` provenance, or an unknown mass leave the decision unchanged."""
     if not estimated_by or "wind" not in decision.selected.effects or not mass or mass <= 0:
         return decision
     f_h = math.hypot(float(values.get("wind.fx", 0.0)), float(values.get("wind.fy", 0.0)))
@@ -244,8 +245,8 @@ def estimate_force_note(decision: Decision, estimated_by: dict | None, values: d
     return Decision(decision.cause, decision.selected, decision.best_candidate,
                     f"{decision.reason}; the data are a network's estimates from a video, where a constant bias of the "
                     f"estimated attitude fits the same as a constant force: this force's horizontal part ({f_h:.2f} N "
-                    f"on {mass:.3g} kg) equals a tilt of {tilt:.1f}°, so it is wind only if the network's attitude "
-                    f"error in this look is well below that")
+                    f"on {mass:.3g} kg) equals a tilt of {tilt:.1f}°, so it is wind only if the network's reading of "
+                    f"the thrust axis in this look is biased by well less than that")
 
 
 def runner_up_note(decision: Decision, scores: list[Score]) -> tuple[Decision, dict | None]:
