@@ -196,8 +196,13 @@ def make_video(env, out, frames, fps, resolution, spp, domain, params, effect, c
 
     cfg = ReferenceConfig(env=env, out=out, frames=frames, fps=fps, resolution=resolution, spp=spp, domain=domain,
                           params=params, effect=effect, camera=camera, mesh=mesh, seed=seed, progress=not quiet)
+    from risp_tasks.tasks.reference import outside_warning
+
     truth = make_reference(cfg)
     click.echo(f"wrote {out} ({frames} frames, {resolution}×{resolution}, {fps:g} fps), ground truth {truth['truth_path']}")
+    warning = outside_warning(truth["outside_sampled_states"])
+    if warning:
+        click.echo(warning, err=True)
 
 
 # ---- BEGIN table command (owned by risp_tasks/tables; docs/tables.md) ----------------------------------------

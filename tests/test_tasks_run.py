@@ -282,3 +282,42 @@ def test_loading_a_model_leaves_the_global_torch_stream_alone(quad):
     torch.manual_seed(5)
     load(quad[0])
     assert torch.equal(torch.rand(3), expected)
+
+
+def test_outside_sampled_states_counts_frames_beyond_the_training_box():
+    """Which frames leave the sampler's box, per state; the boundary itself (the cube on the floor) is inside."""
+    from risp_data.envs import get_environment
+    from risp_tasks.tasks.reference import outside_sampled_states, outside_warning
+
+    env = get_environment("cube")
+    lo, hi = np.asarray(env.state_low), np.asarray(env.state_high)
+    mid = (lo + hi) / 2
+    S = np.tile(mid, (10, 1))
+    S[:3, 0] = hi[0] + 0.1  # x beyond the box in 3 frames
+    S[2:4, 2] = lo[2] - 0.01  # z below it in 2 (one of them also x)
+    S[5, 2] = lo[2]  # resting exactly on the floor: inside
+    o = outside_sampled_states("cube", S)
+    assert o["fraction"] == pytest.approx(0.4) and o["states"] == {"x": pytest.approx(0.3), "z": pytest.approx(0.2)}
+    assert o["low"] == pytest.approx(lo.tolist()) and o["high"] == pytest.approx(hi.tolist())
+    line = outside_warning(o)
+    assert line.startswith("warning: 40 % of the frames") and "x 30 %, z 20 %" in line and "\n" not in line
+    inside = outside_sampled_states("cube", np.tile(mid, (4, 1)))
+    assert inside == {**inside, "fraction": 0.0, "states": {}} and outside_warning(inside) is None
+
+
+def test_make_video_records_and_warns_when_a_toss_leaves_the_training_box(tmp_path):
+    """make-video writes the check into the truth file and prints the warning line (a cube toss that slides out
+    of the sampled x range: seed 0); the video itself is written as before."""
+    from click.testing import CliRunner
+
+    from risp_tasks.cli import cli
+
+    out = tmp_path / "toss.mp4"
+    res = CliRunner().invoke(cli, ["make-video", "--env", "cube", "--out", str(out), "--frames", "20", "--fps", "10",
+                                   "--resolution", "16", "--spp", "1", "--seed", "0", "--quiet"])
+    assert res.exit_code == 0, res.output
+    truth = json.load(open(tmp_path / "toss.truth.json"))
+    o = truth["outside_sampled_states"]
+    states = np.asarray(truth["env_states"])
+    assert 0 < o["fraction"] <= 1 and o["states"]["x"] == pytest.approx(np.mean(states[:, 0] > o["high"][0]))
+    assert out.exists() and "warning: " in res.output and "% of the frames have states outside" in res.output

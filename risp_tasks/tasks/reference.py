@@ -159,6 +159,36 @@ def _motion(sim, params, n, k, fps, rng):
         return sim.rollout(params, s, per_step, (n - 1) * k)[0, ::k], u
 
 
+def outside_sampled_states(env_name: str, env_states: np.ndarray) -> dict:
+    """Which frames' states lie outside the box the environment's sampler draws training states from.
+
+    The networks are trained on states uniform in [state_low, state_high] (risp_data.envs); a reference motion
+    may leave that box (a toss that slides away, a flight that overshoots its path), and there a network's
+    reading is an extrapolation.  Returns {"fraction": share of frames with any state outside, "states": {name:
+    share of frames outside, for the states that leave}, "low", "high"}; a state on the boundary to 1e-6 of the
+    range (the cube resting on the floor) counts as inside."""
+    from risp_data.envs import get_environment
+
+    env = get_environment(env_name)
+    lo, hi = np.asarray(env.state_low, np.float64), np.asarray(env.state_high, np.float64)
+    S = np.asarray(env_states, np.float64)
+    tol = 1e-6 * (hi - lo)
+    out = (S < lo - tol) | (S > hi + tol)
+    names = get_env_state_names(env_name)
+    return {"fraction": float(out.any(axis=1).mean()),
+            "states": {n: float(out[:, i].mean()) for i, n in enumerate(names) if out[:, i].any()},
+            "low": lo.tolist(), "high": hi.tolist()}
+
+
+def outside_warning(outside: dict) -> str | None:
+    """The one-line warning make-video prints for :func:`outside_sampled_states`, or None when all frames are in."""
+    if not outside["fraction"] > 0:
+        return None
+    per = ", ".join(f"{n} {100 * f:.0f} %" for n, f in outside["states"].items())
+    return (f"warning: {100 * outside['fraction']:.0f} % of the frames have states outside the range the networks are "
+            f"trained on ({per}): a network's readings there are extrapolations (docs/tasks.md §Reference videos)")
+
+
 def make_reference(cfg: ReferenceConfig) -> dict:
     from tqdm import tqdm
 
@@ -197,6 +227,7 @@ def make_reference(cfg: ReferenceConfig) -> dict:
              "actions": None if actions is None else np.asarray(actions).tolist(),
              "look": {"domain": cfg.domain, "psi": look.psi.tolist(), "aux": look.aux},
              "frame_seeds": frame_seeds.tolist(),
+             "outside_sampled_states": outside_sampled_states(cfg.env, env_states),
              "mesh": None if cfg.mesh is None else {"path": cfg.mesh, "sha256": sha256_file(cfg.mesh)}}
     if actions is not None:
         write_actions(actions_path(cfg.out), cfg.env, actions, cfg.fps)
