@@ -192,12 +192,10 @@ def control(target, **kw):
 @click.option("--quiet", is_flag=True)
 def make_video(env, out, frames, fps, resolution, spp, domain, params, effect, camera, mesh, seed, quiet):
     """Simulate ENV and render a reference video with a random look, plus <out>.truth.json and <out>.actions.csv."""
-    from risp_tasks.tasks.reference import ReferenceConfig, make_reference
+    from risp_tasks.tasks.reference import ReferenceConfig, make_reference, outside_warning
 
     cfg = ReferenceConfig(env=env, out=out, frames=frames, fps=fps, resolution=resolution, spp=spp, domain=domain,
                           params=params, effect=effect, camera=camera, mesh=mesh, seed=seed, progress=not quiet)
-    from risp_tasks.tasks.reference import outside_warning
-
     truth = make_reference(cfg)
     click.echo(f"wrote {out} ({frames} frames, {resolution}×{resolution}, {fps:g} fps), ground truth {truth['truth_path']}")
     warning = outside_warning(truth["outside_sampled_states"])
