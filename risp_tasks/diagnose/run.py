@@ -268,7 +268,7 @@ def _diagnose(cfg: DiagnoseConfig) -> dict:
         "compared_model": ext_for_gain.fit.model.name,
         "parameters": params_of(chosen) if decision.cause not in ("none",) else {},
         "candidate_parameters": {name: params_of(ev) for name, ev in evaluated.items() if ev.fit.model.effects},
-        "fixed_parameters": {n: float(v) for n, v in zip(base.fit.model.sim.param_names, base.fit.model.base)},
+        "fixed_parameters": fixed,
         "ranking": ranking,
         "residual_dependence": [d.as_dict() for d in dependence[:10]],
         "runner_up": runner_up,

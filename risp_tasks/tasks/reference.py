@@ -174,9 +174,8 @@ def outside_sampled_states(env_name: str, env_states: np.ndarray) -> dict:
     S = np.asarray(env_states, np.float64)
     tol = 1e-6 * (hi - lo)
     out = (S < lo - tol) | (S > hi + tol)
-    names = get_env_state_names(env_name)
     return {"fraction": float(out.any(axis=1).mean()),
-            "states": {n: float(out[:, i].mean()) for i, n in enumerate(names) if out[:, i].any()},
+            "states": {n: float(out[:, i].mean()) for i, n in enumerate(env.state_names) if out[:, i].any()},
             "low": lo.tolist(), "high": hi.tolist()}
 
 
