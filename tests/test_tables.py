@@ -413,3 +413,34 @@ def test_a_new_default_gamma_is_a_new_network(monkeypatch):
 
     monkeypatch.setattr(train_model, "MIN_LAST_MAP", 2)
     assert network_key(tcfg, "cube", "data") != moved
+
+
+def test_a_revised_motion_is_a_new_reference_video(monkeypatch, tmp_path):
+    """A table finds a cached reference video by checksum; a motion's revision (MOTION_REVISIONS, e.g. the cube's
+    tosses kept inside the sampled box) is part of it, so a video of the old motion is not found again, while an
+    environment whose motion was never revised keeps its key."""
+    from risp_tasks.tables.artifacts import Artifacts
+    from risp_tasks.tables.config import make_config
+    from risp_tasks.tasks import reference
+
+    art = Artifacts(make_config("sysid", out=str(tmp_path)))
+    cube, quad = art.video_config("cube", 0)[1], art.video_config("quadrotor", 0)[1]
+    assert art.video_config("cube", 0)[1] == cube and art.video_config("cube", 1)[1] != cube
+    monkeypatch.setitem(reference.MOTION_REVISIONS, "cube", reference.MOTION_REVISIONS["cube"] + 1)
+    assert art.video_config("cube", 0)[1] != cube
+    assert art.video_config("quadrotor", 0)[1] == quad
+    monkeypatch.setitem(reference.MOTION_REVISIONS, "quadrotor", 2)
+    assert art.video_config("quadrotor", 0)[1] != quad
+
+
+def test_a_revised_motion_recomputes_the_cells_that_read_its_videos(monkeypatch):
+    """A finished sysid cell of the cube made before its tosses were revised is computed again; the cube's
+    estimation cells (images, no videos) and the other environments' sysid cells are kept."""
+    from risp_tasks.tables.grid import Cell, cell_look
+    from risp_tasks.tasks import reference
+
+    cube, quad = Cell("cube", "ours", 0), Cell("quadrotor", "ours", 0)
+    before = {t: (cell_look(cube, t), cell_look(quad, t)) for t in ("sysid", "estimation")}
+    monkeypatch.setitem(reference.MOTION_REVISIONS, "cube", reference.MOTION_REVISIONS["cube"] + 1)
+    assert cell_look(cube, "sysid") != before["sysid"][0] and cell_look(quad, "sysid") == before["sysid"][1]
+    assert cell_look(cube, "estimation") == before["estimation"][0] == cell_look(cube)

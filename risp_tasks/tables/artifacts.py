@@ -4,7 +4,8 @@ checksum of their configuration.
     <cache>/data/<env>-train-<key>/       risp_data.generate.run_job (train domain, with Jacobians)
     <cache>/data/<env>-test-r<k>-<key>/   target-domain test images of repeat k (no Jacobians)
     <cache>/runs/<env>-<reg>-<key>/       risp_train.train.fit (key: training config + data manifest hash)
-    <cache>/videos/<env>-r<k>-<key>.mp4   risp_tasks.tasks.reference.make_reference (target domain, random look)
+    <cache>/videos/<env>-r<k>-<key>.mp4   risp_tasks.tasks.reference.make_reference (target domain, random look;
+                                          the key includes the motion's revision, MOTION_REVISIONS)
 
 ``<key>`` is the first 12 hex digits of the sha256 of the JSON of everything that determines the artifact (the
 environment's look, risp_data.envs.look, included), so a changed setting or appearance makes a new artifact and
@@ -102,15 +103,24 @@ class Artifacts:
 
     # ------------------------------------------------------------------ reference videos
 
-    def video(self, env: str, repeat: int, frames: int | None = None) -> dict:
-        """The target-domain reference video of repeat ``repeat``: {"video", "truth", "actions"} paths."""
-        from risp_tasks.tasks.reference import ReferenceConfig, actions_path, make_reference, truth_path
+    def video_config(self, env: str, repeat: int, frames: int | None = None):
+        """(ReferenceConfig, cached video path) of repeat ``repeat``'s reference video: the path's key is the
+        checksum of the settings, the look and, for a revised motion, the motion's revision."""
+        from risp_tasks.tasks.reference import MOTION_REVISIONS, ReferenceConfig
 
         cfg = self.cfg
         ref = ReferenceConfig(env=env, out="", frames=frames or cfg.frames, fps=10.0, resolution=cfg.resolution, spp=cfg.spp,
                               domain="target", seed=TEST_SEED + cfg.seed + repeat, progress=False)
         key = look_key(ref, env, skip=("out", "progress"))
-        out = os.path.join(self.root, "videos", f"{env}-r{repeat}-{key}.mp4")
+        if env in MOTION_REVISIONS:  # a revised motion is a new video (unrevised motions keep their keys)
+            key = checksum({"video": key, "motion": MOTION_REVISIONS[env]})
+        return ref, os.path.join(self.root, "videos", f"{env}-r{repeat}-{key}.mp4")
+
+    def video(self, env: str, repeat: int, frames: int | None = None) -> dict:
+        """The target-domain reference video of repeat ``repeat``: {"video", "truth", "actions"} paths."""
+        from risp_tasks.tasks.reference import actions_path, make_reference, truth_path
+
+        ref, out = self.video_config(env, repeat, frames)
         if not (os.path.exists(out) and os.path.exists(truth_path(out))):  # the truth is written last
             make_reference(replace(ref, out=out))
         actions = actions_path(out)

@@ -70,10 +70,21 @@ def read_cell(path: str, look: str | None = None) -> dict | None:
     return result
 
 
-def cell_look(cell: Cell) -> str:
-    from risp_data.envs.look import look_fingerprint
+#: tables whose cells read reference videos (risp_tasks.tasks.reference): a revised motion recomputes them
+VIDEO_TABLES = ("sysid", "imitation", "control", "sampling")
 
-    return look_fingerprint(cell.env)
+
+def cell_look(cell: Cell, table: str | None = None) -> str:
+    """What a cell saw of its environment: the look's fingerprint (risp_data.envs.look) and, in a table that reads
+    reference videos, the motion's revision where it was revised (reference.MOTION_REVISIONS): a finished cell made
+    with another look or motion is computed again."""
+    from risp_data.envs.look import look_fingerprint
+    from risp_tasks.tasks.reference import MOTION_REVISIONS
+
+    look = look_fingerprint(cell.env)
+    if table in VIDEO_TABLES and cell.env in MOTION_REVISIONS:
+        look += f"/motion{MOTION_REVISIONS[cell.env]}"
+    return look
 
 
 def compute_cell(cfg: TableConfig, cell: Cell, folder: str, cache: str | None) -> dict:
@@ -89,7 +100,7 @@ def compute_cell(cfg: TableConfig, cell: Cell, folder: str, cache: str | None) -
         line = str(e).splitlines()[0] if str(e) else ""
         result = {"na": f"failed: {type(e).__name__}: {line}", "failed": True,
                   "traceback": traceback.format_exc(limit=8)}
-    result.update({"table": cfg.table, "env": cell.env, "look": cell_look(cell), "method": cell.method,
+    result.update({"table": cfg.table, "env": cell.env, "look": cell_look(cell, cfg.table), "method": cell.method,
                    "repeat": cell.repeat, "seed": cfg.seed, "seconds": time.perf_counter() - started,
                    "loadavg": list(os.getloadavg()), "pid": os.getpid()})
     write_text_atomic(cell_path(folder, cell), json.dumps(result, indent=1, sort_keys=True) + "\n")
@@ -107,7 +118,7 @@ def run_table(cfg: TableConfig, cache: str | None = None, on_cell: Callable[[Cel
     os.makedirs(folder, exist_ok=True)
     write_text_atomic(os.path.join(folder, "config.json"), json.dumps(cfg.to_dict(), indent=1, sort_keys=True) + "\n")
     cells = grid(cfg)
-    todo = [c for c in cells if read_cell(cell_path(folder, c), cell_look(c)) is None]
+    todo = [c for c in cells if read_cell(cell_path(folder, c), cell_look(c, cfg.table)) is None]
     echo(f"{cfg.table}: {len(cells) - len(todo)} of {len(cells)} cells done, {len(todo)} to run; results: {folder}")
     jobs = cfg.jobs or available_cpus()
     if cfg.executor == "ray" and todo:
@@ -121,7 +132,7 @@ def run_table(cfg: TableConfig, cache: str | None = None, on_cell: Callable[[Cel
                 result = compute_cell(cfg, cell, folder, cache)
                 if on_cell is not None:
                     on_cell(cell, result)
-    results = [read_cell(cell_path(folder, c), cell_look(c)) or _failed(folder, c) for c in cells]
+    results = [read_cell(cell_path(folder, c), cell_look(c, cfg.table)) or _failed(folder, c) for c in cells]
     return write_report(cfg, folder, results)
 
 
