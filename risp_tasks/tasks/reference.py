@@ -112,56 +112,72 @@ def _params(cfg: ReferenceConfig, sim, rng, effect, effect_values) -> torch.Tens
 
 
 def _motion(sim, params, n, k, fps, rng):
-    """(full states (n, X), file actions (n, A) or None)."""
-    from risp_data.envs import get_environment
+    """(full states (n, X), file actions (n, A) or None) of the environment's reference motion: n frames at
+    ``fps``, k simulation steps per frame, random numbers drawn from ``rng`` in a fixed order."""
+    if sim.env == "quadrotor":
+        return _flight(sim, params, n, k, fps, rng)
+    if sim.env == "cube":
+        return _toss(sim, params, n, k, fps, rng)
+    return _driven(sim, params, n, k, fps, rng)
 
+
+def _flight(sim, params, n, k, fps, rng):
+    """The quadrotor follows p_ref(t) = c + a·sin(2π f t + φ) per axis (a: 0.4–0.8 of the sampled half-range, f:
+    0.15–0.35 Hz) under the tracking controller with its integral term; the actions are its per-frame thrusts."""
+    from risp_data.envs import get_environment
+    from risp_data.envs.quadrotor import ARM_LENGTH
+
+    from ..sims.quadrotor_control import tracking_thrusts
 
     env = get_environment(sim.env)
-    X = len(sim.state_names)
-    if sim.env == "quadrotor":
-        from risp_data.envs.quadrotor import ARM_LENGTH
+    low, high = np.asarray(env.state_low[:3]), np.asarray(env.state_high[:3])
+    centre, half = (low + high) / 2, (high - low) / 2
+    t = np.arange(n) / fps
+    amp = half * rng.uniform(0.4, 0.8, 3)
+    freq = rng.uniform(0.15, 0.35, 3)
+    phase = rng.uniform(0, 2 * math.pi, 3)
+    ref_p = torch.tensor(centre + amp * np.sin(2 * math.pi * freq * t[:, None] + phase))
+    ref_v = torch.tensor(amp * 2 * math.pi * freq * np.cos(2 * math.pi * freq * t[:, None] + phase))
+    s = torch.zeros(1, len(sim.state_names), dtype=torch.float64)
+    s[0, :3], s[0, 3], s[0, 7:10] = ref_p[0], 1.0, ref_v[0]
+    mass = float(params[0, sim.param_index("mass")])
+    inertia = params[0, [sim.param_index(n_) for n_ in ("Ixx", "Iyy", "Izz")]]
+    k_m, k_f = float(params[0, sim.param_index("k_m")]), float(params[0, sim.param_index("k_f")])
+    states, thrusts = [s], []
+    integral = torch.zeros(1, 3, dtype=torch.float64)  # ∫ (p_ref − p) dt: the flight controller's I term
+    with torch.no_grad():
+        for i in range(n):
+            integral += (ref_p[i:i + 1] - s[:, :3]) / fps
+            f = tracking_thrusts(s, ref_p[i:i + 1], ref_v[i:i + 1], mass, inertia, k_m, ARM_LENGTH,
+                                 integral=integral, ki=KI)
+            thrusts.append(f[0])
+            if i == n - 1:
+                break
+            for j in range(k):
+                s = sim.step(params, s, f / k_f, i * k + j)
+            states.append(s)
+    return torch.cat(states), torch.stack(thrusts).numpy()
 
-        from ..sims.quadrotor_control import tracking_thrusts
 
-        low, high = np.asarray(env.state_low[:3]), np.asarray(env.state_high[:3])
-        centre, half = (low + high) / 2, (high - low) / 2
-        t = np.arange(n) / fps
-        amp = half * rng.uniform(0.4, 0.8, 3)
-        freq = rng.uniform(0.15, 0.35, 3)
-        phase = rng.uniform(0, 2 * math.pi, 3)
-        ref_p = torch.tensor(centre + amp * np.sin(2 * math.pi * freq * t[:, None] + phase))
-        ref_v = torch.tensor(amp * 2 * math.pi * freq * np.cos(2 * math.pi * freq * t[:, None] + phase))
-        s = torch.zeros(1, X, dtype=torch.float64)
-        s[0, :3], s[0, 3], s[0, 7:10] = ref_p[0], 1.0, ref_v[0]
-        mass = float(params[0, sim.param_index("mass")])
-        inertia = params[0, [sim.param_index(n_) for n_ in ("Ixx", "Iyy", "Izz")]]
-        k_m, k_f = float(params[0, sim.param_index("k_m")]), float(params[0, sim.param_index("k_f")])
-        states, thrusts = [s], []
-        integral = torch.zeros(1, 3, dtype=torch.float64)  # ∫ (p_ref − p) dt: the flight controller's I term
-        with torch.no_grad():
-            for i in range(n):
-                integral += (ref_p[i:i + 1] - s[:, :3]) / fps
-                f = tracking_thrusts(s, ref_p[i:i + 1], ref_v[i:i + 1], mass, inertia, k_m, ARM_LENGTH,
-                                     integral=integral, ki=KI)
-                thrusts.append(f[0])
-                if i == n - 1:
-                    break
-                for j in range(k):
-                    s = sim.step(params, s, f / k_f, i * k + j)
-                states.append(s)
-        return torch.cat(states), torch.stack(thrusts).numpy()
-    if sim.env == "cube":
-        from risp_data.envs.rotations import euler_to_quat
+def _toss(sim, params, n, k, fps, rng):
+    """The cube starts at a random attitude (pitch within ±90°), x, y ∈ ±0.15 m, 0.2–0.35 m high, spinning at up
+    to 6 rad/s about each axis, with the horizontal velocity of :func:`toss_velocity`; no actions."""
+    from risp_data.envs.rotations import euler_to_quat
 
-        s = torch.zeros(1, X, dtype=torch.float64)
-        ypr = rng.uniform(-math.pi, math.pi, 3) * np.array([1, 0.5, 1])
-        s[0, 0:2] = torch.tensor(rng.uniform(-0.15, 0.15, 2))
-        s[0, 2] = float(rng.uniform(0.2, 0.35))
-        s[0, 3:7] = euler_to_quat(*torch.tensor(ypr).unbind())
-        s[0, 7:9] = torch.tensor(toss_velocity(s[0, 0:2].numpy(), rng.uniform(-1, 1, 2), (n - 1) / fps))
-        s[0, 10:13] = torch.tensor(rng.uniform(-6, 6, 3))
-        with torch.no_grad():
-            return sim.rollout(params, s, None, (n - 1) * k)[0, ::k], None
+    s = torch.zeros(1, len(sim.state_names), dtype=torch.float64)
+    ypr = rng.uniform(-math.pi, math.pi, 3) * np.array([1, 0.5, 1])
+    s[0, 0:2] = torch.tensor(rng.uniform(-0.15, 0.15, 2))
+    s[0, 2] = float(rng.uniform(0.2, 0.35))
+    s[0, 3:7] = euler_to_quat(*torch.tensor(ypr).unbind())
+    s[0, 7:9] = torch.tensor(toss_velocity(s[0, 0:2].numpy(), rng.uniform(-1, 1, 2), (n - 1) / fps))
+    s[0, 10:13] = torch.tensor(rng.uniform(-6, 6, 3))
+    with torch.no_grad():
+        return sim.rollout(params, s, None, (n - 1) * k)[0, ::k], None
+
+
+def _driven(sim, params, n, k, fps, rng):
+    """Hand and rod: from the rest state, each action u_a(t) = A_a·sin(2π f_a t + φ_a), held over a frame (A: hand
+    0.1–0.4 N·m per finger, rod 20–60 N on its centre; f: 0.3–1 Hz); the actions file holds u at the frames."""
     A = sim.action_dim
     t = np.arange(n) / fps
     amp = rng.uniform(*{"hand": (0.1, 0.4), "rod": (20.0, 60.0)}[sim.env], (1, A))
