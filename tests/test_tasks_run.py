@@ -313,6 +313,7 @@ def test_make_video_records_and_warns_when_a_flight_leaves_the_training_box(tmp_
     from click.testing import CliRunner
 
     from risp_tasks.cli import cli
+    from risp_tasks.tasks.reference import OUTSIDE_TOLERANCE
 
     out = tmp_path / "flight.mp4"
     res = CliRunner().invoke(cli, ["make-video", "--env", "quadrotor", "--out", str(out), "--frames", "20", "--fps",
@@ -321,7 +322,7 @@ def test_make_video_records_and_warns_when_a_flight_leaves_the_training_box(tmp_
     truth = json.load(open(tmp_path / "flight.truth.json"))
     o = truth["outside_sampled_states"]
     x = np.asarray(truth["env_states"])[:, 0]
-    beyond = 0.01 * (o["high"][0] - o["low"][0])  # OUTSIDE_TOLERANCE of the range
+    beyond = OUTSIDE_TOLERANCE * (o["high"][0] - o["low"][0])
     assert 0 < o["fraction"] <= 1 and o["states"]["x"] == pytest.approx(np.mean(np.abs(x) > o["high"][0] + beyond))
     assert out.exists() and "warning: " in res.output and "% of the frames have states outside" in res.output
 
