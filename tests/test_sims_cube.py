@@ -136,13 +136,19 @@ def test_hunt_crossley_restitution():
     assert e == pytest.approx(math.sqrt(1 - 4 / 3 * 0.1 * 1.0), rel=0.015)
 
 
-def test_sliding_friction_decelerates_at_mu_g():
-    sim = get_simulator("cube", ("friction",))
+@pytest.mark.parametrize("substeps, rel", [(2, 0.03), (50, 0.01)])
+def test_sliding_friction_decelerates_at_mu_g(substeps, rel):
+    """A block sliding on a face: Coulomb's v(t) = v₀ − μgt as h → 0. The lagged implicit damper (docs §3.4)
+    gives about v' = v / (1 + hμg/v) per substep: a little less deceleration than μg, never more."""
+    sim = get_simulator("cube", ("friction",), substeps=substeps)
     p = sim.default_params(1)
     p[0, 2] = 0.3
     z = sim.side / 2 - rest_penetration(sim.mass, 1e6, 4)
     S = sim.rollout(p, _state((0.0, 0.0, z), v=(1.0, 0.0, 0.0)), None, 20)
-    assert S[0, -1, 7].item() == pytest.approx(1.0 - 0.3 * G * 0.2, rel=0.01)
+    deceleration = (1.0 - S[0, -1, 7].item()) / 0.2
+    assert deceleration == pytest.approx(0.3 * G, rel=rel)
+    assert deceleration < 0.3 * G
+    assert (S[0, 1:, 7] < S[0, :-1, 7]).all()
     assert abs(S[0, -1, 8].item()) < 1e-9
 
 
@@ -182,14 +188,20 @@ def test_friction_up_to_0_3_feeds_no_energy_into_a_toss(opts):
     assert (gain <= 1 + 1e-6).all(), gain
 
 
-@pytest.mark.xfail(strict=True, reason="known bug (docs/models.md §3.4): from μ ≈ 0.4 an impact's extrapolated "
-                   "normal force drives the friction, explicit along the sliding direction, past reversing the "
-                   "corner, and tosses gain energy (up to 1500× at μ = 1)")
-@pytest.mark.parametrize("opts", CUBES)
+@pytest.mark.parametrize("opts", [{"substeps": 4}] + CUBES[1:])
 def test_friction_never_feeds_energy_into_a_toss(opts):
-    """The same at μ ∈ [0.5, 1), inside the effect's plausible range: it must not gain energy either."""
+    """The same at μ ∈ [0.5, 1), inside the effect's plausible range: it must not gain energy either (before
+    the lagged implicit damper of docs §3.4 these tosses gained up to 1500×)."""
     gain = _energy_gain_of_tosses(opts, (0.5, 1.0))
-    assert (gain <= 1.01).all(), gain
+    assert (gain <= 1 + 1e-6).all(), gain
+
+
+@pytest.mark.xfail(strict=True, reason="known limitation (docs/models.md §3.4): at 5 ms substeps a face of the "
+                   "0.2 m cube can land flat within one substep; its corners were out of contact at the substep's "
+                   "start, the solve does not see them, and the 2 cm penetration pops the cube up")
+def test_default_cube_at_5_ms_substeps_keeps_its_energy_at_high_friction():
+    gain = _energy_gain_of_tosses({}, (0.5, 1.0))
+    assert (gain <= 1 + 1e-6).all(), gain
 
 
 def test_rolling_friction_decelerates_spin():

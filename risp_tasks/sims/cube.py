@@ -208,7 +208,8 @@ class CubeSimulator(Simulator):
 
         (M + h·Σ_c J_cᵀ G_c J_c) Δu = h·(Σ_c J_cᵀ f̃_c + F_ext),   J_c = [I, −[r_c]×] (corner velocity v + ω × r_c),
 
-        G_c: the corner force's (negated) Jacobian w.r.t. the corner velocity, plus h·(normal stiffness);
+        G_c: the normal force's (negated) Jacobian w.r.t. the corner velocity plus h·(normal stiffness), and
+        friction's lagged damping coefficient C = μ φ(f_n⁺)/s on the tangential axes;
         f̃_c: the corner force with its normal part extrapolated by h·k_n·σ·(penetration rate).
         """
         h, delta = c.h, c.width
@@ -253,36 +254,26 @@ class CubeSimulator(Simulator):
             vt = vc[..., :2]
             f_n, g_n, f_ext = normal_force(-vc[..., 2])
             s = torch.sqrt((vt * vt).sum(-1, keepdim=True) + FRICTION_EPS**2)  # (B, 8, 1)
-            vhat = vt / s
-            coef = c.mu.unsqueeze(-1) / s  # μ / s
-            # Friction scales with the extrapolated normal force, floored at zero: a separating corner
-            # (f̃_n < 0 in the linearization) must not be pushed along its sliding direction.
-            f_fr, gate_fr = _floor(f_ext)
-            f = torch.cat([-coef * f_fr.unsqueeze(-1) * vt, f_ext.unsqueeze(-1)], -1)  # (B, 8, 3)
-            # G_c = −∂f_c/∂v_c: [[μ f_fr/s (I − v̂ v̂ᵀ), −μ v̂ ∂f_fr/∂f̃_n g_n], [0, g_n]].
-            ct = coef * f_fr.unsqueeze(-1)
-            W = torch.cat([ct, ct, g_n.unsqueeze(-1)], -1).view(B, 24, 1)
-            J4 = J.view(B, 8, 3, 6)
-            Jz = J4[:, :, 2]
-            a = (vhat.unsqueeze(-2) @ J4[:, :, :2]).squeeze(-2)  # (B, 8, 6) = J_tᵀ v̂
+            # A lagged implicit damper f_t = −C·v_t', C = μ φ(f_n⁺)/s (docs §3.4): backward Euler on a positive
+            # damper only removes energy, whatever C is (the former explicit magnitude fed energy into tosses).
+            Jz = J.view(B, 8, 3, 6)[:, :, 2]
+            f_fr = _normal_predicted(c, Jz, g_n, f_ext)
+            C = c.mu.unsqueeze(-1) * f_fr.unsqueeze(-1) / s  # (B, 8, 1)
+            f = torch.cat([-C * vt, f_ext.unsqueeze(-1)], -1)  # (B, 8, 3)
+            W = torch.cat([C, C, g_n.unsqueeze(-1)], -1).view(B, 24, 1)  # G_c = diag(C, C, g_n)
             JT = J.transpose(1, 2)
-            A = c.M + h * (JT @ (W * J) - (ct * a).transpose(1, 2) @ a
-                           - (c.mu * gate_fr * g_n).unsqueeze(-1).mul(a).transpose(1, 2) @ Jz)
+            A = c.M + h * (JT @ (W * J))
             force = (JT @ f.view(B, 24, 1)).squeeze(-1)
         force = force + c.gravity
         if c.mu_r is not None:
-            # Rolling friction (docs §3.3): τ = −μ_r (Σ_c φ(f̃_n,c)) ω / sqrt(|ω|² + ε_ω²), implicit in ω and,
-            # like sliding friction, linearized in the normal velocities through f̃_n.
+            # Rolling friction (docs §3.3): τ = −μ_r (Σ_c φ(f_n,c⁺)) ω / sqrt(|ω|² + ε_ω²), a lagged implicit
+            # damper in ω like sliding friction.
             w = u[:, 3:]
             s_w = torch.sqrt((w * w).sum(1, keepdim=True) + ROLLING_EPS**2)
-            f_rr, gate_rr = _floor(f_ext)
-            what = w / s_w
-            cr = c.mu_r * f_rr.sum(1, keepdim=True) / s_w  # (B, 1)
+            f_rr = f_fr if c.mu is not None else _normal_predicted(c, Jz, g_n, f_ext)
+            cr = c.mu_r * f_rr.sum(1, keepdim=True) / s_w  # (B, 1): a lagged implicit damper, as sliding friction
             force = force + F.pad(-cr * w, (3, 0))
-            G_rot = cr.unsqueeze(-1) * (c.eye3 - what.unsqueeze(-1) * what.unsqueeze(-2))  # −∂τ/∂ω
-            b = ((gate_rr * g_n).unsqueeze(1) @ Jz).squeeze(1)  # (B, 6) = Σ_c φ'·g_n·j_z,c
-            G_cpl = -(c.mu_r * what).unsqueeze(-1) * b.unsqueeze(1)  # (B, 3, 6): −∂τ/∂u through f̃_n
-            A = A + h * (F.pad(G_rot, (3, 0, 3, 0)) + F.pad(G_cpl, (0, 0, 3, 0)))
+            A = A + h * F.pad(cr.unsqueeze(-1) * c.eye3, (3, 0, 3, 0))
         u_new = u + torch.linalg.solve(A, h * force)
         p_new = p + h * u_new[:, :3]
         q_new = normalize_quat(q + (0.5 * h) * quat_mul_pure_left(u_new[:, 3:], q))
@@ -314,6 +305,19 @@ class CubeSimulator(Simulator):
             return s0.unsqueeze(1)
         later = torch.cat([torch.stack(parts, 1) for parts in zip(*traj)], -1)
         return torch.cat([s0.unsqueeze(1), later], 1)
+
+
+def _normal_predicted(c: _Consts, Jz: torch.Tensor, g_n: torch.Tensor, f_ext: torch.Tensor) -> torch.Tensor:
+    """φ(f_n⁺) (B, 8): the normal forces the substep applies, by a normal-only solve (docs §3.4)
+
+        (M + h Σ_c g_n,c j_z,cᵀ j_z,c) Δu_n = h (Σ_c j_z,cᵀ f̃_n,c + F_g),   f_n⁺ = f̃_n − g_n·(J_z Δu_n).
+
+    f̃_n alone overestimates the force ~50× at an unresolved impact, where the solve stops the corner.
+    """
+    JzT = Jz.transpose(1, 2)
+    A_n = c.M + c.h * (JzT @ (g_n.unsqueeze(-1) * Jz))
+    du_n = torch.linalg.solve(A_n, c.h * ((JzT @ f_ext.unsqueeze(-1)).squeeze(-1) + c.gravity))
+    return _floor(f_ext - g_n * (Jz @ du_n.unsqueeze(-1)).squeeze(-1))[0]
 
 
 def _floor(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

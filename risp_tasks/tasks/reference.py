@@ -195,9 +195,9 @@ def toss_velocity(xy0: np.ndarray, u: np.ndarray, duration: float) -> np.ndarray
     velocity is constant and the centre moves on the segment xy(t) = xy0 + v·t: aiming its end at
     xy_end = u · (XY_RANGE − TOSS_MARGIN) keeps every frame of the toss inside the sampler's x, y range, which
     the networks are trained on (docs/tasks.md §Reference videos).  Each component is capped at
-    TOSS_SPEED m/s (short videos), which shortens the segment.  Friction (an effect) slows the cube along it
-    up to μ ≈ 0.3; above, the cube model's friction kicks the cube sideways at impacts (a known bug,
-    docs/models.md §3.4) and a toss can leave the box (make-video warns)."""
+    TOSS_SPEED m/s (short videos), which shortens the segment.  Friction (an effect, not used by the tasks)
+    would slow the cube along it and, with spin, deflect it at impacts; a toss that leaves the box makes
+    make-video warn."""
     from risp_data.envs.cube import XY_RANGE
 
     end = np.asarray(u, np.float64) * (XY_RANGE - TOSS_MARGIN)
