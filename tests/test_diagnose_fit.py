@@ -8,7 +8,7 @@ import torch
 
 from risp_tasks.diagnose import candidates as cands
 from risp_tasks.diagnose.adapter import Observer
-from risp_tasks.diagnose.fit import _jacobian, channel_sigma, estimate_noise, make_segments, residuals
+from risp_tasks.diagnose.fit import _jacobian, channel_sigma, estimate_noise, grid_start, make_segments, residuals
 from risp_tasks.diagnose.run import split_trajectories
 from risp_tasks.diagnose.select import Score, decide, estimate_force_note, estimate_note
 from risp_tasks.diagnose.synth import SynthConfig, make_synthetic
@@ -207,3 +207,54 @@ def test_wind_bounds_scale_with_weight_and_bound_values_are_flagged():
     assert bound_flag(model, "wind.fx", 15.9) == {}
     assert bound_flag(model, "wind.fx", float(model.upper[i]))["at_bound"] == "upper"
     assert bound_flag(model, "wind.fx", float(model.lower[i]))["at_bound"] == "lower"
+
+
+def test_grid_start_scans_each_effect_parameter_over_its_plausible_range(quad_data):
+    """Each effect parameter in turn goes to the bin midpoint of its plausible range nearest its optimum."""
+    d, _ = quad_data
+    trajs = load_measured([str(d)], "quadrotor")
+    model, _ = cands.build_model("quadrotor", ("motor_lag", "air_drag"), trajs[0].sidecar, trajs[0].dt)
+    spec = model.sim.spec.available_effects
+    expected = [cands.scaled_range("quadrotor", e, *map(float, spec[e].ranges[0]), trajs[0].sidecar)
+                for e in ("motor_lag", "air_drag")]
+    assert [tuple(r) for r in model.plausible] == expected
+    target = torch.tensor([lo + 0.8 * (hi - lo) for lo, hi in expected], dtype=torch.float64)
+    width = torch.tensor([hi - lo for lo, hi in expected], dtype=torch.float64)
+    fn = lambda z: (model.params(z)[model.free_index] - target) / width  # noqa: E731
+    z0 = torch.zeros(2, dtype=torch.float64)
+    with torch.no_grad():
+        r0 = fn(z0)
+    z, r, rss = grid_start(model, fn, z0, r0, float((r0**2).sum()))
+    theta = model.params(z)[model.free_index]
+    for j, (lo, hi) in enumerate(expected):
+        # 0.8 of the range lies between the midpoints 0.6875 and 0.8125: the nearer, 0.8125, wins
+        assert float(theta[j]) == pytest.approx(lo + 0.8125 * (hi - lo), rel=1e-9)
+    assert rss == pytest.approx(float((r**2).sum())) and rss < float((r0**2).sum())
+
+
+def test_fit_runs_from_two_starts_and_keeps_the_lower_loss(quad_data, monkeypatch):
+    import risp_tasks.diagnose.fit as fit
+
+    d, _ = quad_data
+    trajs = load_measured([str(d)], "quadrotor")
+    model, k = cands.build_model("quadrotor", ("motor_lag",), trajs[0].sidecar, trajs[0].dt)
+    obs = Observer(model.sim)
+    seg = make_segments(model.sim, trajs, horizon=5, k=k, params=model.base)
+    sigma = channel_sigma(obs, estimate_noise(model.sim, trajs))
+    lo, hi = model.plausible[0]
+    model.base[model.free_index[0]] = hi + 0.9 * (hi - lo)  # a poor default: the scan finds a better start
+    runs = []
+    real = fit._levenberg_marquardt
+
+    def recording(model_, fn, z, *args, **kwargs):
+        out = real(model_, fn, z, *args, **kwargs)
+        runs.append((z.clone(), out[2]))
+        return out
+
+    monkeypatch.setattr(fit, "_levenberg_marquardt", recording)
+    result = fit.fit_model(model, obs, seg, sigma, fit.FitConfig(horizon=5, max_iters=3))
+    assert len(runs) == 2
+    assert torch.equal(runs[0][0], torch.zeros(1, dtype=torch.float64)) and not torch.equal(runs[1][0], runs[0][0])
+    assert result.rss == min(rss for _, rss in runs)
+    with torch.no_grad():
+        assert result.rss == pytest.approx(float((residuals(model.sim, obs, result.params, seg, sigma) ** 2).sum()))

@@ -171,7 +171,7 @@ def build_model(env: str, effects: tuple[str, ...], sidecar: Sidecar, sample_dt:
     bounds = dict(zip(sim.param_names, getattr(sim, "param_bounds", ((-inf, inf),) * len(sim.param_names))))
     base_ranges = dict(zip(sim.spec.base_param_names, getattr(sim.spec, "base_param_ranges", None) or ()))
     free = [n for n in BASE_FREE.get(env, ()) if n in sim.param_names]
-    scale, lower, upper = [], [], []
+    scale, lower, upper, plausible = [], [], [], []
     actuator = str(sidecar.get("actuator", "thrust")).lower()
     if env == "quadrotor" and actuator in ("normalized", "pwm", "collective_normalized"):
         # normalised commands: the thrust map f = k_f·u is fitted, starting from hover m·g = n·k_f·u_hover
@@ -208,6 +208,7 @@ def build_model(env: str, effects: tuple[str, ...], sidecar: Sidecar, sample_dt:
             lo, hi = scaled_range(env, e, float(lo), float(hi), sidecar)
             name = f"{e}.{p}"
             free.append(name)
+            plausible.append((float(lo), float(hi)))
             width = float(hi) - float(lo)
             scale.append(max(width / 4.0, 1e-12))
             # the plausible range widened by its width on each side, inside the simulator's validity bounds
@@ -217,7 +218,9 @@ def build_model(env: str, effects: tuple[str, ...], sidecar: Sidecar, sample_dt:
             lower.append(max(wlo, float(blo)))
             upper.append(min(float(hi) + width, float(bhi)))
     t = lambda v: torch.tensor(v, dtype=DTYPE)  # noqa: E731
-    model = Model(sim=sim, base=base, free=tuple(free), scale=t(scale), lower=t(lower), upper=t(upper), effects=tuple(effects))
+    plausible = [None] * (len(free) - len(plausible)) + plausible  # base parameters come first
+    model = Model(sim=sim, base=base, free=tuple(free), scale=t(scale), lower=t(lower), upper=t(upper),
+                  effects=tuple(effects), plausible=tuple(plausible))
     return model, k
 
 
