@@ -270,7 +270,8 @@ class CubeSimulator(Simulator):
             # damper in ω like sliding friction.
             w = u[:, 3:]
             s_w = torch.sqrt((w * w).sum(1, keepdim=True) + ROLLING_EPS**2)
-            f_rr = f_fr if c.mu is not None else _normal_predicted(c, Jz, g_n, f_ext)
+            # without sliding friction, A is still the normal-only matrix: the predictor reuses it
+            f_rr = f_fr if c.mu is not None else _normal_predicted(c, Jz, g_n, f_ext, A_n=A)
             cr = c.mu_r * f_rr.sum(1, keepdim=True) / s_w  # (B, 1): a lagged implicit damper, as sliding friction
             force = force + F.pad(-cr * w, (3, 0))
             A = A + h * F.pad(cr.unsqueeze(-1) * c.eye3, (3, 0, 3, 0))
@@ -307,15 +308,18 @@ class CubeSimulator(Simulator):
         return torch.cat([s0.unsqueeze(1), later], 1)
 
 
-def _normal_predicted(c: _Consts, Jz: torch.Tensor, g_n: torch.Tensor, f_ext: torch.Tensor) -> torch.Tensor:
+def _normal_predicted(c: _Consts, Jz: torch.Tensor, g_n: torch.Tensor, f_ext: torch.Tensor,
+                      A_n: torch.Tensor | None = None) -> torch.Tensor:
     """φ(f_n⁺) (B, 8): the normal forces the substep applies, by a normal-only solve (docs §3.4)
 
-        (M + h Σ_c g_n,c j_z,cᵀ j_z,c) Δu_n = h (Σ_c j_z,cᵀ f̃_n,c + F_g),   f_n⁺ = f̃_n − g_n·(J_z Δu_n).
+        A_n Δu_n = h (Σ_c j_z,cᵀ f̃_n,c + F_g),   A_n = M + h Σ_c g_n,c j_z,cᵀ j_z,c,   f_n⁺ = f̃_n − g_n·(J_z Δu_n)
 
-    f̃_n alone overestimates the force ~50× at an unresolved impact, where the solve stops the corner.
+    (A_n: pass it where the caller has built it). f̃_n alone overestimates the force ~50× at an unresolved
+    impact, where the solve stops the corner.
     """
     JzT = Jz.transpose(1, 2)
-    A_n = c.M + c.h * (JzT @ (g_n.unsqueeze(-1) * Jz))
+    if A_n is None:
+        A_n = c.M + c.h * (JzT @ (g_n.unsqueeze(-1) * Jz))
     du_n = torch.linalg.solve(A_n, c.h * ((JzT @ f_ext.unsqueeze(-1)).squeeze(-1) + c.gravity))
     return _floor(f_ext - g_n * (Jz @ du_n.unsqueeze(-1)).squeeze(-1))[0]
 
