@@ -92,6 +92,9 @@ def _task_options(f):
         click.option("--grow-horizon", type=int, default=0, show_default=True,
                      help="sysid, imitate: over this many iterations the loss compares the first 2, 3, … frames, "
                           "then all (docs/tasks.md §Horizon curriculum)"),
+        click.option("--action-knots", type=int, default=0, show_default=True,
+                     help="imitate, control: K >= 2 knots of a piecewise-linear command per action instead of one "
+                          "row per frame (docs/tasks.md §Smooth commands)"),
         click.option("--seed", type=int, default=0, show_default=True),
         click.option("--every", type=int, default=1, show_default=True, help="keep every k-th frame"),
         click.option("--fps", type=float, default=None, help="resample the video to this frame rate"),

@@ -173,6 +173,12 @@ def test_grow_horizon_outside_sysid_and_imitate_is_one_error_line(quad, tmp_path
     assert "--grow-horizon is for sysid and imitate" in line
 
 
+def test_action_knots_with_the_tracking_init_is_one_error_line(quad, tmp_path):
+    """`--init track` optimises the controller's reference path, not the commands: knots on them are refused."""
+    line = _invoke(["imitate", quad[1], "--model", quad[0], "--init", "track", "--action-knots", "4"], tmp_path)
+    assert "--action-knots parametrises the commands themselves" in line
+
+
 def test_negative_seed_is_one_error_line(quad, tmp_path):
     model, video = quad
     line = _invoke(["sysid", video, "--model", model, "--seed", "-1"], tmp_path)

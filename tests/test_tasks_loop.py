@@ -99,8 +99,10 @@ def test_the_state_loss_on_a_prefix_is_the_loss_of_those_frames():
 
 
 @pytest.mark.parametrize("kw, message", [(dict(task="sysid", grow_horizon=-1), "--grow-horizon must be >= 0"),
-                                         (dict(task="estimate", grow_horizon=5), "--grow-horizon is for sysid")])
-def test_a_bad_grow_horizon_is_a_clear_error(kw, message):
+                                         (dict(task="estimate", grow_horizon=5), "--grow-horizon is for sysid"),
+                                         (dict(task="imitate", action_knots=1), "--action-knots must be 0"),
+                                         (dict(task="sysid", action_knots=4), "--action-knots is for imitate")])
+def test_a_bad_curriculum_or_knots_option_is_a_clear_error(kw, message):
     from risp_data.errors import RispError
     from risp_tasks.tasks.config import TaskConfig
 

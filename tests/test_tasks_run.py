@@ -251,6 +251,43 @@ def test_hand_tasks_lower_their_loss(tmp_path_factory, tmp_path, task):
         assert np.asarray(r["estimates"]["actions"]).shape == (6, 5)
 
 
+def test_imitate_with_action_knots_optimises_a_piecewise_linear_command(tmp_path_factory, tmp_path):
+    """--action-knots 3 on the hand's 6 frames: the optimised commands lie on 3 knots' piecewise-linear curve (zero
+    second differences inside each of its two pieces, not at the middle knot), the loss falls, and the start is the
+    same random draw as without knots, projected onto the knots."""
+    from risp_tasks.tasks.imitate import knot_basis
+
+    model, video = shared_model(tmp_path_factory, "hand"), shared_video(tmp_path_factory, "hand")
+    kw = dict(model=model, loss="oracle", truth=_stem(video) + ".truth.json", iterations=5, plots=False,
+              init="random", seed=4)
+    r = _run("imitate", video, tmp_path / "knots", action_knots=3, **kw)
+    assert r["final_loss"] < r["loss"][0], r["loss"]
+    u = np.asarray(r["estimates"]["actions"])  # (6, 5); knots at frames 0, 2.5, 5
+    assert u.shape == (6, 5)
+    second = u[2:] - 2 * u[1:-1] + u[:-2]  # frames 1..4; the curve bends between frames 2 and 3 only
+    assert np.abs(second[[0, 3]]).max() < 1e-9 and np.abs(second[[1, 2]]).max() > 1e-6
+    plain = _run("imitate", video, tmp_path / "plain", iterations=0, **{k: v for k, v in kw.items() if k != "iterations"})
+    x0 = np.asarray(plain["estimates"]["initial_actions"])
+    W = knot_basis(6, 3).numpy()
+    projected = W @ np.linalg.lstsq(W, x0, rcond=None)[0]
+    assert np.allclose(r["estimates"]["initial_actions"], projected, atol=1e-9)
+
+
+def test_knot_basis_interpolates_linearly_between_its_knots():
+    """W's rows sum to 1, W reproduces a linear function of the frame index exactly, equals the knot values at
+    the knots' frames, and is the identity without knots (K = 0) or with a knot per frame."""
+    from risp_tasks.tasks.imitate import knot_basis
+
+    W = knot_basis(21, 5).numpy()  # knots at frames 0, 5, 10, 15, 20
+    assert W.shape == (21, 5) and np.allclose(W.sum(1), 1)
+    z = np.array([0.3, -1.0, 2.0, 0.5, 0.0])
+    assert np.allclose((W @ z)[[0, 5, 10, 15, 20]], z)
+    assert np.allclose((W @ z)[7], z[1] + 0.4 * (z[2] - z[1]))
+    knots_t = np.arange(5) * 5.0
+    assert np.allclose(W @ (2 - 0.1 * knots_t), 2 - 0.1 * np.arange(21))
+    assert np.array_equal(knot_basis(6, 0).numpy(), np.eye(6)) and np.array_equal(knot_basis(6, 6).numpy(), np.eye(6))
+
+
 def test_reference_flight_compensates_a_steady_wind(tmp_path):
     """make-video's flight controller has an integral term: under a hidden 3 N wind the vehicle returns to its
     path (the recorded thrusts carry the compensation) instead of settling F / (m·KP) ≈ 0.25 m downwind, which

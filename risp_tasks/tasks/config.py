@@ -37,6 +37,9 @@ class TaskConfig:
     # horizon curriculum: over the first this many iterations the loss compares the first 2, 3, … kept frames, then
     # all of them (loop.horizon; docs/tasks.md §Horizon curriculum); 0: every iteration compares all frames
     grow_horizon: int = 0
+    # imitate, control: K ≥ 2 knots of a piecewise-linear command per action instead of one row per frame
+    # (imitate.knot_basis; docs/tasks.md §Smooth commands); 0: one row per frame (the paper's)
+    action_knots: int = 0
     seed: int = 0
     every: int = 1
     fps: float | None = None  # resample the video to this rate
@@ -72,6 +75,10 @@ class TaskConfig:
             raise RispError(f"--grow-horizon must be >= 0, got {self.grow_horizon}")
         if self.grow_horizon and self.task not in ("sysid", "imitate"):
             raise RispError(f"--grow-horizon is for sysid and imitate (a video's frames), not {self.task}")
+        if self.action_knots < 0 or self.action_knots == 1:
+            raise RispError(f"--action-knots must be 0 (one row per frame) or >= 2, got {self.action_knots}")
+        if self.action_knots and self.task not in ("imitate", "control"):
+            raise RispError(f"--action-knots is for imitate and control (the actions), not {self.task}")
         if self.warm_start < 0:
             raise RispError(f"--warm-start must be >= 0, got {self.warm_start}")
         if self.warm_start and self.loss != "render":

@@ -31,6 +31,16 @@ def initial_actions(ctx: Context, params: torch.Tensor, n_frames: int) -> torch.
     return torch.zeros(n_frames, ctx.sim.action_dim, dtype=torch.float64)
 
 
+def knot_basis(n_frames: int, knots: int) -> torch.Tensor:
+    """W (n_frames, K): the hat functions of K knots evenly spaced over the frames, t_j = j·(n − 1)/(K − 1), so
+    that actions = W @ z interpolates the knot values z (K, A) linearly (K = 0 or K ≥ n: the identity, one row per
+    frame).  Rows sum to 1; W has full column rank for 2 ≤ K ≤ n."""
+    if knots == 0 or knots >= n_frames:
+        return torch.eye(n_frames, dtype=torch.float64)
+    t = torch.arange(n_frames, dtype=torch.float64) * (knots - 1) / max(n_frames - 1, 1)  # frame → knot coordinate
+    return torch.clamp(1 - (t[:, None] - torch.arange(knots, dtype=torch.float64)[None, :]).abs(), min=0)
+
+
 def estimated_path(ctx: Context, n_frames: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Reference positions and velocities (n_frames, 3) of the tracking controller: the network-estimated
     positions, linearly interpolated between kept frames, velocities by central differences."""
@@ -101,19 +111,27 @@ def build(ctx: Context, n_frames: int | None = None, s0: torch.Tensor | None = N
     params = sim.default_params()
     s0 = InitialState(ctx, fit=ctx.cfg.fit_initial_state, given=s0)  # control passes its given state
     if ctx.cfg.init == "track":
+        if ctx.cfg.action_knots:
+            raise RispError("--action-knots parametrises the commands themselves; with --init track the controller's "
+                            "reference path is optimised instead (leave one of them out)")
         return _track_problem(ctx, params, s0, n_frames)
     centre, scale = action_centre(sim, params), ACTION_SCALE[sim.env]
     x0 = initial_actions(ctx, params, n_frames)
-    x = x0.clone().requires_grad_(True)
+    W = knot_basis(n_frames, ctx.cfg.action_knots)
+    knots = W.shape[1] < n_frames
+    # with knots: the per-frame start (the same random draw as without), projected onto them by least squares
+    z0 = torch.linalg.lstsq(W, x0).solution if knots else x0
+    z = z0.clone().requires_grad_(True)
 
     def actions(v):
-        return centre + scale * v
+        return centre + scale * (W @ v if knots else v)
 
     def estimates():
-        return {"actions": to_file_actions(sim, params, actions(x.detach())).tolist(),
-                "initial_actions": to_file_actions(sim, params, actions(x0)).tolist()}
+        return {"actions": to_file_actions(sim, params, actions(z.detach())).tolist(),
+                "initial_actions": to_file_actions(sim, params, actions(z0)).tolist()}
 
-    return Problem(variables={"actions": x, **s0.variables},
-                   states=lambda: frame_states(sim, params, s0(), actions(x), n_frames, ctx.k),
-                   estimates=lambda: {**estimates(), **s0.info()}, info=s0.info())
+    info = {**s0.info(), "parametrisation": f"{W.shape[1]} knots, piecewise linear" if knots else "one row per frame"}
+    return Problem(variables={"actions": z, **s0.variables},
+                   states=lambda: frame_states(sim, params, s0(), actions(z), n_frames, ctx.k),
+                   estimates=lambda: {**estimates(), **s0.info()}, info=info)
 
