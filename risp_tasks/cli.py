@@ -95,6 +95,9 @@ def _task_options(f):
         click.option("--action-knots", type=int, default=0, show_default=True,
                      help="imitate, control: K >= 2 knots of a piecewise-linear command per action instead of one "
                           "row per frame (docs/tasks.md §Smooth commands)"),
+        click.option("--params", default=None,
+                     help="imitate, control: known physical parameters — a JSON object, a JSON file, or a sysid "
+                          "result.json (default: the simulator's nominal ones)"),
         click.option("--seed", type=int, default=0, show_default=True),
         click.option("--every", type=int, default=1, show_default=True, help="keep every k-th frame"),
         click.option("--fps", type=float, default=None, help="resample the video to this frame rate"),

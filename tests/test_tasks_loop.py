@@ -101,10 +101,47 @@ def test_the_state_loss_on_a_prefix_is_the_loss_of_those_frames():
 @pytest.mark.parametrize("kw, message", [(dict(task="sysid", grow_horizon=-1), "--grow-horizon must be >= 0"),
                                          (dict(task="estimate", grow_horizon=5), "--grow-horizon is for sysid"),
                                          (dict(task="imitate", action_knots=1), "--action-knots must be 0"),
-                                         (dict(task="sysid", action_knots=4), "--action-knots is for imitate")])
+                                         (dict(task="sysid", action_knots=4), "--action-knots is for imitate"),
+                                         (dict(task="sysid", params='{"mass": 3}'), "--params is for imitate")])
 def test_a_bad_curriculum_or_knots_option_is_a_clear_error(kw, message):
     from risp_data.errors import RispError
     from risp_tasks.tasks.config import TaskConfig
 
     with pytest.raises(RispError, match=message):
         TaskConfig(video="v.mp4", **kw)
+
+
+@pytest.mark.parametrize("given, message", [
+    ('{"stiffness_index": 0.5, "nope": 1}', "unknown hand parameter 'nope'"),
+    ('{"stiffness_index": NaN}', "'stiffness_index' must be a finite number"),
+    ('{"stiffness_index": true}', "'stiffness_index' must be a finite number"),
+    ('[0.5]', "must be a JSON object of parameter values"),
+    ("stiff=0.5", "must be a JSON object of parameter values or a JSON file"),
+])
+def test_bad_params_are_one_clear_error(given, message):
+    from risp_data.errors import RispError
+    from risp_tasks.sims import get_simulator
+    from risp_tasks.tasks.simulate import set_params
+
+    sim = get_simulator("hand")
+    with pytest.raises(RispError, match=message):
+        set_params(sim, sim.default_params(), given)
+
+
+def test_params_from_an_object_a_file_and_a_result(tmp_path):
+    """The same values from a JSON object, a JSON file and a task's result.json; the rest stay nominal; the input
+    is not changed."""
+    import json
+
+    from risp_tasks.sims import get_simulator
+    from risp_tasks.tasks.simulate import set_params
+
+    sim = get_simulator("hand")
+    p0 = sim.default_params()
+    a = set_params(sim, p0, '{"stiffness_ring": 0.25}')
+    (tmp_path / "p.json").write_text('{"stiffness_ring": 0.25}')
+    (tmp_path / "result.json").write_text(json.dumps({"task": "sysid", "estimates": {"parameters": {"stiffness_ring": 0.25}}}))
+    for p in (a, set_params(sim, p0, str(tmp_path / "p.json")), set_params(sim, p0, str(tmp_path / "result.json"))):
+        i = sim.param_index("stiffness_ring")
+        assert float(p[0, i]) == 0.25 and torch.equal(torch.cat([p[0, :i], p[0, i + 1:]]), torch.cat([p0[0, :i], p0[0, i + 1:]]))
+    assert float(p0[0, sim.param_index("stiffness_ring")]) == 1.0

@@ -273,6 +273,24 @@ def test_imitate_with_action_knots_optimises_a_piecewise_linear_command(tmp_path
     assert np.allclose(r["estimates"]["initial_actions"], projected, atol=1e-9)
 
 
+def test_imitate_simulates_the_given_parameters(tmp_path_factory, tmp_path):
+    """--params: imitate simulates the video's own stiffnesses (here the truth file's; a sysid result.json gives the
+    same values), records them, and the same zero commands then roll out differently from the nominal hand's."""
+    model, video = shared_model(tmp_path_factory, "hand"), shared_video(tmp_path_factory, "hand")
+    truth = json.load(open(_stem(video) + ".truth.json"))
+    stiff = {n: v for n, v in truth["params"].items() if n.startswith("stiffness_")}
+    kw = dict(model=model, loss="oracle", truth=_stem(video) + ".truth.json", iterations=0, plots=False)
+    nominal = _run("imitate", video, tmp_path / "nominal", **kw)
+    given = _run("imitate", video, tmp_path / "given", params=json.dumps(stiff), **kw)
+    assert all(given["info"]["parameters"][n] == pytest.approx(v) for n, v in stiff.items())
+    assert nominal["info"]["parameters"]["stiffness_index"] == 1.0
+    assert given["errors"]["state_rmse_initial"] != pytest.approx(nominal["errors"]["state_rmse_initial"], rel=1e-3)
+    sysid_like = tmp_path / "result.json"
+    sysid_like.write_text(json.dumps({"task": "sysid", "estimates": {"parameters": stiff}}))
+    again = _run("imitate", video, tmp_path / "again", params=str(sysid_like), **kw)
+    assert again["errors"]["state_rmse_initial"] == pytest.approx(given["errors"]["state_rmse_initial"], rel=1e-12)
+
+
 def test_knot_basis_interpolates_linearly_between_its_knots():
     """W's rows sum to 1, W reproduces a linear function of the frame index exactly, equals the knot values at
     the knots' frames, and is the identity without knots (K = 0) or with a knot per frame."""

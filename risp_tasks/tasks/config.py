@@ -40,6 +40,9 @@ class TaskConfig:
     # imitate, control: K ≥ 2 knots of a piecewise-linear command per action instead of one row per frame
     # (imitate.knot_basis; docs/tasks.md §Smooth commands); 0: one row per frame (the paper's)
     action_knots: int = 0
+    # imitate, control: the simulator's physical parameters where known — a JSON object {name: value}, a JSON file,
+    # or a task's result.json (e.g. sysid's); None: the nominal ones (simulate.set_params)
+    params: str | None = None
     seed: int = 0
     every: int = 1
     fps: float | None = None  # resample the video to this rate
@@ -79,6 +82,8 @@ class TaskConfig:
             raise RispError(f"--action-knots must be 0 (one row per frame) or >= 2, got {self.action_knots}")
         if self.action_knots and self.task not in ("imitate", "control"):
             raise RispError(f"--action-knots is for imitate and control (the actions), not {self.task}")
+        if self.params and self.task not in ("imitate", "control"):
+            raise RispError(f"--params is for imitate and control (sysid identifies them), not {self.task}")
         if self.warm_start < 0:
             raise RispError(f"--warm-start must be >= 0, got {self.warm_start}")
         if self.warm_start and self.loss != "render":

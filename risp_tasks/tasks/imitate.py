@@ -18,7 +18,7 @@ from risp_data.errors import RispError
 
 from .context import Context
 from .loop import Problem
-from .simulate import ACTION_SCALE, InitialState, action_centre, frame_states, to_file_actions
+from .simulate import ACTION_SCALE, InitialState, action_centre, frame_states, set_params, to_file_actions
 
 
 TRACK_SCALE = 0.1  # m: the normalised reference-path offsets of ``--init track``
@@ -109,6 +109,8 @@ def build(ctx: Context, n_frames: int | None = None, s0: torch.Tensor | None = N
         raise RispError(f"the {sim.env} has no actions to imitate; imitate works for: quadrotor, hand, rod")
     n_frames = ctx.n_source if n_frames is None else n_frames
     params = sim.default_params()
+    if ctx.cfg.params:  # known or identified parameters instead of the nominal ones
+        params = set_params(sim, params, ctx.cfg.params)
     s0 = InitialState(ctx, fit=ctx.cfg.fit_initial_state, given=s0)  # control passes its given state
     if ctx.cfg.init == "track":
         if ctx.cfg.action_knots:
@@ -130,7 +132,8 @@ def build(ctx: Context, n_frames: int | None = None, s0: torch.Tensor | None = N
         return {"actions": to_file_actions(sim, params, actions(z.detach())).tolist(),
                 "initial_actions": to_file_actions(sim, params, actions(z0)).tolist()}
 
-    info = {**s0.info(), "parametrisation": f"{W.shape[1]} knots, piecewise linear" if knots else "one row per frame"}
+    info = {**s0.info(), "parametrisation": f"{W.shape[1]} knots, piecewise linear" if knots else "one row per frame",
+            "parameters": {n: float(params[0, i]) for i, n in enumerate(sim.param_names)}}
     return Problem(variables={"actions": z, **s0.variables},
                    states=lambda: frame_states(sim, params, s0(), actions(z), n_frames, ctx.k),
                    estimates=lambda: {**estimates(), **s0.info()}, info=info)

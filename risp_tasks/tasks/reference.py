@@ -88,20 +88,9 @@ def _params(cfg: ReferenceConfig, sim, rng, effect, effect_values) -> torch.Tens
     for name, (lo, hi) in parameter_ranges(sim).items():
         p[0, sim.param_index(name)] = float(rng.uniform(lo, hi))
     if cfg.params:
-        try:
-            given = json.loads(cfg.params)
-        except ValueError:
-            given = None
-        if not isinstance(given, dict):
-            raise RispError(f"--params must be a JSON object of parameter values, got {cfg.params!r}")
-        for name, value in given.items():
-            try:  # bool is an int in Python: rejected with the strings and lists; float() overflows on huge ints
-                ok = not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(float(value))
-            except OverflowError:
-                ok = False
-            if not ok:
-                raise RispError(f"--params: {name!r} must be a finite number, got {str(value)[:40]!r}")
-            p[0, sim.param_index(name)] = float(value)
+        from .simulate import set_params
+
+        p = set_params(sim, p, cfg.params, "--params")
     if effect and effect_values is not None:
         names = [n for n in sim.param_names if n.startswith(effect + ".")]
         if len(names) != len(effect_values):

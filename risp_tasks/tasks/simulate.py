@@ -51,6 +51,42 @@ def action_centre(sim, params: torch.Tensor) -> torch.Tensor:
     return torch.zeros(sim.action_dim, dtype=params.dtype)
 
 
+def set_params(sim, params: torch.Tensor, given: str, option: str = "--params") -> torch.Tensor:
+    """A copy of ``params`` (1, P) with the values that ``given`` names: a JSON object {name: value}, the path of
+    such a JSON file, or the path of a task's result.json (its identified ``estimates.parameters``, e.g. a
+    ``sysid`` run).  Unknown names, non-numbers and non-finite values are one error line each."""
+    import json
+    import os
+
+    source = given
+    if os.path.isfile(given):
+        from .inputs import read_json
+
+        data = read_json(given, option.lstrip("-"))
+        data = data.get("estimates", {}).get("parameters", data) if isinstance(data, dict) and "task" in data else data
+    else:
+        try:
+            data = json.loads(given)
+        except ValueError:
+            raise RispError(f"{option} must be a JSON object of parameter values or a JSON file, got {given[:60]!r}") from None
+        source = option
+    at = "" if source == option else f"{source}: "
+    if not isinstance(data, dict):
+        raise RispError(f"{at}{option} must be a JSON object of parameter values, got {str(data)[:40]!r}")
+    p = params.clone()
+    for name, value in data.items():
+        if name not in sim.param_names:
+            raise RispError(f"{at}{option}: unknown {sim.env} parameter {name!r}; known: {', '.join(sim.param_names)}")
+        try:  # bool is an int in Python: rejected with the strings and lists; float() overflows on huge ints
+            ok = not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(float(value))
+        except OverflowError:
+            ok = False
+        if not ok:
+            raise RispError(f"{at}{option}: {name!r} must be a finite number, got {str(value)[:40]!r}")
+        p[0, sim.param_index(name)] = float(value)
+    return p
+
+
 def to_sim_actions(sim, params: torch.Tensor, file_actions: torch.Tensor) -> torch.Tensor:
     """Actions file units (quadrotor thrusts [N]) -> simulator commands (quadrotor u = f / k_f)."""
     if sim.env == "quadrotor":
