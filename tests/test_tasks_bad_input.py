@@ -179,6 +179,12 @@ def test_action_knots_with_the_tracking_init_is_one_error_line(quad, tmp_path):
     assert "--action-knots parametrises the commands themselves" in line
 
 
+def test_imitate_with_an_unknown_parameter_is_one_error_line(quad, tmp_path):
+    """`--params` names the quadrotor's parameters: a misspelt one stops imitate with the known names, one line."""
+    line = _invoke(["imitate", quad[1], "--model", quad[0], "--params", '{"mas": 3.0}'], tmp_path)
+    assert "unknown quadrotor parameter 'mas'" in line and "mass" in line
+
+
 def test_negative_seed_is_one_error_line(quad, tmp_path):
     model, video = quad
     line = _invoke(["sysid", video, "--model", model, "--seed", "-1"], tmp_path)

@@ -58,19 +58,19 @@ def set_params(sim, params: torch.Tensor, given: str, option: str = "--params") 
     import json
     import os
 
-    source = given
     if os.path.isfile(given):
         from .inputs import read_json
 
-        data = read_json(given, option.lstrip("-"))
-        data = data.get("estimates", {}).get("parameters", data) if isinstance(data, dict) and "task" in data else data
+        data = read_json(given, option.lstrip("-"))  # a JSON object, or one line naming the file
+        if "task" in data:  # a task's result.json: its identified parameters
+            data = data.get("estimates", {}).get("parameters", data)
+        at = f"{given}: "
     else:
         try:
             data = json.loads(given)
         except ValueError:
             raise RispError(f"{option} must be a JSON object of parameter values or a JSON file, got {given[:60]!r}") from None
-        source = option
-    at = "" if source == option else f"{source}: "
+        at = ""
     if not isinstance(data, dict):
         raise RispError(f"{at}{option} must be a JSON object of parameter values, got {str(data)[:40]!r}")
     p = params.clone()
