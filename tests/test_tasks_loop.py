@@ -39,6 +39,30 @@ def test_converging_descent_ends_at_the_last_iterate():
     assert float(x.detach()) == pytest.approx(0.8 ** 5)
 
 
+def test_a_continued_optimiser_is_one_descent():
+    """``opt=`` continues an optimiser: 40 + 60 RMSProp iterations through one optimiser are bitwise the 100 of one
+    call (a converging descent: no best-iterate restore).  A fresh RMSProp instead moves every coordinate by
+    lr/sqrt(1 − α) = 10·lr on its first step whatever the gradient (its running mean of g² starts at 0), the kick
+    that the warm start's hand-over avoids (docs/tasks.md §Warm start)."""
+    from risp_tasks.tasks.loop import make_optimizer
+
+    def run(x, problem, loss, n, opt=None):
+        optimize(problem, loss, optimizer="rmsprop", lr=1e-3, momentum=0.0, iterations=n, timer=Timer(),
+                 progress=False, opt=opt)
+        return float(x.detach())
+
+    x, problem, loss = _quadratic(1.0, 1.0)
+    once = run(x, problem, loss, 100)
+    y, problem_y, loss_y = _quadratic(1.0, 1.0)
+    opt = make_optimizer("rmsprop", [y], 1e-3, 0.0)
+    run(y, problem_y, loss_y, 40, opt)
+    assert run(y, problem_y, loss_y, 60, opt) == once
+    continued = once - run(y, problem_y, loss_y, 1, opt)
+    fresh = once - run(x, problem, loss, 1)  # x is at the same point; a new optimiser takes the step
+    assert fresh == pytest.approx(10 * 1e-3, rel=1e-6)
+    assert 0 < continued < 0.2 * fresh
+
+
 def test_horizon_grows_from_two_frames_to_all():
     from risp_tasks.tasks.loop import horizon
 

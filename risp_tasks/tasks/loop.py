@@ -136,7 +136,8 @@ def make_optimizer(name: str, params, lr: float, momentum: float) -> torch.optim
 
 
 def optimize(problem: Problem, loss: Callable, *, optimizer: str, lr: float, momentum: float, iterations: int,
-             timer: Timer, progress: bool = True, grow: int = 0, frames: int | None = None) -> dict:
+             timer: Timer, progress: bool = True, grow: int = 0, frames: int | None = None,
+             opt: torch.optim.Optimizer | None = None) -> dict:
     """Minimise ``loss(problem.states())`` over ``problem.variables``; returns the per-iteration history.
 
     The variables are left at the *best* iterate by the task's own loss, not the last: with a fixed step size a
@@ -145,6 +146,10 @@ def optimize(problem: Problem, loss: Callable, *, optimizer: str, lr: float, mom
     ``last_loss`` the last iterate's, ``best_iteration`` its index (``iterations`` = the point after the last
     step).  The selection uses only the optimised loss, never ground truth.
 
+    ``opt``: an optimiser over ``problem.variables`` to continue (its step sizes and momentum as a previous call
+    left them: the warm start, docs/tasks.md §Warm start); by default a fresh one from ``optimizer``, ``lr`` and
+    ``momentum``.
+
     ``grow`` > 0 (with ``frames``, the number of compared frames T): the horizon curriculum — iteration i compares
     the first :func:`horizon` (i, grow, T) frames; only full-horizon iterates compete for the best, and
     ``frames_compared`` records n(i) per iteration.
@@ -152,7 +157,8 @@ def optimize(problem: Problem, loss: Callable, *, optimizer: str, lr: float, mom
     from tqdm import tqdm
 
     leaves = list(problem.variables.values())
-    opt = make_optimizer(optimizer, leaves, lr, momentum) if leaves and iterations else None
+    if opt is None and leaves and iterations:
+        opt = make_optimizer(optimizer, leaves, lr, momentum)
     history, seconds = [], []
     best_value, best_iteration, best_leaves = float("inf"), iterations, None
     if grow and frames is None:
