@@ -148,7 +148,7 @@ def optimize(problem: Problem, loss: Callable, *, optimizer: str, lr: float, mom
 
     ``opt``: an optimiser over ``problem.variables`` to continue (its step sizes and momentum as a previous call
     left them: the warm start, docs/tasks.md §Warm start); by default a fresh one from ``optimizer``, ``lr`` and
-    ``momentum``.
+    ``momentum``.  The history's ``optimizer`` is the one used (None without variables or iterations), to continue.
 
     ``grow`` > 0 (with ``frames``, the number of compared frames T): the horizon curriculum — iteration i compares
     the first :func:`horizon` (i, grow, T) frames; only full-horizon iterates compete for the best, and
@@ -198,7 +198,7 @@ def optimize(problem: Problem, loss: Callable, *, optimizer: str, lr: float, mom
     else:
         best_iteration = iterations
     out = {"loss": history, "final_loss": final, "last_loss": last, "best_iteration": best_iteration,
-           "seconds_per_iteration": seconds}
+           "seconds_per_iteration": seconds, "optimizer": opt}
     if grow:
         out["frames_compared"] = compared
     return out

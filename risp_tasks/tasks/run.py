@@ -17,7 +17,7 @@ from .config import TaskConfig
 from .context import Context
 from .inputs import (latest_model, load_model, look_note, read_actions, read_camera, read_reference, read_truth,
                      render_environment)
-from .loop import Timer, make_loss, make_optimizer, optimize
+from .loop import Timer, make_loss, optimize
 from .results import ResultFolder, check_free, plot_loss, plot_trajectories, save_strip, versions
 
 STRIP_FRAMES = 6
@@ -129,20 +129,17 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
     with torch.no_grad():
         initial_states = problem.states().detach().clone()
         initial_estimates = problem.estimates()
-    warm, opt = None, None
+    warm = None
     if cfg.warm_start:  # the state loss first, then the render loss from there (docs/tasks.md §Warm start)
-        # One descent whose loss changes: the render iterations continue the warm start's optimiser.  A fresh
-        # RMSProp's first steps are ~10·lr per coordinate whatever the gradient (its running mean of g² starts
-        # at 0), a kick that throws the warm start's fit away; both losses live in the network's target space,
-        # so the warm start's step sizes suit the render loss too.
-        leaves = list(problem.variables.values())
-        opt = make_optimizer(cfg.optimizer, leaves, cfg.lr, cfg.momentum) if leaves else None
         state_loss = make_loss("state", env, loss_frames, predicted_targets.double(), None, None)
         warm = optimize(problem, state_loss, optimizer=cfg.optimizer, lr=cfg.lr, momentum=cfg.momentum,
-                        iterations=cfg.warm_start, timer=timer, progress=cfg.progress, opt=opt)
+                        iterations=cfg.warm_start, timer=timer, progress=cfg.progress)
+    # One descent whose loss changes: the render iterations continue the warm start's optimiser.  A fresh RMSProp's
+    # first steps are ~10·lr per coordinate whatever the gradient (its running mean of g² starts at 0), a kick that
+    # throws the warm start's fit away; both losses live in the network's target space, so its step sizes suit both.
     history = optimize(problem, loss, optimizer=cfg.optimizer, lr=cfg.lr, momentum=cfg.momentum,
                        iterations=cfg.iterations, timer=timer, progress=cfg.progress, grow=cfg.grow_horizon,
-                       frames=len(loss_frames), opt=opt)
+                       frames=len(loss_frames), opt=warm["optimizer"] if warm else None)
     with torch.no_grad():
         final_states = problem.states().detach().clone()
 

@@ -3,7 +3,9 @@ frame, actions held constant over a frame (one action row per source frame)."""
 
 from __future__ import annotations
 
+import json
 import math
+import os
 
 import torch
 
@@ -55,9 +57,6 @@ def set_params(sim, params: torch.Tensor, given: str, option: str = "--params") 
     """A copy of ``params`` (1, P) with the values that ``given`` names: a JSON object {name: value}, the path of
     such a JSON file, or the path of a task's result.json (its identified ``estimates.parameters``, e.g. a
     ``sysid`` run).  Unknown names, non-numbers and non-finite values are one error line each."""
-    import json
-    import os
-
     if os.path.isfile(given):
         from .inputs import read_json
 
