@@ -86,9 +86,25 @@ def _load_error(path: str, e: Exception) -> str:
     return f"corrupt or unreadable checkpoint {path}: {type(e).__name__}{': ' + first if first else ''}"
 
 
+def model_file(path: str) -> str:
+    """The checkpoint that ``path`` names: the file itself, or a run folder's ``model.pt`` (what
+    ``risp-train fit --out FOLDER`` writes when training ends)."""
+    if not os.path.isdir(path):
+        return path
+    found = os.path.join(path, "model.pt")
+    if os.path.isfile(found):
+        return found
+    unfinished = os.path.isfile(os.path.join(path, "last.pt"))
+    raise RispError(f"{path} is a folder without a model.pt" + (
+        ": its training has not finished (last.pt is the resumable checkpoint; run the same fit again)"
+        if unfinished else "; pass a risp-train checkpoint or a run folder that holds one"))
+
+
 def load_checkpoint(path: str) -> dict[str, Any]:
-    """Read a checkpoint with ``weights_only=True``; RispError when missing, corrupt, not ours, or holding
-    non-finite weights or a degenerate normalization (:func:`check_values`)."""
+    """Read a checkpoint (a file, or a run folder's model.pt) with ``weights_only=True``; RispError when
+    missing, corrupt, not ours, or holding non-finite weights or a degenerate normalization
+    (:func:`check_values`)."""
+    path = model_file(path)
     if not os.path.isfile(path):
         raise RispError(f"checkpoint not found: {path}")
     if os.path.getsize(path) == 0:

@@ -147,14 +147,16 @@ def find_dataset(folder: str, need_jacobian: bool) -> str:
 @click.option("--threads", type=int, default=0, show_default=True, help="torch threads (0: one per available CPU).")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def eval_cmd(model, shards, metric, seed, batch_size, limit, fmt, out, threads, quiet):
-    """State-estimation error of MODEL on SHARDS, with the average and random baselines."""
+    """State-estimation error of MODEL (a checkpoint, or a run folder's model.pt) on SHARDS, with the average and
+    random baselines."""
     from risp_data.threads import set_torch_threads
 
+    from .checkpoint import model_file
     from .evaluate import EvalConfig, evaluate, markdown_table
 
     set_torch_threads(threads)
 
-    res = evaluate(EvalConfig(model=model, shards=shards, metric=metric, seed=seed, batch_size=batch_size,
+    res = evaluate(EvalConfig(model=model_file(model), shards=shards, metric=metric, seed=seed, batch_size=batch_size,
                               limit=limit, format=fmt, out=out), progress=not quiet)
     click.echo(markdown_table(res))
     click.echo(f"written: {', '.join(res['files'])}")

@@ -87,6 +87,26 @@ def test_corrupt_model_file(quad, tmp_path):
     assert "model.pt" in line
 
 
+def test_model_given_as_its_run_folder(quad, tmp_path):
+    """``--model runs/NAME`` names the run folder's model.pt; a folder without one is one line saying why."""
+    import shutil
+
+    from risp_train import load
+    from risp_train.checkpoint import model_file
+
+    model, video = quad
+    run = os.path.dirname(model)
+    assert os.path.samefile(model_file(run), model) and load(run).env_name == "quadrotor"
+    unfinished = tmp_path / "unfinished"
+    unfinished.mkdir()
+    shutil.copy(model, unfinished / "last.pt")
+    line = _invoke(["imitate", video, "--model", str(unfinished)], tmp_path)
+    assert "unfinished is a folder without a model.pt" in line and "has not finished" in line
+    (tmp_path / "empty").mkdir()
+    line = _invoke(["imitate", video, "--model", str(tmp_path / "empty")], tmp_path)
+    assert "empty is a folder without a model.pt" in line and "has not finished" not in line
+
+
 def test_no_trained_model_under_runs(quad, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     line = _invoke(["imitate", quad[1]], tmp_path)

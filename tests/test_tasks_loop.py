@@ -152,6 +152,22 @@ def test_bad_params_are_one_clear_error(given, message):
         set_params(sim, sim.default_params(), given)
 
 
+def test_params_from_a_result_without_parameters_is_one_clear_error(tmp_path):
+    """An imitate or estimate result.json has no ``estimates.parameters``: say so, instead of rejecting its
+    ``task`` key as an unknown parameter."""
+    import json
+
+    from risp_data.errors import RispError
+    from risp_tasks.sims import get_simulator
+    from risp_tasks.tasks.simulate import set_params
+
+    sim = get_simulator("hand")
+    f = tmp_path / "result.json"
+    f.write_text(json.dumps({"task": "imitate", "estimates": {"actions": "actions.csv"}}))
+    with pytest.raises(RispError, match=r"result.json: --params: this imitate result holds no identified parameters"):
+        set_params(sim, sim.default_params(), str(f))
+
+
 def test_params_from_an_object_a_file_and_a_result(tmp_path):
     """The same values from a JSON object, a JSON file and a task's result.json; the rest stay nominal; the input
     is not changed."""

@@ -91,6 +91,11 @@ def test_fit_lowers_held_out_error_and_writes_outputs(shards, tmp_path):
         assert 0 < g["position"]["mean"] < 2 and 0 < g["attitude"]["mean"] <= 180
     assert os.path.getsize(tmp_path / "ev_scatter.png") > 1000
     assert res["results"]["model"]["mean"] < res["results"]["random"]["mean"]
+    # the run folder names its model.pt; the default results land beside it
+    run = os.path.dirname(path)
+    r = CliRunner().invoke(cli, ["eval", run, shards["held_out"], "--quiet", "--limit", "4"])
+    assert r.exit_code == 0, r.output
+    assert [json.load(open(os.path.join(run, f)))["n"] for f in os.listdir(run) if f.startswith("eval-") and f.endswith(".json")] == [4]
 
 
 @pytest.mark.parametrize("fmt", ["wds", "zarr"])

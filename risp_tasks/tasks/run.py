@@ -11,6 +11,7 @@ import torch
 
 from risp_data.errors import RispError
 from risp_data.threads import set_torch_threads
+from risp_train.checkpoint import model_file
 
 from . import TASKS
 from .config import TaskConfig
@@ -31,7 +32,8 @@ def default_out(cfg: TaskConfig) -> str:
 def resolve_model(cfg: TaskConfig) -> tuple[str, str]:
     """(checkpoint path, the line saying which one is used)."""
     if cfg.model is not None:
-        return cfg.model, f"model: {cfg.model}"
+        path = model_file(cfg.model)  # a run folder names its model.pt
+        return path, f"model: {path}"
     path = latest_model(cfg.runs)
     return path, f"model: {path} (the most recent under {cfg.runs}/)"
 

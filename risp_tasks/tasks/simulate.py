@@ -61,8 +61,13 @@ def set_params(sim, params: torch.Tensor, given: str, option: str = "--params") 
         from .inputs import read_json
 
         data = read_json(given, option.lstrip("-"))  # a JSON object, or one line naming the file
-        if "task" in data:  # a task's result.json: its identified parameters
-            data = data.get("estimates", {}).get("parameters", data)
+        if isinstance(data, dict) and "task" in data:  # a task's result.json: its identified parameters
+            estimates = data.get("estimates")
+            found = estimates.get("parameters") if isinstance(estimates, dict) else None
+            if not isinstance(found, dict):
+                raise RispError(f"{given}: {option}: this {data['task']!s:.20} result holds no identified parameters "
+                                f"(estimates.parameters); give a sysid run's result.json")
+            data = found
         at = f"{given}: "
     else:
         try:
