@@ -167,6 +167,10 @@ def sysid(video, **kw):
 @click.argument("video", type=click.Path())
 @_task_options
 @_fit_initial
+@click.option("--fit-params", is_flag=True,
+              help="identify the physical parameters sysid would (quadrotor mass, hand stiffnesses, rod log10 E) "
+                   "jointly with the actions, from the middle of their ranges or --params (docs/tasks.md §Unknown "
+                   "physical parameters)")
 def imitate(video, **kw):
     """The action sequence that reproduces the motion in VIDEO (quadrotor, hand, rod)."""
     _run("imitate", video, **kw)

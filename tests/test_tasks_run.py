@@ -291,6 +291,45 @@ def test_imitate_simulates_the_given_parameters(tmp_path_factory, tmp_path):
     assert again["errors"]["state_rmse_initial"] == pytest.approx(given["errors"]["state_rmse_initial"], rel=1e-12)
 
 
+def test_imitate_fit_params_moves_the_parameters_with_the_commands(tmp_path_factory, tmp_path):
+    """--fit-params: the hand's five stiffnesses are variables beside the commands.  They start from the middle
+    of their ranges (the same rollout as --params of those values), or from the values --params gives; the loss
+    falls, they move and stay inside their ranges, and the result reports them, their errors against the truth
+    file, and can be given back to --params."""
+    model, video = shared_model(tmp_path_factory, "hand"), shared_video(tmp_path_factory, "hand")
+    truth_file = _stem(video) + ".truth.json"
+    kw = dict(model=model, loss="oracle", truth=truth_file, plots=False)
+    fit = _run("imitate", video, tmp_path / "fit", fit_params=True, iterations=5, lr=3e-2, **kw)
+    names = [f"stiffness_{f}" for f in ("thumb", "index", "middle", "ring", "little")]
+    start, end = fit["estimates"]["initial_parameters"], fit["estimates"]["parameters"]
+    assert list(start) == names and all(start[n] == pytest.approx(0.5) for n in names)
+    assert fit["info"]["fitted_parameters"] == names and fit["info"]["parameters"]["stiffness_index"] == pytest.approx(0.5)
+    assert fit["final_loss"] < fit["loss"][0], fit["loss"]
+    assert all(0 <= end[n] <= 1 for n in names) and max(abs(end[n] - 0.5) for n in names) > 1e-3
+    truth = json.load(open(truth_file))["params"]
+    assert fit["errors"]["parameter_error_final"] == {n: pytest.approx(abs(end[n] - truth[n])) for n in names}
+    middle = _run("imitate", video, tmp_path / "middle", params=json.dumps({n: 0.5 for n in names}), iterations=0, **kw)
+    assert fit["errors"]["state_rmse_initial"] == pytest.approx(middle["errors"]["state_rmse_initial"], rel=1e-12)
+    given = _run("imitate", video, tmp_path / "given", fit_params=True, iterations=0,
+                 params=json.dumps({"stiffness_index": 0.2, "stiffness_ring": 7.0}), **kw)
+    assert given["estimates"]["initial_parameters"] == {**{n: pytest.approx(0.5) for n in names},
+                                                        "stiffness_index": pytest.approx(0.2), "stiffness_ring": pytest.approx(1.0)}
+    back = _run("imitate", video, tmp_path / "back", params=str(tmp_path / "fit" / "result.json"), iterations=0, **kw)
+    assert back["info"]["parameters"] == {**back["info"]["parameters"], **{n: pytest.approx(end[n]) for n in names}}
+
+
+@pytest.mark.parametrize("task, extra, words", [
+    ("sysid", {}, "--fit-params is for imitate"),
+    ("imitate", {"init": "track"}, "--init track optimises the controller's reference path"),
+])
+def test_fit_params_is_for_imitate_with_its_commands_as_variables(task, extra, words):
+    from risp_data.errors import RispError
+    from risp_tasks.tasks.config import TaskConfig
+
+    with pytest.raises(RispError, match=words):
+        TaskConfig(task=task, video="v.mp4", fit_params=True, **extra)
+
+
 def test_knot_basis_interpolates_linearly_between_its_knots():
     """W's rows sum to 1, W reproduces a linear function of the frame index exactly, equals the knot values at
     the knots' frames, and is the identity without knots (K = 0) or with a knot per frame."""

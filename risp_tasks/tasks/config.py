@@ -43,6 +43,9 @@ class TaskConfig:
     # imitate, control: the simulator's physical parameters where known — a JSON object {name: value}, a JSON file,
     # or a task's result.json (e.g. sysid's); None: the nominal ones (simulate.set_params)
     params: str | None = None
+    # imitate: identify the environment's sysid parameters (sysid.IDENTIFIED) jointly with the actions, from the
+    # middle of their ranges or the values --params gives (docs/tasks.md §Unknown physical parameters)
+    fit_params: bool = False
     seed: int = 0
     every: int = 1
     fps: float | None = None  # resample the video to this rate
@@ -84,6 +87,11 @@ class TaskConfig:
             raise RispError(f"--action-knots is for imitate and control (the actions), not {self.task}")
         if self.params and self.task not in ("imitate", "control"):
             raise RispError(f"--params is for imitate and control (sysid identifies them), not {self.task}")
+        if self.fit_params and self.task != "imitate":
+            raise RispError(f"--fit-params is for imitate (sysid identifies the parameters itself), not {self.task}")
+        if self.fit_params and self.init == "track":
+            raise RispError("--fit-params needs the commands as variables; --init track optimises the controller's "
+                            "reference path instead (leave one of them out)")
         if self.warm_start < 0:
             raise RispError(f"--warm-start must be >= 0, got {self.warm_start}")
         if self.warm_start and self.loss != "render":

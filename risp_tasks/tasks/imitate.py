@@ -6,8 +6,10 @@ Initialisation (``--init``): ``default`` x = 0; ``random`` x ~ U(−1, 1) (seede
 geometric tracking controller (Lee et al. 2010) flown in the simulator along the network-estimated
 trajectory; the refinement then adjusts the controller's reference path, and the actions are the commands
 the controller issues (paper Sec. 5.5: long horizons are chaotic in open loop).  Physical parameters are the
-simulator's nominal ones; the initial state comes from the first two frames' estimates (``--fit-initial-state``:
-optimised jointly with the actions, :class:`~risp_tasks.tasks.simulate.InitialState`).
+simulator's nominal ones, or those ``--params`` gives; with ``--fit-params`` sysid's parameters are identified
+jointly with the actions (:class:`~risp_tasks.tasks.sysid.FreeParameters`).  The initial state comes from the
+first two frames' estimates (``--fit-initial-state``: optimised jointly with the actions,
+:class:`~risp_tasks.tasks.simulate.InitialState`).
 """
 
 from __future__ import annotations
@@ -18,7 +20,8 @@ from risp_data.errors import RispError
 
 from .context import Context
 from .loop import Problem
-from .simulate import ACTION_SCALE, InitialState, action_centre, frame_states, set_params, to_file_actions
+from .simulate import (ACTION_SCALE, InitialState, action_centre, frame_states, read_params, set_params,
+                       to_file_actions)
 
 
 TRACK_SCALE = 0.1  # m: the normalised reference-path offsets of ``--init track``
@@ -119,6 +122,10 @@ def build(ctx: Context, n_frames: int | None = None, s0: torch.Tensor | None = N
         return _track_problem(ctx, params, s0, n_frames)
     centre, scale = action_centre(sim, params), ACTION_SCALE[sim.env]
     x0 = initial_actions(ctx, params, n_frames)
+    free = _free_parameters(ctx, params) if ctx.cfg.fit_params else None
+    physics = free if free is not None else (lambda: params)
+    with torch.no_grad():
+        start = physics()  # the parameters the optimisation starts from (free ones at their start values)
     W = knot_basis(n_frames, ctx.cfg.action_knots)
     knots = W.shape[1] < n_frames
     # with knots: the per-frame start (the same random draw as without), projected onto them by least squares
@@ -129,12 +136,30 @@ def build(ctx: Context, n_frames: int | None = None, s0: torch.Tensor | None = N
         return centre + scale * (W @ v if knots else v)
 
     def estimates():
-        return {"actions": to_file_actions(sim, params, actions(z.detach())).tolist(),
-                "initial_actions": to_file_actions(sim, params, actions(z0)).tolist()}
+        with torch.no_grad():
+            p = physics()
+        found = {"actions": to_file_actions(sim, p, actions(z.detach())).tolist(),
+                 "initial_actions": to_file_actions(sim, start, actions(z0)).tolist()}
+        return {**found, **(free.estimates() if free is not None else {})}
 
     info = {**s0.info(), "parametrisation": f"{W.shape[1]} knots, piecewise linear" if knots else "one row per frame",
-            "parameters": {n: float(params[0, i]) for i, n in enumerate(sim.param_names)}}
-    return Problem(variables={"actions": z, **s0.variables},
-                   states=lambda: frame_states(sim, params, s0(), actions(z), n_frames, ctx.k),
-                   estimates=lambda: {**estimates(), **s0.info()}, info=info)
+            "parameters": {n: float(start[0, i]) for i, n in enumerate(sim.param_names)}}
+    if free is not None:
+        info["fitted_parameters"] = list(free.names)
+    return Problem(variables={"actions": z, **({"x": free.x} if free is not None else {}), **s0.variables},
+                   states=lambda: frame_states(sim, physics(), s0(), actions(z), n_frames, ctx.k),
+                   estimates=lambda: {**estimates(), **s0.info()}, info=info,
+                   project=free.project if free is not None else (lambda: None))
+
+
+def _free_parameters(ctx: Context, params: torch.Tensor):
+    """``--fit-params``: sysid's identified parameters as variables (sysid.FreeParameters).  Each starts from
+    the value ``--params`` gives it (clamped into its range), else from the middle of its range: the nominal
+    value is no better a guess for an unknown system (the hand's nominal stiffness 1.0 is its range's edge)."""
+    from .sysid import FreeParameters, parameter_ranges
+
+    given = read_params(ctx.sim, ctx.cfg.params) if ctx.cfg.params else {}
+    x0 = torch.tensor([min(max((given[n] - lo) / (hi - lo), 0.0), 1.0) if n in given else 0.5
+                       for n, (lo, hi) in parameter_ranges(ctx.sim).items()], dtype=torch.float64)
+    return FreeParameters(ctx.sim, params, x0)
 

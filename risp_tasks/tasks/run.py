@@ -227,7 +227,7 @@ def _errors(cfg, env, sim, truth, keep, loss_frames, initial_states, final_state
 
         out = {"state_rmse_initial": rmse(initial_states), "state_rmse_final": rmse(final_states),
                "state_rmse_network": float(wrap_angles(predicted.double() - true, angular).pow(2).mean().sqrt())}
-    if cfg.task == "sysid" and "params" in truth:
+    if "parameters" in final and "params" in truth:  # sysid; imitate --fit-params
         p_true = truth["params"]
         out["parameter_error_initial"] = {n: abs(v - p_true[n]) for n, v in initial["parameters"].items() if n in p_true}
         out["parameter_error_final"] = {n: abs(v - p_true[n]) for n, v in final["parameters"].items() if n in p_true}

@@ -54,9 +54,17 @@ def action_centre(sim, params: torch.Tensor) -> torch.Tensor:
 
 
 def set_params(sim, params: torch.Tensor, given: str, option: str = "--params") -> torch.Tensor:
-    """A copy of ``params`` (1, P) with the values that ``given`` names: a JSON object {name: value}, the path of
-    such a JSON file, or the path of a task's result.json (its identified ``estimates.parameters``, e.g. a
-    ``sysid`` run).  Unknown names, non-numbers and non-finite values are one error line each."""
+    """A copy of ``params`` (1, P) with the values that ``given`` names (:func:`read_params`)."""
+    p = params.clone()
+    for name, value in read_params(sim, given, option).items():
+        p[0, sim.param_index(name)] = value
+    return p
+
+
+def read_params(sim, given: str, option: str = "--params") -> dict[str, float]:
+    """The parameter values that ``given`` names: a JSON object {name: value}, the path of such a JSON file, or
+    the path of a task's result.json (its identified ``estimates.parameters``, e.g. a ``sysid`` run).  Unknown
+    names, non-numbers and non-finite values are one error line each."""
     if os.path.isfile(given):
         from .inputs import read_json
 
@@ -77,7 +85,7 @@ def set_params(sim, params: torch.Tensor, given: str, option: str = "--params") 
         at = ""
     if not isinstance(data, dict):
         raise RispError(f"{at}{option} must be a JSON object of parameter values, got {str(data)[:40]!r}")
-    p = params.clone()
+    values = {}
     for name, value in data.items():
         if name not in sim.param_names:
             raise RispError(f"{at}{option}: unknown {sim.env} parameter {name!r}; known: {', '.join(sim.param_names)}")
@@ -87,8 +95,8 @@ def set_params(sim, params: torch.Tensor, given: str, option: str = "--params") 
             ok = False
         if not ok:
             raise RispError(f"{at}{option}: {name!r} must be a finite number, got {str(value)[:40]!r}")
-        p[0, sim.param_index(name)] = float(value)
-    return p
+        values[name] = float(value)
+    return values
 
 
 def to_sim_actions(sim, params: torch.Tensor, file_actions: torch.Tensor) -> torch.Tensor:

@@ -28,44 +28,55 @@ def parameter_ranges(sim) -> dict[str, tuple[float, float]]:
     return {name: ranges[name] for name in IDENTIFIED[sim.env]}
 
 
+class FreeParameters:
+    """The environment's identified parameters (IDENTIFIED) as leaf x ∈ [0, 1]^m, θ = low + (high − low)·x over
+    the sampling ranges, the other parameters taken from ``base`` (1, P).  Shared by ``sysid`` and
+    ``imitate --fit-params``."""
+
+    def __init__(self, sim, base: torch.Tensor, x0: torch.Tensor):
+        self.names = IDENTIFIED[sim.env]
+        self.ranges = parameter_ranges(sim)
+        self.low = torch.tensor([self.ranges[n][0] for n in self.names], dtype=torch.float64)
+        self.high = torch.tensor([self.ranges[n][1] for n in self.names], dtype=torch.float64)
+        self.idx = [sim.param_index(n) for n in self.names]
+        self.base, self.x0 = base, x0
+        self.x = x0.clone().requires_grad_(True)
+
+    def __call__(self) -> torch.Tensor:
+        """The full parameter row (1, P), differentiable w.r.t. x."""
+        p = self.base.clone()
+        p[0, self.idx] = self.low + (self.high - self.low) * self.x
+        return p
+
+    def project(self) -> None:
+        self.x.clamp_(0.0, 1.0)
+
+    def estimates(self) -> dict:
+        def theta(x):
+            return {n: float(v) for n, v in zip(self.names, (self.low + (self.high - self.low) * x).detach())}
+
+        return {"parameters": theta(self.x), "initial_parameters": theta(self.x0),
+                "ranges": {n: list(self.ranges[n]) for n in self.names}}
+
+
 def build(ctx: Context) -> Problem:
     sim, names = ctx.sim, IDENTIFIED[ctx.sim.env]
-    ranges = parameter_ranges(sim)
-    low = torch.tensor([ranges[n][0] for n in names], dtype=torch.float64)
-    high = torch.tensor([ranges[n][1] for n in names], dtype=torch.float64)
     if ctx.cfg.init == "random":
         x0 = torch.from_numpy(ctx.rng.random(len(names)))
     elif ctx.cfg.init == "default":
         x0 = torch.full((len(names),), 0.5, dtype=torch.float64)
     else:
         raise RispError("sysid takes --init default or random")
-    x = x0.clone().requires_grad_(True)
-    idx = [sim.param_index(n) for n in names]
-    base = sim.default_params()
+    free = FreeParameters(sim, sim.default_params(), x0)
     if sim.action_dim and ctx.file_actions is None:
         raise RispError(f"sysid of the {sim.env} needs its commands: pass --actions A.csv")
     file_actions = None if ctx.file_actions is None else torch.from_numpy(ctx.file_actions)
     s0 = InitialState(ctx, fit=ctx.cfg.fit_initial_state)
 
-    def params():
-        theta = low + (high - low) * x
-        p = base.clone()
-        p[0, idx] = theta
-        return p
-
     def states():
-        p = params()
+        p = free()
         actions = None if file_actions is None else to_sim_actions(sim, p, file_actions)
         return frame_states(sim, p, s0(), actions, ctx.n_source, ctx.k)
 
-    def project():
-        x.clamp_(0.0, 1.0)
-
-    def estimates():
-        theta = (low + (high - low) * x).detach()
-        return {"parameters": {n: float(v) for n, v in zip(names, theta)},
-                "initial_parameters": {n: float(v) for n, v in zip(names, low + (high - low) * x0)},
-                "ranges": {n: list(ranges[n]) for n in names}, **s0.info()}
-
-    return Problem(variables={"x": x, **s0.variables}, states=states, estimates=estimates, project=project,
-                   info=s0.info())
+    return Problem(variables={"x": free.x, **s0.variables}, states=states,
+                   estimates=lambda: {**free.estimates(), **s0.info()}, project=free.project, info=s0.info())
