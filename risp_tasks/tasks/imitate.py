@@ -20,8 +20,7 @@ from risp_data.errors import RispError
 
 from .context import Context
 from .loop import Problem
-from .simulate import (ACTION_SCALE, InitialState, action_centre, frame_states, read_params, set_params,
-                       to_file_actions)
+from .simulate import ACTION_SCALE, InitialState, action_centre, frame_states, read_params, to_file_actions
 
 
 TRACK_SCALE = 0.1  # m: the normalised reference-path offsets of ``--init track``
@@ -112,8 +111,9 @@ def build(ctx: Context, n_frames: int | None = None, s0: torch.Tensor | None = N
         raise RispError(f"the {sim.env} has no actions to imitate; imitate works for: quadrotor, hand, rod")
     n_frames = ctx.n_source if n_frames is None else n_frames
     params = sim.default_params()
-    if ctx.cfg.params:  # known or identified parameters instead of the nominal ones
-        params = set_params(sim, params, ctx.cfg.params)
+    given = read_params(sim, ctx.cfg.params) if ctx.cfg.params else {}  # known or identified ones, read once
+    for name, value in given.items():
+        params[0, sim.param_index(name)] = value
     s0 = InitialState(ctx, fit=ctx.cfg.fit_initial_state, given=s0)  # control passes its given state
     if ctx.cfg.init == "track":
         if ctx.cfg.action_knots:
@@ -122,7 +122,7 @@ def build(ctx: Context, n_frames: int | None = None, s0: torch.Tensor | None = N
         return _track_problem(ctx, params, s0, n_frames)
     centre, scale = action_centre(sim, params), ACTION_SCALE[sim.env]
     x0 = initial_actions(ctx, params, n_frames)
-    free = _free_parameters(ctx, params) if ctx.cfg.fit_params else None
+    free = _free_parameters(ctx, params, given) if ctx.cfg.fit_params else None
     physics = free if free is not None else (lambda: params)
     with torch.no_grad():
         start = physics()  # the parameters the optimisation starts from (free ones at their start values)
@@ -152,13 +152,12 @@ def build(ctx: Context, n_frames: int | None = None, s0: torch.Tensor | None = N
                    project=free.project if free is not None else (lambda: None))
 
 
-def _free_parameters(ctx: Context, params: torch.Tensor):
+def _free_parameters(ctx: Context, params: torch.Tensor, given: dict[str, float]):
     """``--fit-params``: sysid's identified parameters as variables (sysid.FreeParameters).  Each starts from
     the value ``--params`` gives it (clamped into its range), else from the middle of its range: the nominal
     value is no better a guess for an unknown system (the hand's nominal stiffness 1.0 is its range's edge)."""
     from .sysid import FreeParameters, parameter_ranges
 
-    given = read_params(ctx.sim, ctx.cfg.params) if ctx.cfg.params else {}
     x0 = torch.tensor([min(max((given[n] - lo) / (hi - lo), 0.0), 1.0) if n in given else 0.5
                        for n, (lo, hi) in parameter_ranges(ctx.sim).items()], dtype=torch.float64)
     return FreeParameters(ctx.sim, params, x0)

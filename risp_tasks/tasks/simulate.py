@@ -74,7 +74,7 @@ def read_params(sim, given: str, option: str = "--params") -> dict[str, float]:
             found = estimates.get("parameters") if isinstance(estimates, dict) else None
             if not isinstance(found, dict):
                 raise RispError(f"{given}: {option}: this {data['task']!s:.20} result holds no identified parameters "
-                                f"(estimates.parameters); give a sysid run's result.json")
+                                f"(estimates.parameters); give a sysid (or imitate --fit-params) run's result.json")
             data = found
         at = f"{given}: "
     else:
