@@ -167,9 +167,10 @@ def sysid(video, **kw):
 @click.argument("video", type=click.Path())
 @_task_options
 @_fit_initial
-@click.option("--fit-params", is_flag=True,
+@click.option("--fit-params/--no-fit-params", default=None,
               help="identify the physical parameters sysid would (quadrotor mass, hand stiffnesses, rod log10 E) "
-                   "jointly with the actions, from the middle of their ranges or --params (docs/tasks.md §Unknown "
+                   "jointly with the actions, from the middle of their ranges or --params [default: yes for the "
+                   "hand and the rod unless --params gives them, no for the quadrotor] (docs/tasks.md §Unknown "
                    "physical parameters)")
 def imitate(video, **kw):
     """The action sequence that reproduces the motion in VIDEO (quadrotor, hand, rod)."""

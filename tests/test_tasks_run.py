@@ -245,10 +245,10 @@ def test_hand_tasks_lower_their_loss(tmp_path_factory, tmp_path, task):
         kw.update(actions=_stem(video) + ".actions.csv", lr=3e-2)
     r = _run(task, video, tmp_path / "out", **kw)
     assert r["final_loss"] < r["loss"][0], r["loss"]
-    if task == "sysid":
-        assert len(r["estimates"]["parameters"]) == 5
-    else:
+    assert len(r["estimates"]["parameters"]) == 5  # imitate identifies them by default on the hand (fits_params)
+    if task == "imitate":
         assert np.asarray(r["estimates"]["actions"]).shape == (6, 5)
+        assert len(r["info"]["fitted_parameters"]) == 5
 
 
 def test_imitate_with_action_knots_optimises_a_piecewise_linear_command(tmp_path_factory, tmp_path):
@@ -280,8 +280,9 @@ def test_imitate_simulates_the_given_parameters(tmp_path_factory, tmp_path):
     truth = json.load(open(_stem(video) + ".truth.json"))
     stiff = {n: v for n, v in truth["params"].items() if n.startswith("stiffness_")}
     kw = dict(model=model, loss="oracle", truth=_stem(video) + ".truth.json", iterations=0, plots=False)
-    nominal = _run("imitate", video, tmp_path / "nominal", **kw)
+    nominal = _run("imitate", video, tmp_path / "nominal", fit_params=False, **kw)
     given = _run("imitate", video, tmp_path / "given", params=json.dumps(stiff), **kw)
+    assert "fitted_parameters" not in given["info"]  # given parameters are not identified again by default
     assert all(given["info"]["parameters"][n] == pytest.approx(v) for n, v in stiff.items())
     assert nominal["info"]["parameters"]["stiffness_index"] == 1.0
     assert given["errors"]["state_rmse_initial"] != pytest.approx(nominal["errors"]["state_rmse_initial"], rel=1e-3)
@@ -328,6 +329,21 @@ def test_fit_params_is_for_imitate_with_its_commands_as_variables(task, extra, w
 
     with pytest.raises(RispError, match=words):
         TaskConfig(task=task, video="v.mp4", fit_params=True, **extra)
+
+
+@pytest.mark.parametrize("env, extra, fits", [
+    ("hand", {}, True), ("rod", {}, True), ("quadrotor", {}, False),  # the default per environment
+    ("hand", {"params": '{"stiffness_index": 0.3}'}, False),  # given parameters are kept
+    ("rod", {"init": "track"}, False),  # a reference path, not commands, is optimised
+    ("hand", {"task": "control"}, False),  # control reaches a state; imitate's default is imitate's
+    ("quadrotor", {"fit_params": True}, True), ("rod", {"fit_params": False}, False),  # the flags decide
+])
+def test_imitate_identifies_the_parameters_by_default_where_they_shape_the_motion(env, extra, fits):
+    from risp_tasks.tasks.config import TaskConfig
+    from risp_tasks.tasks.imitate import fits_params
+
+    cfg = TaskConfig(**{"task": "imitate", "video": "v.mp4", **extra})
+    assert fits_params(cfg, env) is fits
 
 
 def test_knot_basis_interpolates_linearly_between_its_knots():

@@ -44,8 +44,9 @@ class TaskConfig:
     # or a task's result.json (e.g. sysid's); None: the nominal ones (simulate.set_params)
     params: str | None = None
     # imitate: identify the environment's sysid parameters (sysid.IDENTIFIED) jointly with the actions, from the
-    # middle of their ranges or the values --params gives (docs/tasks.md §Unknown physical parameters)
-    fit_params: bool = False
+    # middle of their ranges or the values --params gives (docs/tasks.md §Unknown physical parameters); None: yes
+    # for the hand and the rod when --params is not given (imitate.fits_params), no for the quadrotor
+    fit_params: bool | None = None
     seed: int = 0
     every: int = 1
     fps: float | None = None  # resample the video to this rate
