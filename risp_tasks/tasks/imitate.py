@@ -21,7 +21,8 @@ from risp_data.errors import RispError
 
 from .context import Context
 from .loop import Problem
-from .simulate import ACTION_SCALE, InitialState, action_centre, frame_states, read_params, to_file_actions
+from .simulate import (ACTION_SCALE, InitialState, action_centre, frame_states, read_params, to_file_actions,
+                       with_params)
 
 
 TRACK_SCALE = 0.1  # m: the normalised reference-path offsets of ``--init track``
@@ -111,10 +112,8 @@ def build(ctx: Context, n_frames: int | None = None, s0: torch.Tensor | None = N
     if sim.action_dim == 0:
         raise RispError(f"the {sim.env} has no actions to imitate; imitate works for: quadrotor, hand, rod")
     n_frames = ctx.n_source if n_frames is None else n_frames
-    params = sim.default_params()
     given = read_params(sim, ctx.cfg.params) if ctx.cfg.params else {}  # known or identified ones, read once
-    for name, value in given.items():
-        params[0, sim.param_index(name)] = value
+    params = with_params(sim, sim.default_params(), given)
     s0 = InitialState(ctx, fit=ctx.cfg.fit_initial_state, given=s0)  # control passes its given state
     if ctx.cfg.init == "track":
         if ctx.cfg.action_knots:

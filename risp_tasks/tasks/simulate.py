@@ -55,8 +55,13 @@ def action_centre(sim, params: torch.Tensor) -> torch.Tensor:
 
 def set_params(sim, params: torch.Tensor, given: str, option: str = "--params") -> torch.Tensor:
     """A copy of ``params`` (1, P) with the values that ``given`` names (:func:`read_params`)."""
+    return with_params(sim, params, read_params(sim, given, option))
+
+
+def with_params(sim, params: torch.Tensor, values: dict[str, float]) -> torch.Tensor:
+    """A copy of ``params`` (1, P) with ``values`` ({name: value}, already checked) in their places."""
     p = params.clone()
-    for name, value in read_params(sim, given, option).items():
+    for name, value in values.items():
         p[0, sim.param_index(name)] = value
     return p
 
