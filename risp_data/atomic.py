@@ -39,6 +39,14 @@ def atomic_write(path: "str | os.PathLike", mode: str = "wb", suffix: str = "") 
 TEMP_PREFIX = ".tmp-"
 
 
+def temp_folder(parent: "str | os.PathLike") -> str:
+    """A new empty folder ``parent/.tmp-*`` with the usual permissions (mkdtemp makes 0700), to fill and then
+    rename into place."""
+    tmp = tempfile.mkdtemp(prefix=TEMP_PREFIX, dir=parent)
+    os.chmod(tmp, 0o777 & ~_umask())
+    return tmp
+
+
 def remove_temporaries(folder: "str | os.PathLike") -> None:
     """Delete the temporaries (``.tmp-*``) a killed :func:`atomic_write` left in ``folder``: never visible
     to readers under their final names, safe to drop before a job resumes."""

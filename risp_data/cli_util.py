@@ -52,12 +52,23 @@ def _quiet_worker_signals() -> None:
         signal.signal(signal.SIGCHLD, signal.SIG_DFL)
 
 
+def _worker_message(text: str) -> str:
+    """The original message of an error that torch re-raised from a DataLoader worker.  torch wraps it as
+    "Caught <Type> in DataLoader worker process N.\nOriginal Traceback …\n<module.Type>: <message>", i.e. the
+    worker's whole traceback in the message; the user's line is the last one, after the type."""
+    if not (text.startswith("Caught ") and "Original Traceback" in text):
+        return text
+    last = text.rstrip().splitlines()[-1]
+    head, sep, message = last.partition(": ")
+    return message if sep and " " not in head else last
+
+
 def user_error_line(e: BaseException) -> str | None:
     """The one-line message of an error the user can act on, or None for a programming error."""
     from concurrent.futures.process import BrokenProcessPool
 
     if isinstance(e, RispError):
-        return str(e)
+        return _worker_message(str(e))
     if isinstance(e, BrokenProcessPool):
         return ("a worker process died unexpectedly (killed, or out of memory); completed shards are kept: "
                 "rerun the same command to resume, with fewer --workers or a smaller --res if memory is short")

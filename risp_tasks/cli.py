@@ -65,7 +65,8 @@ def diagnose(data, env, out, seed, held_out, horizon, rollout_horizon, max_segme
     report = run_diagnose(cfg)
     click.echo(f"cause: {report['cause']} — {report['reason']}")
     for name, p in report["parameters"].items():
-        click.echo(f"  {name} = {p['value']:.4g} ± {p['std']:.2g} {p['unit']}")
+        unit = "" if p["unit"] in ("1", "", None) else f" {p['unit']}"  # "1": dimensionless
+        click.echo(f"  {name} = {p['value']:.4g} ± {p['std']:.2g}{unit}")
     click.echo(f"held-out normalised RSS gain: {report['gain']['normalized_rss']:+.1%}; report: {out}/report.md")
 
 
@@ -79,6 +80,9 @@ def _task_options(f):
         click.option("--loss", type=click.Choice(("render", "state", "oracle", "pixelwise", "perceptual")), default="state",
                      show_default=True, help="render: N(render(sim)) vs N(video); state: sim vs N(video); oracle: vs "
                      "--truth; pixelwise: render(sim) vs video; perceptual: F(render(sim)) vs F(video)"),
+        click.option("--residual", type=click.Choice(("l2", "l1")), default="l2", show_default=True,
+                     help="render/state/oracle losses: squared (l2, the paper's) or absolute (l1, robust to the "
+                          "network's occasional large misreadings) differences (docs/tasks.md §Residual norm)"),
         click.option("--perceptual-weights", default=None, help="local torchvision vgg16 state dict for --loss "
                      "perceptual (default: the built-in filter bank)"),
         click.option("--init", type=click.Choice(("default", "random", "track")), default="default", show_default=True,
@@ -130,11 +134,17 @@ def _run(task, video, **kw):
     loss = result["loss"]
     click.echo(f"{task} ({result['env']}): loss {loss[0] if loss else result['final_loss']:.4g} -> {result['final_loss']:.4g} "
                f"in {len(loss)} iterations; results: {result['out']}")
+    if loss and result.get("best_iteration") == 0:
+        click.echo(f"note: no step improved on the start (loss {loss[0]:.4g}); the start is kept — a smaller --lr or "
+                   f"another --init may help (docs/tasks.md §Pipeline)")
     for name, value in result["estimates"].get("parameters", {}).items():
         click.echo(f"  {name} = {value:.4g}")
     for name, value in result.get("errors", {}).items():
         if isinstance(value, float):
             click.echo(f"  {name} = {value:.4g}")
+    for name, value in result.get("errors", {}).get("parameter_error_final", {}).items():
+        click.echo(f"  {name} error = {value:.4g} (against --truth; {result['errors']['parameter_error_initial'][name]:.4g} "
+                   f"at the start)")
     for warning in result.get("warnings", []):
         click.echo(f"warning: {warning}")
     return result
@@ -200,15 +210,19 @@ def control(target, **kw):
 @click.option("--camera", default=None, help="camera JSON replacing the environment's camera")
 @click.option("--mesh", default=None, help="quadrotor vehicle mesh (OBJ/PLY/STL/glTF, metres, body frame)")
 @click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--overwrite", is_flag=True, help="replace a video (and its ground truth and actions) already at --out")
 @click.option("--quiet", is_flag=True)
-def make_video(env, out, frames, fps, resolution, spp, domain, params, effect, camera, mesh, seed, quiet):
+def make_video(env, out, frames, fps, resolution, spp, domain, params, effect, camera, mesh, seed, overwrite, quiet):
     """Simulate ENV and render a reference video with a random look, plus <out>.truth.json and <out>.actions.csv."""
     from risp_tasks.tasks.reference import ReferenceConfig, make_reference, outside_warning
 
     cfg = ReferenceConfig(env=env, out=out, frames=frames, fps=fps, resolution=resolution, spp=spp, domain=domain,
-                          params=params, effect=effect, camera=camera, mesh=mesh, seed=seed, progress=not quiet)
+                          params=params, effect=effect, camera=camera, mesh=mesh, seed=seed, progress=not quiet,
+                          overwrite=overwrite)
     truth = make_reference(cfg)
-    click.echo(f"wrote {out} ({frames} frames, {resolution}×{resolution}, {fps:g} fps), ground truth {truth['truth_path']}")
+    actions = f", actions {truth['actions_path']}" if truth.get("actions_path") else ""
+    click.echo(f"wrote {out} ({frames} frames, {resolution}×{resolution}, {fps:g} fps), ground truth "
+               f"{truth['truth_path']}{actions}")
     warning = outside_warning(truth["outside_sampled_states"])
     if warning:
         click.echo(warning, err=True)

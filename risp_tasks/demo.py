@@ -112,10 +112,10 @@ def run_demo(cfg: DemoConfig) -> Path:
 
     # 4. A task on a video: a target-domain reference video with a hidden mass, identified through N.
     video = out / "video" / f"{env}.mp4"
-    if not video.exists():
+    if not video.with_suffix(".truth.json").exists():  # written last: a video without it was interrupted
         video.parent.mkdir(parents=True, exist_ok=True)
         _run(task_cli, ["make-video", "--env", env, "--out", str(video), "--frames", str(cfg.video_frames),
-                        "--fps", "10", "--resolution", str(cfg.res), "--seed", str(cfg.seed + 3)], log)
+                        "--fps", "10", "--resolution", str(cfg.res), "--seed", str(cfg.seed + 3), "--overwrite"], log)
     sysid = out / "sysid"
     if not (sysid / "result.json").exists():
         _run(task_cli, ["sysid", str(video), "--model", str(run / "model.pt"), "--actions",

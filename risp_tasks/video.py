@@ -203,14 +203,14 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float, crf: in
 
 
 def _write_pngs(folder: Path, data: np.ndarray) -> None:
-    import tempfile
-
     from PIL import Image
+
+    from risp_data.atomic import temp_folder
 
     if folder.exists() and any(folder.iterdir()):
         raise RispError(f"{folder}: folder exists and is not empty")
     folder.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=".tmp-", dir=folder.parent))
+    tmp = Path(temp_folder(folder.parent))
     try:
         for i, img in enumerate(data):
             Image.fromarray(img).save(tmp / f"frame_{i:05d}.png")

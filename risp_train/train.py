@@ -147,6 +147,14 @@ def _write_json(path: str, obj) -> None:
     write_text_atomic(path, json.dumps(obj, indent=1, sort_keys=True) + "\n")
 
 
+RUN_FILES = (MODEL, LAST, "config.json", "losses.csv", "losses.png", "history.json")
+
+
+def _is_run_file(name: str) -> bool:
+    """A file a run folder holds: the trainer's own, its temporaries, or an evaluation written into it."""
+    return name in RUN_FILES or name.startswith((".tmp", "eval"))
+
+
 def check_run_folder(out: str, resume: bool, overwrite: bool, remove: bool = True) -> None:
     """Refuse a run folder that holds a model or checkpoint unless ``--resume`` or ``--overwrite`` says what
     to do with it; with ``--overwrite`` remove them (after every other check has passed; ``remove=False``: only
@@ -154,6 +162,11 @@ def check_run_folder(out: str, resume: bool, overwrite: bool, remove: bool = Tru
     held = [name for name in (MODEL, LAST) if os.path.exists(os.path.join(out, name))]
     if resume and overwrite:
         raise RispError("--resume and --overwrite exclude each other")
+    present = sorted(os.listdir(out)) if os.path.isdir(out) else []
+    if present and not overwrite and not any(_is_run_file(name) for name in present):
+        shown = ", ".join(present[:3]) + (", …" if len(present) > 3 else "")
+        raise RispError(f"{out} is not empty and holds no risp-train run ({shown}); choose another --out, or "
+                        "--overwrite to write the run beside those files")
     if overwrite:
         for name in held if remove else ():
             os.unlink(os.path.join(out, name))

@@ -258,3 +258,26 @@ def test_fit_runs_from_two_starts_and_keeps_the_lower_loss(quad_data, monkeypatc
     assert result.rss == min(rss for _, rss in runs)
     with torch.no_grad():
         assert result.rss == pytest.approx(float((residuals(model.sim, obs, result.params, seg, sigma) ** 2).sum()))
+
+
+def test_a_report_rewritten_without_plots_links_none_and_keeps_no_old_ones(quad_data, tmp_path, monkeypatch):
+    """diagnose into a folder that holds an earlier report: with --no-plots the new report.md links no plots, and
+    the earlier run's PNGs are gone (they would pass for this run's)."""
+    from risp_tasks.diagnose import run as diagnose_run
+    from risp_tasks.diagnose.report import PLOTS
+    from risp_tasks.diagnose.run import DiagnoseConfig, diagnose
+    from risp_tasks.diagnose.select import Decision
+
+    _estimated_copy(quad_data, tmp_path, "traj_000.json")
+    monkeypatch.setattr(diagnose_run, "decide", lambda base, singles, pairs: Decision(
+        "unexplained", base, None, "forced"))
+    out = tmp_path / "rep"
+    cfg = dict(data=(str(tmp_path),), env="quadrotor", out=str(out), seed=0, effects=("wind",), max_iters=2,
+               progress=False)
+    diagnose(DiagnoseConfig(**cfg, plots=True))
+    assert all((out / fn).is_file() for fn in PLOTS.values())
+    assert all(f"]({fn})" in (out / "report.md").read_text() for fn in PLOTS.values())
+    diagnose(DiagnoseConfig(**cfg, plots=False))
+    text = (out / "report.md").read_text()
+    assert "none (run with --no-plots)" in text and "![" not in text
+    assert not any((out / fn).exists() for fn in PLOTS.values())

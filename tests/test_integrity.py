@@ -153,6 +153,22 @@ def test_fit_refuses_a_folder_holding_a_model_unless_overwrite(data, model, tmp_
     assert hashlib.sha256((run / "model.pt").read_bytes()).hexdigest() != before
 
 
+def test_fit_refuses_a_folder_of_other_files_unless_overwrite(data, tmp_path):
+    """--out naming a folder that holds files but no run (e.g. someone's notes): one error line, the files
+    untouched and nothing written; --overwrite writes the run beside them."""
+    folder = tmp_path / "notes"
+    folder.mkdir()
+    (folder / "a.txt").write_text("mine")
+    runner = CliRunner()
+    args = ["fit", data["train"], "--out", str(folder), *_TINY, "--epochs", "1", "--seed", "5"]
+    line = _one_line_error(runner.invoke(train_cli, args))
+    assert "is not empty and holds no risp-train run (a.txt)" in line and "--overwrite" in line
+    assert sorted(os.listdir(folder)) == ["a.txt"]
+    r = runner.invoke(train_cli, args + ["--overwrite"])
+    assert r.exit_code == 0, r.output
+    assert (folder / "model.pt").is_file() and (folder / "a.txt").read_text() == "mine"
+
+
 # ------------------------------------------------------------------------- 3. damaged render folder
 
 

@@ -73,6 +73,12 @@ def test_actions_wrong_width_and_nan(quad, tmp_path):
     (tmp_path / "nan.csv").write_text("\n".join(rows) + "\n")
     line = _invoke(["sysid", video, "--model", model, "--actions", str(tmp_path / "nan.csv")], tmp_path)
     assert "nan.csv" in line and "NaN" in line and "f3" in line
+    rows = open(_actions(video)).read().splitlines()  # a fifth motor column: a file for another system
+    wide = [rows[0] + ",f4"] + [r + ",1.0" for r in rows[1:]]
+    (tmp_path / "wide.csv").write_text("\n".join(wide) + "\n")
+    line = _invoke(["sysid", video, "--model", model, "--actions", str(tmp_path / "wide.csv")], tmp_path)
+    assert "wide.csv" in line and "unexpected column(s) f4" in line and "t,f0,f1,f2,f3" in line
+    assert b"\r" not in open(_actions(video), "rb").read()  # written with plain newlines
 
 
 def test_model_for_another_environment(quad, tmp_path):
@@ -139,7 +145,26 @@ def test_cube_has_no_actions_to_imitate(tmp_path_factory, tmp_path):
     model = shared_model(tmp_path_factory, "cube")
     video = shared_video(tmp_path_factory, "cube")
     line = _invoke(["imitate", video, "--model", model], tmp_path)
-    assert "cube has no actions" in line
+    assert "cube has no actions" in line and "most recent" not in line
+
+
+def test_a_most_recent_model_for_another_system_is_named(quad, tmp_path_factory, tmp_path, monkeypatch):
+    """Without --model the newest run under runs/ is used: when it is a cube model and the video a quadrotor's,
+    imitate and sysid --actions say that the chosen model is the cube's (not that the actions file is wrong), and a
+    --truth file of another system is refused."""
+    import shutil
+
+    _, video = quad
+    (tmp_path / "runs" / "cube-run").mkdir(parents=True)
+    shutil.copy(shared_model(tmp_path_factory, "cube"), tmp_path / "runs" / "cube-run" / "model.pt")
+    monkeypatch.chdir(tmp_path)
+    stem = os.path.splitext(video)[0]
+    line = _invoke(["imitate", video], tmp_path)
+    assert "the cube has no actions to imitate" in line and "is a cube model: give --model" in line
+    line = _invoke(["sysid", video, "--actions", stem + ".actions.csv"], tmp_path)
+    assert "the cube has no actions" in line and "is a cube model: give --model" in line
+    line = _invoke(["estimate", video, "--truth", stem + ".truth.json"], tmp_path)
+    assert "ground truth of a quadrotor video, but the model is a cube model" in line
 
 
 def test_existing_result_folder_is_not_overwritten(quad, tmp_path):
@@ -205,6 +230,19 @@ def test_imitate_with_an_unknown_parameter_is_one_error_line(quad, tmp_path):
     assert "unknown quadrotor parameter 'mas'" in line and "mass" in line
 
 
+def test_residual_options_are_checked(quad, tmp_path):
+    """`--residual` takes l2|l1 (click's usage error names both), and l1 with an image loss is one error line."""
+    from risp_tasks.cli import cli
+
+    res = CliRunner().invoke(cli, ["sysid", quad[1], "--model", quad[0], "--residual", "huber",
+                                   "--out", str(tmp_path / "res"), "--quiet"])
+    assert res.exit_code == 2 and "'l2'" in res.output and "'l1'" in res.output, res.output
+    assert not (tmp_path / "res").exists()
+    line = _invoke(["sysid", quad[1], "--model", quad[0], "--actions", _actions(quad[1]), "--loss", "pixelwise",
+                    "--residual", "l1"], tmp_path)
+    assert "--residual l1 is for the render, state and oracle losses" in line
+
+
 def test_negative_seed_is_one_error_line(quad, tmp_path):
     model, video = quad
     line = _invoke(["sysid", video, "--model", model, "--seed", "-1"], tmp_path)
@@ -253,9 +291,60 @@ def test_rod_initial_state_cannot_be_sensor_heights(tmp_path):
     assert read_initial_state(str(tmp_path / "full.json"), get_simulator("rod")).shape == (1, 360)
 
 
+def test_make_video_does_not_replace_a_video_unasked(tmp_path):
+    """An existing video (or its ground truth) at --out: one error line naming it, the files untouched; with
+    --overwrite the same command replaces all three (another seed, another truth)."""
+    from risp_tasks.cli import cli
+
+    out = tmp_path / "v.mp4"
+    args = ["make-video", "--env", "quadrotor", "--out", str(out), "--frames", "2", "--resolution", "8", "--quiet"]
+    first = CliRunner().invoke(cli, args + ["--seed", "1"])
+    assert first.exit_code == 0 and "actions " in first.output, first.output
+    before = {p: (tmp_path / p).read_bytes() for p in ("v.mp4", "v.truth.json", "v.actions.csv")}
+    line = _error_line(CliRunner().invoke(cli, args + ["--seed", "2"]))
+    assert "v.mp4: exists" in line and "--overwrite" in line
+    assert all((tmp_path / p).read_bytes() == b for p, b in before.items())
+    (tmp_path / "v.mp4").unlink()  # the truth alone still belongs to a video: refused too
+    assert "v.truth.json: exists" in _error_line(CliRunner().invoke(cli, args + ["--seed", "2"]))
+    res = CliRunner().invoke(cli, args + ["--seed", "2", "--overwrite"])
+    assert res.exit_code == 0, res.output
+    assert json.load(open(tmp_path / "v.truth.json"))["seed"] == 2
+
+
 def test_make_video_params_with_a_huge_integer(tmp_path):
     from risp_tasks.cli import cli
 
     res = CliRunner().invoke(cli, ["make-video", "--env", "quadrotor", "--out", str(tmp_path / "v.mp4"), "--frames",
                                    "2", "--resolution", "8", "--params", '{"mass": 1' + "0" * 400 + "}", "--quiet"])
     assert "'mass' must be a finite number" in _error_line(res)
+
+
+def test_sysid_prints_the_parameter_error_and_a_kept_start(quad, tmp_path):
+    """With --truth the printed summary gives the identified parameter's error (as result.json has it); when no
+    step improved on the start (here a step size that overshoots), a note says the start was kept."""
+    from risp_tasks.cli import cli
+
+    model, video = quad
+    base = ["sysid", video, "--model", model, "--actions", _actions(video), "--truth",
+            os.path.splitext(video)[0] + ".truth.json", "--quiet", "--no-plots", "--iterations", "3"]
+    res = CliRunner().invoke(cli, base + ["--out", str(tmp_path / "a")])
+    assert res.exit_code == 0, res.output
+    saved = json.load(open(tmp_path / "a" / "result.json"))["errors"]["parameter_error_final"]["mass"]
+    assert f"mass error = {saved:.4g}" in res.output, res.output
+    res = CliRunner().invoke(cli, base + ["--out", str(tmp_path / "b"), "--lr", "100", "--optimizer", "sgd"])
+    kept = json.load(open(tmp_path / "b" / "result.json"))["best_iteration"] == 0
+    assert res.exit_code == 0 and kept == ("note: no step improved on the start" in res.output), res.output
+    assert kept, "an SGD step of 100 was expected to overshoot"
+
+
+@pytest.mark.parametrize("option,value,words", [("--frames", "1", "--frames must be >= 2, got 1"),
+                                                ("--fps", "0", "--fps must be > 0, got 0.0"),
+                                                ("--seed", "-3", "--seed must be >= 0, got -3")])
+def test_make_video_names_the_one_bad_setting(tmp_path, option, value, words):
+    from risp_tasks.cli import cli
+
+    args = ["make-video", "--env", "quadrotor", "--out", str(tmp_path / "v.mp4"), "--frames", "2", "--resolution", "8",
+            "--quiet", option, value]
+    line = _error_line(CliRunner().invoke(cli, args))
+    assert words in line and line.count("must be") == 1
+    assert not os.listdir(tmp_path)

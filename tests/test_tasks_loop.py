@@ -185,3 +185,62 @@ def test_params_from_an_object_a_file_and_a_result(tmp_path):
         i = sim.param_index("stiffness_ring")
         assert float(p[0, i]) == 0.25 and torch.equal(torch.cat([p[0, :i], p[0, i + 1:]]), torch.cat([p0[0, :i], p0[0, i + 1:]]))
     assert float(p0[0, sim.param_index("stiffness_ring")]) == 1.0
+
+
+@pytest.mark.parametrize("mode", ["state", "oracle"])
+def test_the_l1_residual_sums_absolute_differences_in_target_space(mode):
+    """--residual l1: mean_t Σ_j |τ_j(s_t) − goal_tj|, computed here by hand; l2 (the default) the squares; a
+    residual outside {l2, l1} is one clear error."""
+    from risp_data.envs import get_environment
+    from risp_data.errors import RispError
+    from risp_tasks.tasks.loop import make_loss
+
+    env = get_environment("hand")
+    g = torch.Generator().manual_seed(1)
+    states = torch.randn(5, len(env.state_names), generator=g, dtype=torch.float64)
+    keep = [0, 2, 4]
+    goal = env.state_to_target(torch.randn(3, len(env.state_names), generator=g, dtype=torch.float64))
+    ref, truth = (goal, None) if mode == "state" else (None, goal)
+    r = env.state_to_target(states[keep]) - goal
+    l1 = make_loss(mode, env, keep, ref, truth, None, residual="l1")
+    l2 = make_loss(mode, env, keep, ref, truth, None)
+    assert float(l1(states)) == pytest.approx(float(r.abs().sum(-1).mean()), rel=1e-12)
+    assert float(l2(states)) == pytest.approx(float((r ** 2).sum(-1).mean()), rel=1e-12)
+    assert float(l1(states)) != pytest.approx(float(l2(states)))
+    # its gradient is sign(r) through τ: compare with autograd of the hand-written form
+    s = states.clone().requires_grad_(True)
+    l1(s).backward()
+    s2 = states.clone().requires_grad_(True)
+    (env.state_to_target(s2[keep]) - goal).abs().sum(-1).mean().backward()
+    assert torch.allclose(s.grad, s2.grad)
+    assert s.grad.abs().sum() > 0
+    with pytest.raises(RispError, match="unknown residual 'l3'"):
+        make_loss(mode, env, keep, ref, truth, None, residual="l3")
+
+
+def test_an_unknown_residual_is_a_clear_error_in_the_config():
+    from risp_data.errors import RispError
+    from risp_tasks.tasks.config import TaskConfig
+
+    with pytest.raises(RispError, match="unknown residual 'huber'; choose one of: l2, l1"):
+        TaskConfig(task="imitate", video="v.mp4", residual="huber")
+    assert TaskConfig(task="imitate", video="v.mp4").residual == "l2"
+
+
+def test_a_result_folder_has_the_usual_permissions(tmp_path):
+    """Result folders are filled under a temporary name and renamed into place; they get the permissions of any
+    folder the user makes (mkdtemp's 0700 would hide them from the other users of a shared machine)."""
+    import os
+    import stat
+
+    from risp_tasks.tasks.results import ResultFolder
+
+    old = os.umask(0o022)
+    try:
+        folder = ResultFolder(str(tmp_path / "res"))
+        folder.write_json("result.json", {"seed": 0})
+        out = folder.commit()
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(os.stat(out).st_mode) == 0o755
+    assert os.path.isfile(os.path.join(out, "result.json"))

@@ -273,6 +273,20 @@ def test_imitate_with_action_knots_optimises_a_piecewise_linear_command(tmp_path
     assert np.allclose(r["estimates"]["initial_actions"], projected, atol=1e-9)
 
 
+def test_imitate_with_the_l1_residual_records_it_and_descends(tmp_path_factory, tmp_path):
+    """--residual l1 through the whole task: the same start has another loss than with l2 (absolute, not squared,
+    differences to N's readings), the l1 loss falls, and result.json records the residual."""
+    model, video = shared_model(tmp_path_factory, "hand"), shared_video(tmp_path_factory, "hand")
+    kw = dict(model=model, loss="state", iterations=5, plots=False, init="random", seed=2)
+    l1 = _run("imitate", video, tmp_path / "l1", residual="l1", **kw)
+    l2 = _run("imitate", video, tmp_path / "l2", **kw)
+    assert l1["final_loss"] < l1["loss"][0], l1["loss"]
+    assert l1["errors"] == {} and l1["estimates"]["initial_actions"] == l2["estimates"]["initial_actions"]
+    assert l1["loss"][0] != pytest.approx(l2["loss"][0], rel=1e-3)
+    assert json.load(open(tmp_path / "l1" / "result.json"))["config"]["residual"] == "l1"
+    assert l2["config"]["residual"] == "l2"
+
+
 def test_imitate_simulates_the_given_parameters(tmp_path_factory, tmp_path):
     """--params: imitate simulates the video's own stiffnesses (here the truth file's; a sysid result.json gives the
     same values), records them, and the same zero commands then roll out differently from the nominal hand's."""

@@ -178,6 +178,14 @@ def test_clear_errors(shards, tmp_path):
     r = runner.invoke(cli, ["fit", bad, "--out", str(tmp_path / "r1"), "--epochs", "1", "--width", "4",
                             "--workers", "0", "--batch-size", "4", "--quiet"])
     assert r.exit_code != 0 and "shard-000001.tar" in r.output and "Error" in r.output, r.output
+    # the same read by a DataLoader worker process (the default): torch re-raises it with the worker's whole
+    # traceback in the message; the user still gets the one line
+    r = runner.invoke(cli, ["fit", bad, "--out", str(tmp_path / "r1w"), "--epochs", "1", "--width", "4",
+                            "--workers", "1", "--batch-size", "4", "--quiet"])
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert r.exit_code != 0 and "Traceback" not in r.output and "Caught" not in r.output, r.output
+    assert lines[-1].startswith("Error: ") and "shard-000001.tar" in lines[-1], r.output
+    assert not any(ln.startswith("Error") for ln in lines[:-1]), r.output
     # empty shard list
     empty = _copy(shards["held_out"], tmp_path / "empty")
     m = json.load(open(os.path.join(empty, "manifest.json")))

@@ -322,8 +322,10 @@ def markdown(report: dict) -> str:
     L.append(f"- multiple shooting: segments of {f['horizon_samples']} samples, {f['substeps_per_sample']} simulator step(s) of {f['sim_dt_s']:.4g} s per sample")
     L.append(f"- runtime {report['runtime_s']:.1f} s\n")
     L.append("## Plots\n")
-    for key, fn in PLOTS.items():
-        L.append(f"![{key}]({fn})")
+    if not report.get("plots"):
+        L.append("none (run with --no-plots)")
+    for key in report.get("plots") or {}:
+        L.append(f"![{key}]({PLOTS[key]})")
     return "\n".join(L) + "\n"
 
 
@@ -341,6 +343,9 @@ def write_report(report: dict, cfg, evaluated, base_ev, ext_ev, fit_trajs, held_
         plot_gain(out / PLOTS["gain"], base_ev, ext_ev, held_trajs, report["base_error"]["rollout_horizon_samples"])
         plot_ranking(out / PLOTS["ranking"], report)
         report["plots"] = {k: str(out / v) for k, v in PLOTS.items()}
+    else:  # a report rewritten without plots: an earlier report's PNGs here would pass for this one's
+        for fn in PLOTS.values():
+            (out / fn).unlink(missing_ok=True)
     text = json.dumps(_clean(report), indent=2, default=_json_default)
     _named(out / "report.json", lambda: write_text_atomic(out / "report.json", text))
     _named(out / "report.md", lambda: write_text_atomic(out / "report.md", markdown(report)))

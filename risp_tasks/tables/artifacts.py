@@ -111,7 +111,7 @@ class Artifacts:
         cfg = self.cfg
         ref = ReferenceConfig(env=env, out="", frames=frames or cfg.frames, fps=10.0, resolution=cfg.resolution, spp=cfg.spp,
                               domain="target", seed=TEST_SEED + cfg.seed + repeat, progress=False)
-        key = look_key(ref, env, skip=("out", "progress"))
+        key = look_key(ref, env, skip=("out", "progress", "overwrite"))
         if env in MOTION_REVISIONS:  # a revised motion is a new video (unrevised motions keep their keys)
             key = checksum({"video": key, "motion": MOTION_REVISIONS[env]})
         return ref, os.path.join(self.root, "videos", f"{env}-r{repeat}-{key}.mp4")
@@ -122,7 +122,7 @@ class Artifacts:
 
         ref, out = self.video_config(env, repeat, frames)
         if not (os.path.exists(out) and os.path.exists(truth_path(out))):  # the truth is written last
-            make_reference(replace(ref, out=out))
+            make_reference(replace(ref, out=out, overwrite=True))  # a video whose truth was not written is redone
         actions = actions_path(out)
         return {"video": out, "truth": truth_path(out), "actions": actions if os.path.exists(actions) else None}
 

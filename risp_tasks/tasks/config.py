@@ -8,6 +8,7 @@ from risp_data.errors import RispError
 
 LOSSES: tuple[str, ...] = ("render", "state", "oracle", "pixelwise", "perceptual")
 INITS: tuple[str, ...] = ("default", "random", "track")
+RESIDUALS: tuple[str, ...] = ("l2", "l1")  # how a frame's difference in the network's target space is weighed
 
 
 @dataclass(frozen=True)
@@ -30,6 +31,9 @@ class TaskConfig:
     optimizer: str = "rmsprop"
     lr: float = 3e-3
     momentum: float = 0.5
+    # l2: squared differences in the network's target space (the paper's); l1: absolute ones, robust to the
+    # network's occasional large misreadings (loop.make_loss; docs/tasks.md §Residual norm)
+    residual: str = "l2"
     iterations: int = 100
     # render loss: first this many iterations of the state loss (same variables and optimiser settings), so that
     # the render-loss descent starts where N's per-frame estimates put it (docs/tasks.md §Warm start)
@@ -72,6 +76,11 @@ class TaskConfig:
             raise RispError(f"unknown loss {self.loss!r}; choose one of: {', '.join(LOSSES)}")
         if self.init not in INITS:
             raise RispError(f"unknown init {self.init!r}; choose one of: {', '.join(INITS)}")
+        if self.residual not in RESIDUALS:
+            raise RispError(f"unknown residual {self.residual!r}; choose one of: {', '.join(RESIDUALS)}")
+        if self.residual != "l2" and self.loss in ("pixelwise", "perceptual"):
+            raise RispError(f"--residual {self.residual} is for the render, state and oracle losses (differences of "
+                            f"network readings); --loss {self.loss} compares images and stays squared")
         if self.optimizer not in ("rmsprop", "adam", "sgd"):
             raise RispError(f"unknown optimizer {self.optimizer!r}; choose one of: rmsprop, adam, sgd")
         if self.iterations < 0 or not self.lr > 0 or self.every < 1 or self.horizon < 1 or self.spp < 1:

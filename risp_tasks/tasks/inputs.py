@@ -104,6 +104,10 @@ def read_actions(path: str, env: str, n_frames: int) -> np.ndarray:
     if missing:
         raise RispError(f"{path}: actions file for {env} needs columns t,{','.join(cols)}; missing {','.join(missing)} "
                         f"(has {len(header)} columns: {','.join(header)})")
+    extra = [h for h in header if h not in ("t",) + tuple(cols)]
+    if extra:  # e.g. a fifth motor: the file is for another system, or a column is misnamed
+        raise RispError(f"{path}: unexpected column(s) {','.join(extra)}; the {env}'s actions file has columns "
+                        f"t,{','.join(cols)}")
     idx = [header.index(c) for c in cols]
     data = []
     for i, row in enumerate(rows[1:], start=2):
@@ -128,7 +132,7 @@ def write_actions(path: str, env: str, actions: np.ndarray, fps: float) -> None:
 
     cols = action_columns(env)
     with atomic_write(path, "w") as f:
-        w = csv.writer(f)
+        w = csv.writer(f, lineterminator="\n")
         w.writerow(("t",) + cols)
         for i, row in enumerate(np.asarray(actions)):
             w.writerow([f"{i / fps:.6f}"] + [f"{v:.9g}" for v in row])

@@ -9,6 +9,10 @@
 With ``--grow-horizon G`` the sums run over the first n(i) compared frames at iteration i (a horizon curriculum,
 :func:`horizon`), n(i) = min(T, 2 + ⌊(T − 2)·i / G⌋) for i < G and T afterwards.
 
+With ``--residual l1`` the three losses in the network's target space (render, state, oracle) sum absolute instead
+of squared differences, mean_t ‖·‖₁: the least-absolute-deviations fit, robust to the network's occasional large
+misreadings (its errors are heavy-tailed; docs/tasks.md §Residual norm).  The image losses stay squared.
+
 s_t(θ): the simulated environment state at kept frame t; τ: the environment's state → network-target map
 (x, y, z, sin/cos of angles, …); N: the frozen network; R: the differentiable renderer in the train domain's
 nominal look; I_t: the reference frames at the network's resolution.
@@ -24,6 +28,8 @@ from typing import Callable
 import torch
 
 from risp_data.errors import RispError
+
+from .config import RESIDUALS
 
 
 class Timer:
@@ -55,14 +61,18 @@ class Problem:
 
 def make_loss(mode: str, env, keep: list[int], ref_targets: torch.Tensor | None, truth_targets: torch.Tensor | None,
               ref_images: torch.Tensor | None, predictor=None, renderer=None, timer: Timer | None = None,
-              features=None) -> Callable[..., torch.Tensor]:
+              features=None, residual: str = "l2") -> Callable[..., torch.Tensor]:
     """loss(states (n_source, S), n=None) -> scalar for one of the modes above, on the frames ``keep`` (only their
     first ``n`` when given: the horizon curriculum); ``features``: F of the perceptual mode (a frozen torch module,
-    images (B, H, W, 3) -> (B, D))."""
+    images (B, H, W, 3) -> (B, D)); ``residual``: ``l2`` (squared) or ``l1`` (absolute) differences in the
+    network's target space (render, state, oracle)."""
     timer = timer or Timer()
+    if residual not in RESIDUALS:
+        raise RispError(f"unknown residual {residual!r}; choose one of: {', '.join(RESIDUALS)}")
 
     def target_error(pred_targets, goal):
-        return ((pred_targets - goal) ** 2).sum(-1).mean()
+        r = pred_targets - goal
+        return (r.abs() if residual == "l1" else r ** 2).sum(-1).mean()
 
     def first(n):  # the compared frames' indices and the slice of the per-frame references that goes with them
         n = len(keep) if n is None else n

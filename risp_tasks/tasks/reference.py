@@ -58,6 +58,7 @@ class ReferenceConfig:
     mesh: str | None = None  # vehicle mesh file (quadrotor; docs/tasks.md §Vehicle mesh)
     seed: int = 0
     progress: bool = True
+    overwrite: bool = False  # replace a video, ground truth or actions file already at ``out``
 
 
 def truth_path(out: str) -> str:
@@ -233,8 +234,17 @@ def make_reference(cfg: ReferenceConfig) -> dict:
     from .inputs import read_camera, render_environment, write_actions
     from .simulate import timeline
 
-    if cfg.frames < 2 or not cfg.fps > 0 or cfg.resolution < 2 or cfg.seed < 0:
-        raise RispError("--frames must be >= 2, --fps > 0, --resolution >= 2 and --seed >= 0")
+    for bad, rule, value in ((cfg.frames < 2, "--frames must be >= 2", cfg.frames),
+                             (not cfg.fps > 0, "--fps must be > 0", cfg.fps),
+                             (cfg.resolution < 2, "--resolution must be >= 2", cfg.resolution),
+                             (cfg.seed < 0, "--seed must be >= 0", cfg.seed)):
+        if bad:
+            raise RispError(f"{rule}, got {value}")
+    if not cfg.overwrite:  # a video's ground truth and actions belong to it: never replace them unasked
+        held = [p for p in (cfg.out, truth_path(cfg.out), actions_path(cfg.out)) if os.path.exists(p)]
+        if held:
+            raise RispError(f"{held[0]}: exists (a reference video's files: {', '.join(held)}); give another --out, "
+                            f"or --overwrite to replace them")
     drawn = render_environment(cfg.env, cfg.mesh)
     rng = np.random.default_rng(cfg.seed)
     effect, effect_values = _parse_effect(cfg.effect, cfg.env)

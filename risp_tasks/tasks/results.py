@@ -8,11 +8,11 @@ import os
 import platform
 import shutil
 import subprocess
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from risp_data.atomic import temp_folder
 from risp_data.errors import RispError
 
 
@@ -46,7 +46,7 @@ class ResultFolder:
         parent = os.path.dirname(os.path.abspath(out))
         os.makedirs(parent, exist_ok=True)
         self.out = out
-        self.tmp = tempfile.mkdtemp(prefix=".tmp-", dir=parent)
+        self.tmp = temp_folder(parent)
 
     def path(self, name: str) -> str:
         return os.path.join(self.tmp, name)

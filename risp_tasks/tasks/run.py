@@ -96,11 +96,18 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
     with torch.no_grad():
         predicted, predicted_targets = predictor.predict(frames_t)
     file_actions = None
+    chosen = "" if cfg.model is not None else (f" (the most recent model under {cfg.runs}/, {model_path}, is a "
+                                               f"{env_name} model: give --model of a run for the video's system)")
+    if sim.action_dim == 0 and (cfg.actions is not None or cfg.task in ("imitate", "control")):
+        what = f"{cfg.actions}: the {env_name} has no actions" if cfg.actions is not None else \
+            f"the {env_name} has no actions to {cfg.task}; {cfg.task} works for: quadrotor, hand, rod"
+        raise RispError(what + chosen)
     if cfg.actions is not None:
-        if sim.action_dim == 0:
-            raise RispError(f"{cfg.actions}: the {env_name} has no actions")
         file_actions = read_actions(cfg.actions, env_name, n_source)
     truth = read_truth(cfg.truth) if cfg.truth else None
+    if truth is not None and truth.get("env") not in (None, env_name):
+        raise RispError(f"{cfg.truth}: ground truth of a {truth['env']} video, but the model is a {env_name} "
+                        f"model{chosen}")
     camera = read_camera(cfg.camera) if cfg.camera else None
     ctx = Context(cfg=cfg, env=env, sim=sim, predictor=predictor, frames=frames_t, keep=keep, n_source=n_source,
                   fps=fps, k=k, predicted=predicted.double(), predicted_targets=predicted_targets.double(),
@@ -130,13 +137,13 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
         truth_targets = env.state_to_target(truth_states)
     timer = Timer()
     loss = make_loss(cfg.loss, env, loss_frames, predicted_targets.double(), truth_targets, frames_t,
-                     predictor=predictor, renderer=renderer, timer=timer, features=features)
+                     predictor=predictor, renderer=renderer, timer=timer, features=features, residual=cfg.residual)
     with torch.no_grad():
         initial_states = problem.states().detach().clone()
         initial_estimates = problem.estimates()
     warm = None
     if cfg.warm_start:  # the state loss first, then the render loss from there (docs/tasks.md §Warm start)
-        state_loss = make_loss("state", env, loss_frames, predicted_targets.double(), None, None)
+        state_loss = make_loss("state", env, loss_frames, predicted_targets.double(), None, None, residual=cfg.residual)
         warm = optimize(problem, state_loss, optimizer=cfg.optimizer, lr=cfg.lr, momentum=cfg.momentum,
                         iterations=cfg.warm_start, timer=timer, progress=cfg.progress)
     # One descent whose loss changes: the render iterations continue the warm start's optimiser.  A fresh RMSProp's
