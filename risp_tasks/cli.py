@@ -135,8 +135,9 @@ def _run(task, video, **kw):
     click.echo(f"{task} ({result['env']}): loss {loss[0] if loss else result['final_loss']:.4g} -> {result['final_loss']:.4g} "
                f"in {len(loss)} iterations; results: {result['out']}")
     if loss and result.get("best_iteration") == 0:
-        click.echo(f"note: no step improved on the start (loss {loss[0]:.4g}); the start is kept — a smaller --lr or "
-                   f"another --init may help (docs/tasks.md §Pipeline)")
+        kept = ("the warm start's result is kept" if result["config"].get("warm_start") else
+                "the start is kept — a smaller --lr or another --init may help")
+        click.echo(f"note: no step improved on the start (loss {loss[0]:.4g}); {kept} (docs/tasks.md §Pipeline)")
     for name, value in result["estimates"].get("parameters", {}).items():
         click.echo(f"  {name} = {value:.4g}")
     for name, value in result.get("errors", {}).items():

@@ -109,8 +109,7 @@ def _track_problem(ctx: Context, params: torch.Tensor, s0, n_frames: int) -> Pro
 
 def build(ctx: Context, n_frames: int | None = None, s0: torch.Tensor | None = None) -> Problem:
     sim = ctx.sim
-    if sim.action_dim == 0:
-        raise RispError(f"the {sim.env} has no actions to imitate; imitate works for: quadrotor, hand, rod")
+    # a system without actions (the cube) never gets here: run_task refuses it, naming how the model was chosen
     n_frames = ctx.n_source if n_frames is None else n_frames
     given = read_params(sim, ctx.cfg.params) if ctx.cfg.params else {}  # known or identified ones, read once
     params = with_params(sim, sim.default_params(), given)
