@@ -43,11 +43,11 @@ def render(env, n, out, fmt, resolution, spp, domain, seed, workers, shard_size,
            jacobian_path, full_jacobian, quiet):
     """Render N samples of ENV into shards under OUT (resumable: rerun to complete missing shards)."""
     from .errors import RispError
-    from .generate import RenderJob, run_job
+    from .generate import RenderJob, run_job, validate_job
 
-    if out is None:  # the user's command `risp-data render --env cube --n 10000` works as written
+    default_out = out is None
+    if default_out:  # the user's command `risp-data render --env cube --n 10000` works as written
         out = os.path.join("shards", f"{env}-{domain}")
-        click.echo(f"output folder: {out}", err=True)
 
     formats = {"both": ("wds", "zarr"), "wds": ("wds",), "zarr": ("zarr",)}.get(fmt)
     if formats is None:
@@ -69,6 +69,9 @@ def render(env, n, out, fmt, resolution, spp, domain, seed, workers, shard_size,
         jacobian_path=jacobian_path,
         compact_jacobian=not full_jacobian,
     )
+    validate_job(job)  # a bad name is the one line printed, before the default folder is announced
+    if default_out:
+        click.echo(f"output folder: {out}", err=True)
     t0 = time.perf_counter()
     stats: dict = {}
     manifest = run_job(job, progress=not quiet, log=lambda s: click.echo(s, err=True), stats=stats)

@@ -225,6 +225,15 @@ def test_bad_arguments(tmp_path, args, message):
     assert not (tmp_path / "o").exists()
 
 
+def test_bad_name_with_the_default_folder(tmp_path, monkeypatch):
+    """Without --out, a bad name is the only line: no 'output folder' announced, no shards/ made."""
+    monkeypatch.chdir(tmp_path)
+    r = CliRunner().invoke(cli, ["render", "--env", "cubee", "--n", "2"])
+    _error_line(r, "unknown environment 'cubee'")
+    assert "output folder" not in r.output
+    assert not (tmp_path / "shards").exists()
+
+
 def test_mismatched_and_foreign_folders_untouched(rendered, tmp_path):
     before = {p: (p.stat().st_mtime_ns, p.stat().st_size) for p in rendered.rglob("*") if p.is_file()}
     r = _ok(_render(rendered, n=5, shard_size=2))  # the same job again: nothing to render, nothing rewritten
