@@ -80,9 +80,10 @@ def _task_options(f):
         click.option("--loss", type=click.Choice(("render", "state", "oracle", "pixelwise", "perceptual")), default="state",
                      show_default=True, help="render: N(render(sim)) vs N(video); state: sim vs N(video); oracle: vs "
                      "--truth; pixelwise: render(sim) vs video; perceptual: F(render(sim)) vs F(video)"),
-        click.option("--residual", type=click.Choice(("l2", "l1")), default="l2", show_default=True,
+        click.option("--residual", type=click.Choice(("l2", "l1")), default=None,
                      help="render/state/oracle losses: squared (l2, the paper's) or absolute (l1, robust to the "
-                          "network's occasional large misreadings) differences (docs/tasks.md §Residual norm)"),
+                          "network's occasional large misreadings) differences [default: l1 in sysid, l2 "
+                          "otherwise] (docs/tasks.md §Residual norm)"),
         click.option("--perceptual-weights", default=None, help="local torchvision vgg16 state dict for --loss "
                      "perceptual (default: the built-in filter bank)"),
         click.option("--init", type=click.Choice(("default", "random", "track")), default="default", show_default=True,

@@ -68,9 +68,15 @@ def test_every_method_estimation(cache, tmp_path):
     assert "| method | cube position [m] | cube attitude [deg] |" in md
 
 
-def test_every_method_sysid_and_imitation(cache, tmp_path):
+def test_every_method_sysid_and_imitation(cache, tmp_path, monkeypatch):
+    import risp_tasks.tasks.run as task_run
+
+    residuals, real = [], task_run.run_task
+    monkeypatch.setattr(task_run, "run_task", lambda tcfg, **kw: residuals.append(tcfg.residual) or real(tcfg, **kw))
     cfg = make_config("sysid", quick=True, out=str(tmp_path), envs=("cube",), **TINY)
     report = run_table(cfg, cache=cache, echo=lambda *_: None)
+    # every cell keeps the squared residual the tables were made with (sysid's own default is l1)
+    assert len(residuals) == len(METHODS) and set(residuals) == {"l2"}, residuals
     cells = _cells(report, "cube")
     for m in METHODS:
         assert "na" not in cells[m] and math.isfinite(cells[m]["mean"]), (m, cells[m])

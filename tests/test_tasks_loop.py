@@ -227,6 +227,21 @@ def test_an_unknown_residual_is_a_clear_error_in_the_config():
     assert TaskConfig(task="imitate", video="v.mp4").residual == "l2"
 
 
+@pytest.mark.parametrize("task, loss, expected", [
+    ("sysid", "state", "l1"), ("sysid", "render", "l1"), ("sysid", "oracle", "l1"),
+    ("sysid", "pixelwise", "l2"), ("sysid", "perceptual", "l2"),
+    ("imitate", "state", "l2"), ("imitate", "render", "l2"), ("control", "state", "l2"), ("estimate", "state", "l2"),
+])
+def test_the_default_residual_is_l1_in_sysid_only(task, loss, expected):
+    """Without --residual, sysid's network-space losses are l1 and everything else l2 (docs/tasks.md §Residual
+    norm); the resolved value is the config's (so result.json records it), and a given one is kept."""
+    from risp_tasks.tasks.config import TaskConfig
+
+    truth = "t.truth.json" if loss == "oracle" else None  # the oracle loss needs one (not read here)
+    assert TaskConfig(task=task, video="v.mp4", loss=loss, truth=truth).residual == expected
+    assert TaskConfig(task=task, video="v.mp4", loss=loss, truth=truth, residual="l2").residual == "l2"
+
+
 def test_a_result_folder_has_the_usual_permissions(tmp_path):
     """Result folders are filled under a temporary name and renamed into place; they get the permissions of any
     folder the user makes (mkdtemp's 0700 would hide them from the other users of a shared machine)."""

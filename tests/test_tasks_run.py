@@ -80,6 +80,7 @@ def test_task_lowers_its_loss(quad, tmp_path, task, loss, extra):
     assert len(r["loss"]) == 6 and r["final_loss"] < r["loss"][0], r["loss"]
     assert r["video"]["kept"] == list(range(0, 6, extra.get("every", 1)))
     assert os.path.isfile(tmp_path / "out" / "result.json")
+    assert r["config"]["residual"] == ("l1" if task == "sysid" else "l2")  # each task's default, on record
     if task == "imitate":
         assert np.asarray(r["estimates"]["actions"]).shape == (6, 4)
     if task == "sysid" and loss == "oracle":  # against the truth the mass moves towards the true one
