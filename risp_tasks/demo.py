@@ -193,7 +193,8 @@ def _write_summary(out: Path, cfg: DemoConfig, log: list[dict]) -> None:
             lines.append(f"- {pname}: true {true:.3f}, identified {estimates.get(pname, float('nan')):.3f}, "
                          f"error **{err:.3f}**; a random guess from {list(MASS_RANGE)} errs by "
                          f"{random_guess_error(true, *MASS_RANGE):.3f} on average "
-                         f"(loss `{res.get('config', {}).get('loss')}`, {len(res.get('loss', []))} iterations)")
+                         f"(loss `{res.get('config', {}).get('loss')}`, residual "
+                         f"`{res.get('config', {}).get('residual')}`, {len(res.get('loss', []))} iterations)")
         lines.append("")
     rep = _read_json(out / "diagnose" / "report.json")
     if rep:

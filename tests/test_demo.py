@@ -44,6 +44,7 @@ def test_quick_demo_runs_end_to_end(tmp_path):
     err = sysid["errors"]["parameter_error_final"]["mass"]
     assert err == pytest.approx(abs(sysid["estimates"]["parameters"]["mass"] - truth["params"]["mass"]))
     assert "System identification" in (out / "README.md").read_text()
+    assert sysid["config"]["residual"] == "l1" and "residual `l1`" in (out / "README.md").read_text()
 
     report = json.loads((out / "diagnose" / "report.json").read_text())
     for key in ("cause", "parameters", "ranking", "base_error", "extended_error", "gain"):
