@@ -89,7 +89,7 @@ class TaskConfig:
             raise RispError(f"unknown init {self.init!r}; choose one of: {', '.join(INITS)}")
         if self.residual not in RESIDUALS:
             raise RispError(f"unknown residual {self.residual!r}; choose one of: {', '.join(RESIDUALS)}")
-        if self.residual != "l2" and self.loss in ("pixelwise", "perceptual"):
+        if self.residual != "l2" and self.loss not in NETWORK_LOSSES:
             raise RispError(f"--residual {self.residual} is for the render, state and oracle losses (differences of "
                             f"network readings); --loss {self.loss} compares images and stays squared")
         if self.optimizer not in ("rmsprop", "adam", "sgd"):
