@@ -12,6 +12,7 @@ picks, for output time k / fps, the nearest input frame; then ``every`` keeps ev
 from __future__ import annotations
 
 import hashlib
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -53,7 +54,7 @@ def sha256_file(path: str | os.PathLike) -> str:
     """sha256 of a file, or of a folder's PNGs (names and contents, sorted)."""
     h = hashlib.sha256()
     p = Path(path)
-    files = sorted(p.glob("*.png")) if p.is_dir() else [p]
+    files = png_frames(p) if p.is_dir() else [p]
     for f in files:
         if p.is_dir():
             h.update(f.name.encode())
@@ -88,21 +89,49 @@ def _decode_file(path: Path) -> tuple[list[np.ndarray], float]:
     return frames, float(rate) if rate else 0.0
 
 
-def _decode_pngs(folder: Path) -> list[np.ndarray]:
+OTHER_IMAGE_SUFFIXES = (".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".exr")
+
+
+def png_frames(folder: Path) -> list[Path]:
+    """A PNG folder's frames in name order (``.png`` in any case); RispError if it also holds other images,
+    which would otherwise go missing from the sequence without a word."""
+    files = sorted(f for f in folder.iterdir() if f.is_file() and f.suffix.lower() == ".png")
+    others = sorted(f.name for f in folder.iterdir() if f.is_file() and f.suffix.lower() in OTHER_IMAGE_SUFFIXES)
+    if others:
+        raise RispError(f"{folder}: the folder holds images that are not PNG ({others[0]}"
+                        f"{f' and {len(others) - 1} more' if len(others) > 1 else ''}): convert them to PNG or move them out")
+    return files
+
+
+def read_rgb8(path: str | os.PathLike) -> np.ndarray:
+    """An image file as (H, W, 3) uint8 sRGB.  Alpha is dropped; grey becomes three equal channels; 16-bit
+    grey (PIL mode ``I;16``/``I``) is scaled by 255/65535 — PIL's own ``convert("RGB")`` would clip it at 255,
+    i.e. read a 16-bit frame as nearly white.  PIL's exceptions propagate (the callers name the file)."""
     from PIL import Image
 
-    files = sorted(folder.glob("*.png"))
+    with Image.open(path) as im:
+        if im.mode.startswith("I;16") or im.mode == "I":
+            grey = np.asarray(im, np.float64)
+            grey = np.clip(np.round(grey * (255.0 / 65535.0)), 0, 255).astype(np.uint8)
+            return np.repeat(grey[..., None], 3, axis=-1)
+        if im.mode == "F":
+            raise ValueError("32-bit float images are not read (write 8- or 16-bit PNG)")
+        return np.asarray(im.convert("RGB"))
+
+
+def _decode_pngs(folder: Path) -> list[np.ndarray]:
+    files = png_frames(folder)
     if not files:
         raise RispError(f"{folder}: folder holds no .png frames")
     out = []
     for f in files:
         try:
-            with Image.open(f) as im:
-                out.append(np.asarray(im.convert("RGB")))
+            out.append(read_rgb8(f))
         except Exception as e:  # noqa: BLE001 - PIL raises several types
-            raise RispError(f"{f}: cannot read PNG frame ({type(e).__name__})") from None
-    if len({a.shape for a in out}) > 1:
-        raise RispError(f"{folder}: PNG frames differ in size")
+            raise RispError(f"{f}: cannot read PNG frame ({type(e).__name__}{': ' + str(e) if isinstance(e, ValueError) else ''})") from None
+        if out[-1].shape != out[0].shape:
+            raise RispError(f"{f}: PNG frame of {out[-1].shape[1]}×{out[-1].shape[0]} pixels, but {files[0].name} "
+                            f"has {out[0].shape[1]}×{out[0].shape[0]}: the frames of a video share one size")
     return out
 
 
@@ -125,15 +154,21 @@ def resize(frames: np.ndarray, resolution: int) -> np.ndarray:
 
 
 def sample_indices(n: int, source_fps: float, fps: float | None, every: int) -> list[int]:
-    """Frame indices after resampling to ``fps`` (nearest frame) and keeping every ``every``-th."""
+    """Frame indices after resampling to ``fps`` (nearest frame) and keeping every ``every``-th.
+
+    Resampling only drops frames: an ``fps`` above the source's own rate would have to invent the frames
+    between (or, picking nearest frames without repeats, squeeze the clip's time), so it is an error."""
     if every < 1:
         raise RispError(f"--every must be a positive integer, got {every}")
     idx = list(range(n))
     if fps is not None:
-        if not fps > 0:
-            raise RispError(f"--fps must be positive, got {fps}")
+        if not (math.isfinite(fps) and fps > 0):
+            raise RispError(f"--fps must be a positive finite number, got {fps}")
         if not source_fps > 0:
             raise RispError("--fps needs the video's own frame rate, which this source does not carry (a PNG folder: give --source-fps)")
+        if fps > source_fps * (1 + 1e-9):
+            raise RispError(f"--fps {fps:g} is above the video's own {source_fps:g} frames per second: resampling "
+                            f"only drops frames, it cannot make new ones (give --fps at most {source_fps:g})")
         duration = n / source_fps
         idx = sorted({min(n - 1, int(round(k * source_fps / fps))) for k in range(int(np.floor(duration * fps + 1e-9)))})
     return idx[::every]
@@ -147,6 +182,8 @@ def read_video(path: str | os.PathLike, resolution: int | None = None, every: in
     p = Path(path)
     if not p.exists():
         raise RispError(f"{p}: no such file or folder")
+    if source_fps is not None and not (math.isfinite(source_fps) and source_fps > 0):
+        raise RispError(f"--source-fps must be a positive finite number, got {source_fps:g}")
     if p.is_dir():
         raw, rate = _decode_pngs(p), float(source_fps or 0.0)
     else:
@@ -224,5 +261,5 @@ def _write_pngs(folder: Path, data: np.ndarray) -> None:
         raise
 
 
-__all__ = ["Video", "read_video", "write_video", "resize", "sample_indices", "srgb_to_linear", "linear_to_srgb",
+__all__ = ["Video", "read_video", "read_rgb8", "png_frames", "write_video", "resize", "sample_indices", "srgb_to_linear", "linear_to_srgb",
            "sha256_file", "to_uint8"]

@@ -69,3 +69,44 @@ def test_truncated_video_is_refused_or_short(tmp_path):
     (tmp_path / "cut.mp4").write_bytes(data[: len(data) // 3])
     with pytest.raises(RispError, match="cut.mp4"):
         read_video(tmp_path / "cut.mp4")
+
+
+def test_fps_above_the_source_rate_is_refused(tmp_path):
+    """Resampling picks frames; it cannot make new ones: a higher --fps used to keep every frame and label the
+    clip as twice as fast (a 1.3 s clip read as 0.65 s, exit 0)."""
+    write_video(tmp_path / "v.mp4", _frames(T=12), fps=10)
+    with pytest.raises(RispError, match=r"--fps 20 is above the video's own 10 frames per second"):
+        read_video(tmp_path / "v.mp4", fps=20)
+    assert read_video(tmp_path / "v.mp4", fps=10).indices == tuple(range(12))  # equal rates: every frame
+    for bad in (float("inf"), float("nan"), -5.0):
+        with pytest.raises(RispError, match="--fps must be a positive finite number"):
+            read_video(tmp_path / "v.mp4", fps=bad)
+    for bad in (float("inf"), 0.0, -10.0):
+        with pytest.raises(RispError, match="--source-fps must be a positive finite number"):
+            read_video(tmp_path / "v.mp4", source_fps=bad)
+
+
+def test_png_frames_of_every_depth_and_case(tmp_path):
+    """16-bit grey PNGs are read at their brightness (PIL's convert("RGB") clips them to white), grey and
+    RGBA frames become RGB, upper-case .PNG names count, and other images or sizes in the folder are named."""
+    from PIL import Image
+
+    folder = tmp_path / "f"
+    folder.mkdir()
+    ramp = np.linspace(0, 65535, 16 * 16).reshape(16, 16).astype(np.uint16)
+    Image.fromarray(ramp).save(folder / "frame_00000.png")
+    assert Image.open(folder / "frame_00000.png").mode.startswith("I")
+    Image.fromarray((ramp // 257).astype(np.uint8)).save(folder / "frame_00001.PNG")
+    Image.fromarray(np.dstack([(ramp // 257).astype(np.uint8)] * 3 + [np.full((16, 16), 128, np.uint8)])).save(
+        folder / "frame_00002.png")
+    v = read_video(folder, source_fps=10)
+    assert v.frames.shape == (3, 16, 16, 3)
+    assert np.allclose(v.frames[0], v.frames[1], atol=1e-6) and np.allclose(v.frames[0], v.frames[2], atol=1e-6)
+    assert abs(float(linear_to_srgb(v.frames[0]).mean()) - 0.5) < 0.01  # a ramp, not a white frame
+    Image.fromarray(np.zeros((16, 16, 3), np.uint8)).save(folder / "frame_00003.jpg")
+    with pytest.raises(RispError, match=r"not PNG \(frame_00003.jpg\)"):
+        read_video(folder, source_fps=10)
+    (folder / "frame_00003.jpg").unlink()
+    Image.fromarray(np.zeros((8, 16, 3), np.uint8)).save(folder / "frame_00004.png")
+    with pytest.raises(RispError, match=r"frame_00004.png: PNG frame of 16×8 pixels, but frame_00000.png has 16×16"):
+        read_video(folder, source_fps=10)
