@@ -63,6 +63,24 @@ def _worker_message(text: str) -> str:
     return message if sep and " " not in head else last
 
 
+def caused_by_interrupt(e: BaseException) -> bool:
+    """True when a Ctrl-C is somewhere in ``e``'s chain of causes and contexts.  A KeyboardInterrupt that
+    arrives inside native code (Dr.Jit's loops, Mitsuba's import) comes back wrapped — as ``RuntimeError:
+    dr.while_loop(): encountered an exception`` or a SystemError that a RispError then names — and must still
+    read as an interrupt (exit 130), not as a failure of the renderer."""
+    seen: set[int] = set()
+    todo = [e]
+    while todo:
+        x = todo.pop()
+        if x is None or id(x) in seen:
+            continue
+        seen.add(id(x))
+        if isinstance(x, KeyboardInterrupt):
+            return True
+        todo += [x.__cause__, x.__context__]
+    return False
+
+
 def user_error_line(e: BaseException) -> str | None:
     """The one-line message of an error the user can act on, or None for a programming error."""
     from concurrent.futures.process import BrokenProcessPool
@@ -99,6 +117,9 @@ def run_cli(group: click.Group, argv: list[str] | None = None) -> None:
         click.echo("Error: interrupted", err=True)
         sys.exit(130)
     except Exception as e:
+        if caused_by_interrupt(e):
+            click.echo("Error: interrupted", err=True)
+            sys.exit(130)
         line = user_error_line(e)
         if line is None:
             raise
@@ -117,6 +138,8 @@ class RispGroup(click.Group):
         except click.ClickException:
             raise
         except Exception as e:
+            if caused_by_interrupt(e):  # click turns it into Abort: "Error: aborted", exit 130
+                raise KeyboardInterrupt from None
             line = user_error_line(e)
             if line is None:
                 raise
