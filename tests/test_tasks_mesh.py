@@ -40,6 +40,19 @@ def test_read_vehicle_mesh_keeps_named_parts_and_materials(tmp_path):
     assert np.allclose(centre, [0.1, -0.05 + 0.3, 1.2 + 0.05], atol=1e-9)  # yaw 90°: body +x -> world +y
 
 
+def test_text_meshes_that_are_not_utf8_are_read(tmp_path):
+    """An OBJ with a Latin-1 comment (common from European CAD exports): trimesh guesses the encoding with
+    charset-normalizer, a declared dependency (without it: ModuleNotFoundError inside trimesh)."""
+    from risp_data.envs.quadrotor import read_vehicle_mesh
+
+    body = "".join(f"v {x} {y} {z}\n" for x, y, z in [(0.2, 0, 0), (0, 0.2, 0), (-0.2, 0, 0.05)]) + "f 1 2 3\n"
+    path = tmp_path / "latin1.obj"
+    path.write_bytes("# Modèle de drone, échelle en mètres\n".encode("latin-1") + body.encode())
+    (v, f), = read_vehicle_mesh(str(path)).values()
+    assert v.shape == (3, 3) and f.tolist() == [[0, 1, 2]]
+    assert np.allclose(v[2], [-0.2, 0, 0.05])
+
+
 def test_renderer_draws_the_mesh_from_the_file(tmp_path):
     """Same state, look and seed: the built-in vehicle and a 0.5 m plain box give different images, and a box
     twice as large covers more pixels (the file's geometry is what is drawn)."""
