@@ -204,7 +204,8 @@ def control(target, **kw):
 @click.option("--out", required=True, help="video file (.mp4/.avi) or folder of PNGs; ground truth beside it")
 @click.option("--frames", type=int, default=20, show_default=True)
 @click.option("--fps", type=float, default=10.0, show_default=True)
-@click.option("--resolution", type=int, default=64, show_default=True)
+@click.option("--resolution", "--res", "resolution", type=int, default=64, show_default=True,
+              help="frame side in pixels (--res as in risp-data)")
 @click.option("--spp", type=int, default=16, show_default=True, help="samples per pixel (×4 in the target domain)")
 @click.option("--domain", type=click.Choice(("target", "train")), default="target", show_default=True)
 @click.option("--params", default=None, help="JSON object of simulator parameters (default: random in the paper's ranges)")
@@ -213,7 +214,7 @@ def control(target, **kw):
 @click.option("--mesh", default=None, help="quadrotor vehicle mesh (OBJ/PLY/STL/glTF, metres, body frame)")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--overwrite", is_flag=True, help="replace a video (and its ground truth and actions) already at --out")
-@click.option("--quiet", is_flag=True)
+@click.option("--quiet", is_flag=True, help="no progress bar")
 def make_video(env, out, frames, fps, resolution, spp, domain, params, effect, camera, mesh, seed, overwrite, quiet):
     """Simulate ENV and render a reference video with a random look, plus <out>.truth.json and <out>.actions.csv."""
     from risp_tasks.tasks.reference import ReferenceConfig, make_reference, outside_warning

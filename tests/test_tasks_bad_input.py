@@ -348,3 +348,96 @@ def test_make_video_names_the_one_bad_setting(tmp_path, option, value, words):
     line = _error_line(CliRunner().invoke(cli, args))
     assert words in line and line.count("must be") == 1
     assert not os.listdir(tmp_path)
+
+
+@pytest.mark.parametrize("intrinsics,extrinsics,words", [
+    ({"width": 64, "height": 64, "fx": 60.0}, {"origin": [0, 0, 3], "target": [0, 0, 1], "up": [0, 0, 1]},
+     "parallel to the viewing direction"),
+    ({"width": 64, "height": 64, "fx": 60.0}, {"origin": [0, -2, 2], "target": [0, 0, 1], "up": [0, 0, 0]},
+     "is zero or parallel"),
+    ({"width": 64, "height": "tall", "fx": 60.0}, {"origin": [0, -2, 2], "target": [0, 0, 1], "up": [0, 0, 1]},
+     "must be numbers"),
+    ({"width": True, "height": 64, "fx": 60.0}, {"origin": [0, -2, 2], "target": [0, 0, 1], "up": [0, 0, 1]},
+     "must be numbers"),
+    ({"width": 64, "height": -5, "fx": 60.0}, {"origin": [0, -2, 2], "target": [0, 0, 1], "up": [0, 0, 1]},
+     "finite width, height and fx > 0"),
+    ({"width": 64, "height": 64, "fx": 1e-9}, {"origin": [0, -2, 2], "target": [0, 0, 1], "up": [0, 0, 1]},
+     "field of view"),
+    ({"width": 64, "height": 64, "fx": 60.0, "cx": 10}, {"origin": [0, -2, 2], "target": [0, 0, 1], "up": [0, 0, 1]},
+     "intrinsics.cx = 10 is off the image centre"),
+])
+def test_camera_json_with_impossible_geometry(quad, tmp_path, intrinsics, extrinsics, words):
+    """Each used to pass the checks: an undefined roll rendered NaN frames (blamed on the frames, or a flat grey
+    strip and the start as the result), a height that was never read, a JSON true taken for 1 pixel."""
+    model, video = quad
+    (tmp_path / "cam.json").write_text(json.dumps({"intrinsics": intrinsics, "extrinsics": extrinsics}))
+    line = _invoke(["imitate", video, "--model", model, "--camera", str(tmp_path / "cam.json")], tmp_path)
+    assert "cam.json" in line and words in line, line
+
+
+def test_camera_field_of_view_is_the_cropped_squares(tmp_path):
+    """A 640×480 video is cropped to its centre 480² square: the field of view is that square's."""
+    import math
+
+    from risp_tasks.tasks.inputs import read_camera
+
+    (tmp_path / "c.json").write_text(json.dumps({"intrinsics": {"width": 640, "height": 480, "fx": 590.0, "cx": 320},
+                                                 "extrinsics": {"origin": [0, -1.7, 2.9], "target": [0, 0, 1.15],
+                                                                "up": [0, 0, 1]}}))
+    assert read_camera(str(tmp_path / "c.json")).fov == pytest.approx(math.degrees(2 * math.atan(480 / 1180)))
+
+
+def test_control_refuses_the_options_of_a_video(quad, tmp_path):
+    from risp_tasks.video import read_video, write_video
+
+    model, video = quad
+    write_video(tmp_path / "goal", read_video(video).frames[-1:], fps=10)
+    target = str(tmp_path / "goal" / "frame_00000.png")
+    for extra, words in ((["--actions", _actions(video)], "--actions: not used by control"),
+                         (["--every", "2"], "--every: not used by control"),
+                         (["--source-fps", "30"], "--source-fps: not used by control")):
+        line = _invoke(["control", target, "--model", model] + extra, tmp_path)
+        assert words in line, line
+    line = _invoke(["control", str(tmp_path / "goal"), "--model", model], tmp_path)
+    assert "a folder, but control takes one target image" in line
+
+
+def test_one_frame_is_not_a_motion(quad, tmp_path):
+    """sysid and imitate on a single kept frame used to return their start as a result (exit 0)."""
+    model, video = quad
+    for task in ("sysid", "imitate"):
+        line = _invoke([task, video, "--model", model, "--every", "100"], tmp_path)
+        assert f"{task} needs at least 2 frames" in line and "got 1 after --every 100" in line, line
+
+
+def test_video_fps_above_its_own_rate_is_refused(quad, tmp_path):
+    model, video = quad
+    line = _invoke(["estimate", video, "--model", model, "--fps", "60"], tmp_path)
+    assert "--fps 60 is above the video's own 10 frames per second" in line, line
+
+
+@pytest.mark.parametrize("args,words", [
+    (["--params", '{"mass": -3}'], "--params / --effect: mass must lie in"),
+    (["--resolution", "100000"], "--resolution 100000 is larger than the supported 8192 pixels"),
+    (["--spp", "0"], "--spp must be >= 1, got 0"),
+])
+def test_make_video_checks_physics_and_size_first(tmp_path, args, words):
+    """A negative mass used to fly (negative thrusts in the actions file); a huge frame failed in torch."""
+    from risp_tasks.cli import cli
+
+    base = ["make-video", "--env", "quadrotor", "--out", str(tmp_path / "v.mp4"), "--frames", "2", "--res", "8",
+            "--quiet"]
+    line = _error_line(CliRunner().invoke(cli, base + args))
+    assert words in line, line
+    assert not os.listdir(tmp_path)
+
+
+def test_a_frame_rate_off_the_hands_fixed_step_lists_the_ones_that_fit():
+    from risp_data.errors import RispError
+    from risp_tasks.tasks.simulate import timeline
+
+    with pytest.raises(RispError, match=r"30 frames per second do not fit the hand simulator's fixed step of 0.01 s "
+                                        r"\(1/fps must be a multiple of it: 100, 50, 33.33, 25, 20, 10, … fps\)"):
+        timeline("hand", 30.0)
+    assert timeline("quadrotor", 30.0)[1] == 3  # the quadrotor sets its step to 1/90 s instead
+    assert timeline("hand", 25.0)[1] == 4

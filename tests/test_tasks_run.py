@@ -185,11 +185,18 @@ def test_control_reaches_towards_pictured_state(quad, tmp_path):
     model, video = quad
     goal = tmp_path / "goal"
     write_video(goal, read_video(video).frames[-1:], fps=10)  # a PNG folder with one frame
+    pictured = json.load(open(_stem(video) + ".truth.json"))["env_states"][-1]
+    (tmp_path / "goal.json").write_text(json.dumps({"env_states": [pictured]}))
     r = _run("control", str(goal / "frame_00000.png"), tmp_path / "ctl", model=model, horizon=3, iterations=5,
-             lr=3e-2, plots=True)
+             lr=3e-2, plots=True, truth=str(tmp_path / "goal.json"))
     assert r["final_loss"] < r["loss"][0]
     assert np.asarray(r["estimates"]["actions"]).shape == (4, 4)
     assert (tmp_path / "ctl" / "actions.csv").is_file() and (tmp_path / "ctl" / "frames.png").is_file()
+    # --truth: the reached state's distance to the pictured one (angles wrapped), before and after
+    for when, reached in (("final", r["estimates"]["reached_env_state"]), ("initial", r["initial"]["reached_env_state"])):
+        d = np.asarray(reached) - np.asarray(pictured)
+        d[3:] = (d[3:] + np.pi) % (2 * np.pi) - np.pi  # yaw, pitch, roll
+        assert r["errors"][f"goal_rmse_{when}"] == pytest.approx(float(np.sqrt(np.mean(d ** 2))), rel=1e-9)
 
 
 def test_imitate_as_written_uses_the_most_recent_run(quad, tmp_path, monkeypatch):

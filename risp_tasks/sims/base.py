@@ -141,6 +141,16 @@ class Simulator:
             shape = tuple(states.shape) if torch.is_tensor(states) else type(states).__name__
             raise RispError(f"states must have shape (..., {len(self.state_names)}), got {shape}")
 
+    def check_param_bounds(self, params: torch.Tensor, option: str = "") -> None:
+        """One clear error for a parameter outside its physical bounds (a negative mass, a friction above 1);
+        ``option`` prefixes the message with where the value came from (``--params: ``)."""
+        for i, (lo, hi) in enumerate(self.param_bounds):
+            col = params[:, i]
+            if bool(((col < lo) | (col > hi)).any()):
+                bad = col[(col < lo) | (col > hi)][0].item()
+                where = f"{option}{self.param_names[i]}" if option else f"params[:, {i}] ({self.param_names[i]})"
+                raise RispError(f"{where} must lie in [{lo:g}, {hi:g}], got {bad:g}")
+
     def check_inputs(self, params, s0, actions, steps) -> None:
         """Clear errors naming the argument for wrong shapes, NaNs and out-of-range values."""
         if not isinstance(steps, int) or steps < 0:
@@ -160,11 +170,7 @@ class Simulator:
             raise RispError("s0 contains NaN/inf")
         if not params.is_floating_point() or s0.dtype != params.dtype:
             raise RispError(f"params and s0 must share one floating dtype, got {params.dtype} and {s0.dtype}")
-        for i, (lo, hi) in enumerate(self.param_bounds):
-            col = params[:, i]
-            if bool(((col < lo) | (col > hi)).any()):
-                bad = col[(col < lo) | (col > hi)][0].item()
-                raise RispError(f"params[:, {i}] ({self.param_names[i]}) must lie in [{lo:g}, {hi:g}], got {bad:g}")
+        self.check_param_bounds(params)
         self.check_state(s0)
         if self.action_dim == 0:
             if actions is not None:

@@ -121,6 +121,12 @@ class TaskConfig:
             raise RispError(f"unknown --gradient {self.gradient!r}; choose one of: flat, mitsuba")
         if self.fit_initial_state and self.task not in ("sysid", "imitate"):
             raise RispError(f"--fit-initial-state is for sysid and imitate, not {self.task}")
+        if self.task == "control":  # one goal image: no video timeline, no commands to read
+            given = [name for name, bad in (("--actions", self.actions), ("--every", self.every != 1),
+                                            ("--source-fps", self.source_fps is not None)) if bad]
+            if given:
+                raise RispError(f"{', '.join(given)}: not used by control (one goal image; the commands are what it "
+                                "finds, --fps sets the simulation's frame rate)")
         if self.loss == "oracle" and not self.truth:
             raise RispError("--loss oracle needs --truth (the reference video's ground-truth JSON)")
 

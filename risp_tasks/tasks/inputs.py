@@ -151,9 +151,13 @@ def read_json(path: str, what: str) -> dict:
     return data
 
 
+MAX_FOV_DEG = 170.0  # beyond this a pinhole's image is all border: fx is almost surely in the wrong unit
+
+
 def read_camera(path: str) -> Camera:
     """Camera JSON (docs/tasks.md §Camera): pinhole intrinsics (square pixels, principal point at the centre)
-    and look-at extrinsics in the world frame (metres, z up)."""
+    and look-at extrinsics in the world frame (metres, z up).  Videos are centre-cropped to a square of side
+    min(width, height), so the field of view the renderer uses is that square's: 2·atan(min(width, height) / 2fx)."""
     data = read_json(path, "camera")
     for group, keys in CAMERA_KEYS.items():
         if not isinstance(data.get(group), dict):
@@ -162,17 +166,40 @@ def read_camera(path: str) -> Camera:
         if missing:
             raise RispError(f"{path}: camera JSON is missing {', '.join(f'{group}.{k}' for k in missing)}")
     intr, extr = data["intrinsics"], data["extrinsics"]
+
+    def number(value):
+        if isinstance(value, bool):  # float(True) is 1.0: a JSON true is not a size
+            raise TypeError
+        return float(value)
+
     try:
-        width, fx = float(intr["width"]), float(intr["fx"])
-        vecs = {k: [float(v) for v in extr[k]] for k in ("origin", "target", "up")}
+        width, height, fx = (number(intr[k]) for k in ("width", "height", "fx"))
+        centre = {k: number(intr[k]) for k in ("cx", "cy") if k in intr}
+        vecs = {k: np.array([number(v) for v in extr[k]]) for k in ("origin", "target", "up")}
     except (TypeError, ValueError):
-        raise RispError(f"{path}: camera values must be numbers (origin/target/up: 3 numbers each)") from None
-    if not (width > 0 and fx > 0) or any(len(v) != 3 or not np.all(np.isfinite(v)) for v in vecs.values()):
-        raise RispError(f"{path}: camera needs width, fx > 0 and finite 3-vectors origin, target, up")
-    if np.linalg.norm(np.subtract(vecs["target"], vecs["origin"])) == 0:
+        raise RispError(f"{path}: camera values must be numbers (width, height, fx; origin/target/up: 3 numbers "
+                        "each)") from None
+    if not all(math.isfinite(v) and v > 0 for v in (width, height, fx)):
+        raise RispError(f"{path}: camera needs finite width, height and fx > 0, got {width:g}, {height:g}, {fx:g}")
+    if any(len(v) != 3 or not np.all(np.isfinite(v)) for v in vecs.values()):
+        raise RispError(f"{path}: camera needs finite 3-vectors origin, target, up")
+    for key, half in (("cx", width / 2), ("cy", height / 2)):
+        if key in centre and abs(centre[key] - half) > 0.01 * min(width, height) + 0.5:
+            raise RispError(f"{path}: intrinsics.{key} = {centre[key]:g} is off the image centre ({half:g}): only a "
+                            "centred principal point is supported (crop the video around it)")
+    view = vecs["target"] - vecs["origin"]
+    if np.linalg.norm(view) == 0:
         raise RispError(f"{path}: camera origin and target coincide")
-    fov = math.degrees(2 * math.atan(width / (2 * fx)))
-    return Camera(origin=tuple(vecs["origin"]), target=tuple(vecs["target"]), up=tuple(vecs["up"]), fov=fov)
+    up = vecs["up"]
+    if np.linalg.norm(np.cross(view, up)) <= 1e-6 * np.linalg.norm(view) * max(np.linalg.norm(up), 1e-300):
+        raise RispError(f"{path}: camera 'up' {up.tolist()} is zero or parallel to the viewing direction "
+                        f"(target − origin = {view.tolist()}): the image's roll is undefined")
+    fov = math.degrees(2 * math.atan(min(width, height) / (2 * fx)))
+    if fov >= MAX_FOV_DEG:
+        raise RispError(f"{path}: fx = {fx:g} pixels for a {min(width, height):g}-pixel square gives a {fov:.1f}° "
+                        f"field of view (at most {MAX_FOV_DEG:g}°): fx is in pixels of the same image as width")
+    return Camera(origin=tuple(vecs["origin"].tolist()), target=tuple(vecs["target"].tolist()),
+                  up=tuple(up.tolist()), fov=fov)
 
 
 def render_environment(env: str, mesh: str | None):

@@ -98,6 +98,7 @@ def _params(cfg: ReferenceConfig, sim, rng, effect, effect_values) -> torch.Tens
             raise RispError(f"--effect {effect}: needs {len(names)} values ({', '.join(names)})")
         for n, v in zip(names, effect_values):
             p[0, sim.param_index(n)] = v
+    sim.check_param_bounds(p, "--params / --effect: ")  # the flight controller would fly a negative mass
     return p
 
 
@@ -224,6 +225,27 @@ def outside_warning(outside: dict) -> str | None:
             f"trained on ({per}): a network's readings there are extrapolations (docs/tasks.md §Reference videos)")
 
 
+def check_video_size(cfg: ReferenceConfig) -> None:
+    """Refuse, before anything is rendered, frames Mitsuba cannot render or a video this machine cannot hold
+    (the frames are kept as float32 RGB until the video is written; the renderer's film needs ≈ 3× one frame)."""
+    from risp_data.generate import MAX_RESOLUTION, MITSUBA_MAX_SAMPLES, available_memory
+    from risp_data.render import DOMAIN_SETTINGS
+
+    pixels = cfg.resolution * cfg.resolution
+    if cfg.resolution > MAX_RESOLUTION:
+        raise RispError(f"--resolution {cfg.resolution} is larger than the supported {MAX_RESOLUTION} pixels")
+    settings = DOMAIN_SETTINGS.get(cfg.domain)
+    samples = pixels * cfg.spp * (settings.spp_factor if settings is not None else 1)
+    if samples >= MITSUBA_MAX_SAMPLES:
+        raise RispError(f"--resolution {cfg.resolution} with --spp {cfg.spp} needs {samples:,} samples per pass in "
+                        f"the {cfg.domain} domain, beyond Mitsuba's limit of 2^32; lower --resolution or --spp")
+    need = (cfg.frames + 4) * pixels * 3 * 4
+    have = available_memory()
+    if have is not None and need > have:
+        raise RispError(f"--resolution {cfg.resolution} for {cfg.frames} frames needs about {need / 2**30:.1f} GiB of "
+                        f"memory, {have / 2**30:.1f} GiB are available: lower --resolution or --frames")
+
+
 def make_reference(cfg: ReferenceConfig) -> dict:
     from tqdm import tqdm
 
@@ -237,9 +259,11 @@ def make_reference(cfg: ReferenceConfig) -> dict:
     for bad, rule, value in ((cfg.frames < 2, "--frames must be >= 2", cfg.frames),
                              (not cfg.fps > 0, "--fps must be > 0", cfg.fps),
                              (cfg.resolution < 2, "--resolution must be >= 2", cfg.resolution),
-                             (cfg.seed < 0, "--seed must be >= 0", cfg.seed)):
+                             (cfg.seed < 0, "--seed must be >= 0", cfg.seed),
+                             (cfg.spp < 1, "--spp must be >= 1", cfg.spp)):
         if bad:
             raise RispError(f"{rule}, got {value}")
+    check_video_size(cfg)
     if not cfg.overwrite:  # a video's ground truth and actions belong to it: never replace them unasked
         held = [p for p in (cfg.out, truth_path(cfg.out), actions_path(cfg.out)) if os.path.exists(p)]
         if held:

@@ -41,16 +41,15 @@ def resolve_model(cfg: TaskConfig) -> tuple[str, str]:
 def _reference(cfg: TaskConfig, resolution: int):
     """(frames (T, r, r, 3), keep, n_source, fps, sha256) — a video, or for ``control`` one goal image."""
     if cfg.task == "control":
-        from PIL import Image
-
-        from ..video import resize, sha256_file, srgb_to_linear
+        from ..video import read_rgb8, resize, sha256_file, srgb_to_linear
 
         path = cfg.video
+        if os.path.isdir(path):
+            raise RispError(f"{path}: a folder, but control takes one target image (a PNG or JPEG file)")
         if not os.path.isfile(path):
             raise RispError(f"{path}: target image not found")
         try:
-            with Image.open(path) as im:
-                img = np.asarray(im.convert("RGB"), np.float32) / 255.0
+            img = read_rgb8(path).astype(np.float32) / 255.0
         except Exception as e:  # noqa: BLE001 - PIL raises several types
             raise RispError(f"{path}: cannot read the target image ({type(e).__name__})") from None
         frames = resize(srgb_to_linear(img)[None], resolution)
@@ -91,6 +90,10 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
 
         features = feature_extractor(cfg.perceptual_weights)
     frames, keep, n_source, fps, video_sha = _reference(cfg, predictor.resolution)
+    if cfg.task in ("sysid", "imitate") and len(frames) < 2:  # nothing moves in one frame: the start would be the result
+        raise RispError(f"{cfg.video}: {cfg.task} needs at least 2 frames (the initial state and its velocity are read "
+                        f"from the first two), got {len(frames)} after --every {cfg.every}"
+                        f"{f' / --fps {cfg.fps:g}' if cfg.fps is not None else ''}")
     sim, k = timeline(env_name, fps) if cfg.task != "estimate" else (get_simulator(env_name), 1)
     frames_t = torch.from_numpy(frames)
     with torch.no_grad():
@@ -166,6 +169,9 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
                     "seconds_per_iteration": history["seconds_per_iteration"], "sections_s": timer.seconds},
         "versions": versions(), "info": problem.info,
     }
+    if cfg.task == "control":  # the state reached at the horizon (what the goal image pictures, if all went well)
+        result["estimates"]["reached_env_state"] = final_states[-1].tolist()
+        result["initial"]["reached_env_state"] = initial_states[-1].tolist()
     if "frames_compared" in history:
         result["frames_compared"] = history["frames_compared"]
     if warm is not None:
@@ -231,7 +237,12 @@ def _errors(cfg, env, sim, truth, keep, loss_frames, initial_states, final_state
     true = torch.tensor(truth["env_states"], dtype=torch.float64)
     true = true[keep] if cfg.task != "control" else true
     out = {}
-    if cfg.task != "control":
+    if cfg.task == "control":  # the goal is the truth's last state, the reached one the simulation's last frame
+        def goal_rmse(states):
+            return float(wrap_angles(states[-1] - true[-1], angular).pow(2).mean().sqrt())
+
+        out = {"goal_rmse_initial": goal_rmse(initial_states), "goal_rmse_final": goal_rmse(final_states)}
+    else:
         def rmse(states):
             return float(wrap_angles(states[loss_frames] - true, angular).pow(2).mean().sqrt())
 

@@ -19,8 +19,10 @@ ACTION_SCALE = {"quadrotor": 60.0, "hand": 0.5, "rod": 40.0}
 def steps_per_frame(sim, fps: float) -> int:
     k = int(round(1.0 / (fps * sim.dt)))
     if k < 1 or abs(k * sim.dt * fps - 1) > 0.02:
-        raise RispError(f"a {fps:g} fps video does not fit the {sim.env} simulator's step {sim.dt:g} s "
-                        f"(1/fps must be a multiple of dt); resample with --fps")
+        fitting = ", ".join(f"{1.0 / (j * sim.dt):.4g}" for j in (1, 2, 3, 4, 5, 10))
+        raise RispError(f"{fps:g} frames per second do not fit the {sim.env} simulator's fixed step of {sim.dt:g} s "
+                        f"(1/fps must be a multiple of it: {fitting}, … fps); a video at another rate can be "
+                        f"resampled with --fps")
     return k
 
 
