@@ -24,6 +24,7 @@ render`` has no option for a fixed configuration pool); their manifest carries a
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import asdict, dataclass
 
@@ -63,6 +64,15 @@ def _validate(cfg: AblationConfig) -> None:
     from risp_data.envs import get_environment
 
     get_environment(cfg.env)
+    for option, values in (("--pools", cfg.pools), ("--regs", cfg.regs)):
+        if not values:
+            raise RispError(f"{option} is empty: name at least one")
+        if len(set(values)) != len(values):
+            raise RispError(f"{option} names an entry twice: {','.join(values)}")
+    if cfg.gamma is not None and not (math.isfinite(cfg.gamma) and cfg.gamma >= 0):
+        raise RispError(f"--gamma must be a finite number >= 0, got {cfg.gamma}")
+    if cfg.batch_size is not None and cfg.batch_size > cfg.n_train:
+        raise RispError(f"--batch-size {cfg.batch_size} is larger than --n-train {cfg.n_train}")
     for p in cfg.pools:
         if p != PER_SAMPLE and not (p.isdigit() and int(p) >= 1):
             raise RispError(f"--pools entries must be positive integers or {PER_SAMPLE!r}, got {p!r}")
@@ -175,10 +185,13 @@ def run_ablation(cfg: AblationConfig, progress: bool = True) -> dict:
         for reg in cfg.regs:
             run_dir = os.path.join(cfg.out, "runs", f"pool-{pool}-{reg}")
             model = os.path.join(run_dir, MODEL)
-            if not os.path.exists(model):
-                tcfg = make_config(train_dir, run_dir, preset=cfg.preset, reg=reg, gamma=cfg.gamma, epochs=cfg.epochs,
-                                   batch_size=cfg.batch_size, width=cfg.width, lr=cfg.lr, seed=cfg.seed,
-                                   workers=cfg.workers)
+            tcfg = make_config(train_dir, run_dir, preset=cfg.preset, reg=reg, gamma=None if reg == "none" else cfg.gamma,
+                               epochs=cfg.epochs,
+                               batch_size=cfg.batch_size, width=cfg.width, lr=cfg.lr, seed=cfg.seed,
+                               workers=cfg.workers)
+            if os.path.exists(model):  # reused only when it was trained as asked now
+                _check_reused_run(run_dir, tcfg, cfg.env)
+            else:
                 fit(tcfg, resume=True, progress=progress)
             row = {"pool": pool, "reg": reg, "model": model}
             for name, folder in eval_sets.items():
@@ -196,10 +209,30 @@ def run_ablation(cfg: AblationConfig, progress: bool = True) -> dict:
     return summary
 
 
+def _check_reused_run(run_dir: str, tcfg, env: str) -> None:
+    """A finished run of an earlier ablation in this --out is reused only if its training options are today's
+    (a rerun with another --epochs used to report the old networks under the new options)."""
+    from .train import check_resume_options
+
+    try:
+        with open(os.path.join(run_dir, "config.json")) as f:
+            stored = json.load(f)["config"]
+        check_resume_options({"config": stored}, tcfg, env, run_dir)
+    except (OSError, ValueError, KeyError) as e:
+        raise RispError(f"{run_dir}: cannot read the finished run's config.json ({type(e).__name__}); remove the "
+                        "run folder to train it again") from None
+    except RispError as e:
+        changed = str(e).split("different options: ", 1)[-1]
+        raise RispError(f"{run_dir} was trained with other options than this ablation asks for ({changed}); "
+                        "choose another --out, or remove that run folder to train it again") from None
+
+
 def ablation_markdown(summary: dict) -> str:
     sets = list(summary["eval_sets"])
-    lines = [f"Per-image L1 state error (mean ± std) of {summary['config']['env']} networks trained with 1, 10 or "
-             "a new rendering configuration per sample", "",
+    pools = [("a new rendering configuration per sample" if p == PER_SAMPLE else f"{p} rendering configuration"
+              + ("s" if p != "1" else "")) for p in summary["config"]["pools"]]
+    lines = [f"Per-image L1 state error (mean ± std) of {summary['config']['env']} networks trained with "
+             f"{', '.join(pools[:-1]) + ' or ' + pools[-1] if len(pools) > 1 else pools[0]}", "",
              "| configurations | regularizer | " + " | ".join(f"{s} (mean ± std)" for s in sets) + " |",
              "|---|---|" + "---:|" * len(sets)]
     for r in summary["results"]:

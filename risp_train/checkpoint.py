@@ -96,7 +96,7 @@ def model_file(path: str) -> str:
         return found
     unfinished = os.path.isfile(os.path.join(path, "last.pt"))
     raise RispError(f"{path} is a folder without a model.pt" + (
-        ": its training has not finished (last.pt is the resumable checkpoint; run the same fit again)"
+        ": its training has not finished (last.pt is the resumable checkpoint; run the same fit again with --resume)"
         if unfinished else "; pass a risp-train checkpoint or a run folder that holds one"))
 
 

@@ -61,6 +61,9 @@ def fit(shards, out, reg, gamma, gamma_ramp, gamma_start, preset, epochs, batch_
     from .train import fit as run_fit
 
     rank0 = int(os.environ.get("RANK", "0")) == 0
+    if reg == "none" and (gamma is not None or gamma_start is not None):  # would be ignored without a word
+        raise RispError("--gamma and --gamma-start set the regularizer's weight; --reg none trains without one "
+                        "(leave them out, or choose a regularizer)")
     shards = find_dataset(shards, need_jacobian=reg != "none")
     why = "--preset"
     if preset is None:
@@ -160,6 +163,12 @@ def eval_cmd(model, shards, metric, seed, batch_size, limit, fmt, out, threads, 
                               limit=limit, format=fmt, out=out), progress=not quiet)
     click.echo(markdown_table(res))
     click.echo(f"written: {', '.join(res['files'])}")
+    from .data import open_shards, sample_counts
+
+    counts = sample_counts(open_shards(shards, fmt))
+    if counts["used"] < counts["rendered_n"]:  # fit refuses such a folder; an evaluation on it may be meant, say so
+        click.echo(f"note: {shards} is incomplete ({counts['used']} of {counts['rendered_n']} samples rendered): "
+                   "the figures are over those; rerun its risp-data render command to finish it", err=True)
 
 
 @cli.command()
@@ -177,7 +186,7 @@ def eval_cmd(model, shards, metric, seed, batch_size, limit, fmt, out, threads, 
 @click.option("--batch-size", type=int, default=None, help="Batch size [preset].")
 @click.option("--width", type=int, default=None, help="ResNet-18 width [preset].")
 @click.option("--lr", type=float, default=None, help="Learning rate [preset].")
-@click.option("--gamma", type=float, default=None, help="Final γ [paper's per-environment value].")
+@click.option("--gamma", type=float, default=None, help="Final γ [risp-train's per-environment default: GAMMA_DEFAULTS, docs/training.md].")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--workers", type=int, default=2, show_default=True, help="DataLoader workers per training.")
 @click.option("--no-target", is_flag=True, help="Skip the target-domain evaluation set.")

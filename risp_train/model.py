@@ -57,6 +57,13 @@ STAGES_FACTOR = 8
 MIN_LAST_MAP = 4  # pixels a side of the last stage's map that the automatic stem keeps (module docstring)
 
 
+def min_resolution(stem: str) -> int:
+    """The smallest image side the network takes with ``stem``: every stride-2 step maps n to ceil(n / 2), so
+    the last stage is ceil(n / (stem factor · 8)) pixels a side, and it must be more than 1 (a 1×1 map is
+    identically zero after instance norm)."""
+    return STEM_FACTOR[stem] * STAGES_FACTOR + 1
+
+
 def stem_for_resolution(resolution: int) -> str:
     """The coarsest stem whose last stage sees ≥ MIN_LAST_MAP² pixels: ``imagenet`` from 128 pixels, ``stride2``
     from 64, ``small`` below (the module docstring says why)."""

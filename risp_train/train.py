@@ -31,7 +31,7 @@ from .config import RESUME_FIELDS, TrainConfig, resolved_gamma, resolved_gamma_s
 from .data import (ShardSet, check_complete, check_environment, iter_batches, make_loader, manifest_hash,
                    map_style_steps, open_shards, sample_counts, steps_per_epoch)
 from .memory import load_memory_set, memory_batches, resolve_cache
-from .model import ModelConfig, ResNet18, build_model, stem_for_resolution
+from .model import STEM_FACTOR, ModelConfig, ResNet18, build_model, min_resolution, stem_for_resolution
 from .normalization import Normalization, StatsAccumulator
 from .regularizers import gamma_at, psi_scale, risp_loss
 from risp_data.atomic import atomic_write, remove_temporaries, write_text_atomic
@@ -178,6 +178,18 @@ def check_run_folder(out: str, resume: bool, overwrite: bool, remove: bool = Tru
                         "train it again, or choose another --out")
 
 
+def check_resume_options(state: dict, cfg: TrainConfig, env: str, last_path: str) -> None:
+    """Refuse to continue a checkpoint with options that change the run (RESUME_FIELDS), compared as resolved:
+    ``--gamma 0.3`` resumes a run started without --gamma when the environment's default is 0.3."""
+    def resolved(c: TrainConfig) -> dict:
+        return {**c.to_dict(), "gamma": resolved_gamma(c, env), "gamma_start": resolved_gamma_start(c, env)}
+
+    stored, now = resolved(TrainConfig.from_dict(state["config"])), resolved(cfg)  # fields added since: defaults
+    diffs = [f"{k}={stored.get(k)!r}→{now[k]!r}" for k in RESUME_FIELDS if stored.get(k) != now[k]]
+    if diffs:
+        raise RispError(f"cannot resume {last_path} with different options: {', '.join(diffs)}")
+
+
 def fit(cfg: TrainConfig, *, resume: bool = False, progress: bool = True,
         stop_after_step: int | None = None, overwrite: bool = False, allow_incomplete: bool = False) -> str:
     """Train according to ``cfg``; returns the path of the final checkpoint (``cfg.out/model.pt``).
@@ -218,6 +230,13 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
         if val.resolution != shards.resolution:
             raise RispError(f"--val shards {cfg.val} are {val.resolution}×{val.resolution} images, the training "
                             f"shards {shards.resolution}×{shards.resolution}: render them at --res {shards.resolution}")
+    # a new network must fit the images (a resumed one keeps its checkpoint's stem, which has trained on them)
+    stem = stem_for_resolution(shards.resolution) if cfg.stem == "auto" else cfg.stem
+    resuming = resume and not overwrite and os.path.exists(os.path.join(cfg.out, LAST))
+    if not resuming and stem in STEM_FACTOR and shards.resolution < min_resolution(stem):
+        need = min_resolution(stem)
+        raise RispError(f"{cfg.shards}: {shards.resolution}×{shards.resolution} images are too small for the network "
+                        f"(stem {stem!r} needs at least {need}×{need}); render them with --res {need} or more")
     gamma, gamma_start = resolved_gamma(cfg, shards.env), resolved_gamma_start(cfg, shards.env)
     psi_std = psi_scale(shards.env)  # σ_ψ: the regularizer measures ψ in standard deviations (regularizers.py)
     mhash = manifest_hash(shards.manifest)
@@ -233,6 +252,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
         elif cfg.cache != stored_cache:
             raise RispError(f"cannot resume {last_path} with --cache {cfg.cache}: it was trained with --cache "
                             f"{stored_cache} (another sample order); pass --cache {stored_cache} or auto")
+        check_resume_options(state, cfg, shards.env, last_path)  # before the data set is decoded below
     # the same default from memory, although its workers only decode before the first step: a second torch thread
     # is 1.6x faster on an idle 2-core machine but 2-3x slower than one when the cores are shared (OpenMP's
     # threads spin; docs/PERFORMANCE.md §Training data in memory): --threads 2 is the user's call
@@ -263,10 +283,6 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
         if state.get("manifest_hash") != mhash:
             raise RispError(f"cannot resume {last_path}: it was trained on other shards than {cfg.shards} "
                             "(manifest hash differs)")
-        stored = TrainConfig.from_dict(state["config"]).to_dict()  # fields added since the checkpoint: defaults
-        diffs = [f"{k}={stored.get(k)!r}→{cfg.to_dict()[k]!r}" for k in RESUME_FIELDS if stored.get(k) != cfg.to_dict()[k]]
-        if diffs:
-            raise RispError(f"cannot resume {last_path} with different options: {', '.join(diffs)}")
 
     if state is not None:  # a resumed run continues its checkpoint's network, also one of an older automatic stem
         model_cfg = ModelConfig.from_dict(state["model_config"])

@@ -238,6 +238,13 @@ def test_training_on_an_incomplete_folder_needs_allow_incomplete_and_records_the
     assert r.exit_code == 0, r.output
     cfg = json.load(open(tmp_path / "r2" / "config.json"))
     assert cfg["samples"]["used"] == 8 and cfg["samples"]["rendered_n"] == 16, cfg["samples"]
+    # eval on the unfinished folder works (an evaluation may be meant) but says what it is over
+    r = runner.invoke(train_cli, ["eval", str(tmp_path / "r2"), part, "--out", str(tmp_path / "e"), "--quiet",
+                                  "--threads", "1"])
+    assert r.exit_code == 0 and "is incomplete (8 of 16 samples rendered)" in r.output, r.output
+    r = runner.invoke(train_cli, ["eval", str(tmp_path / "r2"), data["train"], "--out", str(tmp_path / "e2"),
+                                  "--quiet", "--threads", "1"])
+    assert r.exit_code == 0 and "note:" not in r.output, r.output
 
 
 # ------------------------------------------------------------------ 5. val resolution, spliced shard

@@ -40,6 +40,18 @@ def test_ablation_tiny(tmp_path):
     r2 = CliRunner().invoke(cli, args)
     assert r2.exit_code == 0, r2.output
     assert json.load(open(out / "ablation.json"))["results"] == summary["results"]
+    assert "with 2 rendering configurations or a new rendering configuration per sample" in open(out / "ablation.md").read()
+    # run again with another training option: the finished runs are not passed off as the new ones
+    before = (out / "ablation.json").read_bytes()
+    r3 = CliRunner().invoke(cli, [a if a != "1" else "2" for a in args])  # --epochs 2
+    assert r3.exit_code == 1 and "was trained with other options than this ablation asks for (epochs=1→2)" in r3.output
+    assert (out / "ablation.json").read_bytes() == before
+    for extra, words in ((["--pools", ""], "--pools is empty"), (["--regs", "none,none"], "--regs names an entry twice"),
+                         (["--gamma", "-1"], "--gamma must be a finite number >= 0"),
+                         (["--batch-size", "100"], "--batch-size 100 is larger than --n-train 16")):
+        bad = CliRunner().invoke(cli, args[:4] + [str(tmp_path / "y")] + args[5:] + extra)
+        assert bad.exit_code == 1 and words in bad.output, bad.output
+        assert not os.path.exists(tmp_path / "y")  # refused before anything is rendered
     bad = CliRunner().invoke(cli, ["ablation", "--env", "cube", "--out", str(tmp_path / "x"), "--pools", "0"])
     assert bad.exit_code != 0 and "--pools" in bad.output
     assert not os.path.exists(tmp_path / "x" / "ablation.json")

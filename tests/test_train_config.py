@@ -52,3 +52,16 @@ def test_every_stem_of_the_model_is_accepted():
 
     for stem in ("auto", *STEM_FACTOR):
         assert make_config("s", "o", stem=stem).stem == stem
+
+
+
+@pytest.mark.parametrize("extra", [["--gamma", "0.5"], ["--gamma-start", "0.9"]])
+def test_gamma_with_no_regularizer_is_refused(tmp_path, extra):
+    """`risp-train fit --reg none --gamma 0.5` used to train without a regularizer and say nothing of the weight."""
+    from click.testing import CliRunner
+
+    from risp_train.cli import cli
+
+    r = CliRunner().invoke(cli, ["fit", str(tmp_path / "shards"), "--reg", "none", "--out", str(tmp_path / "run"), *extra])
+    assert r.exit_code == 1 and "--reg none trains without one" in r.output, r.output
+    assert not (tmp_path / "run").exists()

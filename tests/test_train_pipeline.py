@@ -311,3 +311,28 @@ def test_fit_refuses_bad_threads_or_device_before_writing(shards, tmp_path, args
     r = CliRunner().invoke(cli, ["fit", shards["train"], "--out", str(out), "--quiet", *args])
     assert r.exit_code != 0 and message in r.output, r.output
     assert not out.exists()  # nothing written
+
+
+def test_resume_compares_resolved_options(shards, tmp_path):
+    """--gamma / --gamma-start equal to the environment's defaults resume a run started without them (the
+    startup line says the same γ); another value is refused, before the data set is decoded."""
+    from risp_train.config import GAMMA_DEFAULTS, GAMMA_START_DEFAULTS
+
+    kw = dict(reg="stochastic", epochs=2, batch_size=8, checkpoint_every=3)
+    with pytest.raises(TrainingStopped):
+        fit(_cfg(shards, tmp_path / "r", **kw), progress=False, stop_after_step=5)
+    same = _cfg(shards, tmp_path / "r", gamma=GAMMA_DEFAULTS["cube"],
+                gamma_start=GAMMA_START_DEFAULTS.get("cube", 0.0), **kw)
+    with pytest.raises(RispError, match=r"different options: gamma=.*→0\.123"):
+        fit(_cfg(shards, tmp_path / "r", gamma=0.123, **kw), resume=True, progress=False)
+    assert os.path.isfile(fit(same, resume=True, progress=False))
+
+
+def test_images_too_small_for_the_network_are_refused_before_a_run_folder(tmp_path):
+    small = _render(tmp_path / "tiny", 8, 8, 0, ("--res", "8"))
+    out = tmp_path / "run"
+    cfg = make_config(small, str(out), preset="cpu", epochs=1, batch_size=4, width=4, workers=0)
+    with pytest.raises(RispError, match=r"8×8 images are too small for the network \(stem 'small' needs at least "
+                                        r"9×9\); render them with --res 9 or more"):
+        fit(cfg, progress=False)
+    assert not out.exists()
