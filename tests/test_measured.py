@@ -94,6 +94,20 @@ def test_bad_input_names_file_and_column(tmp_path, mutate, pattern):
         load_measured([str(p)], "cube")
 
 
+@pytest.mark.parametrize("with_vel", [True, False], ids=["velocities-in-m/s", "no-velocities"])
+def test_positions_in_millimetres_are_caught_by_their_speed(tmp_path, with_vel):
+    """Millimetre positions stay inside the ±1000 bound but move at a thousandfold speed; the velocity columns,
+    when given, are in m/s and looked fine, so the positions' own speed is checked (it used to run diagnose
+    with every parameter at its bound, exit 0)."""
+    cols, _ = _rotation_trajectory(with_vel=with_vel)
+    for c in ("x", "y", "z"):
+        cols[c] = np.asarray(cols[c]) * 1000.0
+    with pytest.raises(RispError, match=r"traj\.csv: the positions change at .* m/s .*implausible in metres"):
+        load_measured([str(_write(tmp_path, cols))], "cube")
+    cols, _ = _rotation_trajectory(with_vel=with_vel)  # the same in metres reads
+    assert load_measured([str(_write(tmp_path, cols, name="m.csv"))], "cube")[0].pos.shape == (40, 3)
+
+
 def test_sidecar_problems(tmp_path):
     cols, _ = _rotation_trajectory()
     p = _write(tmp_path, cols, sidecar=None)
