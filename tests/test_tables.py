@@ -319,6 +319,9 @@ def test_failed_cell_is_stored_and_retried(cache, tmp_path, monkeypatch):
     (["--table", "estimation", "--reg", "none"], "Error: the regularizer of `ours` must be one of"),
     (["--table", "estimation", "--jobs", "-1"], "Error: --jobs must be >= 0"),
     (["--table", "control", "--control-start", "far"], "Error: unknown control start 'far'; choose one of: neutral"),
+    (["--table", "control", "--envs", ""], "Error: --envs is empty: name at least one"),
+    (["--table", "control", "--envs", "hand,hand"], "Error: --envs names an entry twice: hand,hand"),
+    (["--table", "sysid", "--methods", "ours,ours"], "Error: --methods names an entry twice: ours,ours"),
 ])
 def test_bad_input_is_one_error_line(tmp_path, args, message):
     from risp_tasks.cli import cli

@@ -98,6 +98,11 @@ def default_reg() -> str:
 def validate(cfg: TableConfig) -> None:
     from risp_train.regularizers import REGULARIZERS
 
+    for option, values in (("--envs", cfg.envs), ("--methods", cfg.methods)):
+        if not values:
+            raise RispError(f"{option} is empty: name at least one")
+        if len(set(values)) != len(values):  # the cells would run twice and the rows repeat
+            raise RispError(f"{option} names an entry twice: {','.join(values)}")
     for env in cfg.envs:
         if env not in ENV_NAMES:
             raise RispError(f"unknown environment {env!r}; choose from: {', '.join(ENV_NAMES)}")
