@@ -49,6 +49,8 @@ def render(env, n, out, fmt, resolution, spp, domain, seed, workers, shard_size,
     if default_out:  # the user's command `risp-data render --env cube --n 10000` works as written
         out = os.path.join("shards", f"{env}-{domain}")
 
+    if no_jacobian and full_jacobian:  # one asks for no Jacobians, the other for all their channels
+        raise RispError("--full-jacobian sets how Jacobians are stored; --no-jacobian renders none (give one of them)")
     formats = {"both": ("wds", "zarr"), "wds": ("wds",), "zarr": ("zarr",)}.get(fmt)
     if formats is None:
         raise RispError(f"--format must be wds, zarr or both; got {fmt!r}")
@@ -96,6 +98,8 @@ def inspect(folder, png, samples, deep):
     from .errors import RispError
     from .inspect import InspectConfig, inspect_folder
 
+    if png is not None and not png.lower().endswith(".png"):  # the sheet is written as PNG whatever the name
+        raise RispError(f"--png {png}: the contact sheet is a PNG image; give a path ending in .png")
     summary, path, problems = inspect_folder(InspectConfig(folder=folder, png=png, samples=samples, deep=deep))
     click.echo(summary)
     if problems:

@@ -34,6 +34,7 @@ from .shards.reader import complete_indices, read_samples
 # 0.1 %: a wrong sign, a missing bounce, another seed's paths or a mis-scaled tangent are 1–100 % off.
 EPS = 1e-2
 TOL = 1e-3
+MAX_EPS = 0.1  # largest finite-difference step, as a fraction of each ψ's range
 
 
 @dataclass(frozen=True)
@@ -101,6 +102,9 @@ def verify_folder(cfg: VerifyConfig) -> VerifyReport:
         raise RispError(f"--samples must be a positive integer, got {cfg.samples}")
     if not cfg.eps > 0 or not cfg.tol > 0:
         raise RispError(f"--eps and --tol must be positive, got {cfg.eps} and {cfg.tol}")
+    if cfg.eps > MAX_EPS:  # ψ ± h would leave ψ's range by far (negative reflectances): not a derivative check
+        raise RispError(f"--eps {cfg.eps:g} is a step of {cfg.eps:g}× each ψ's range; use at most {MAX_EPS:g} "
+                        "(default 1e-2)")
     if cfg.repair:
         repair_folder(cfg.folder, cfg.progress)
     m = load_manifest(cfg.folder)

@@ -225,6 +225,21 @@ def test_bad_arguments(tmp_path, args, message):
     assert not (tmp_path / "o").exists()
 
 
+def test_contradicting_jacobian_flags_and_a_huge_fd_step_are_refused(tmp_path):
+    r = CliRunner().invoke(cli, ["render", "--env", "cube", "--n", "2", "--res", "8", "--spp", "2", "--out",
+                                 str(tmp_path / "o"), "--no-jacobian", "--full-jacobian"])
+    _error_line(r, "--full-jacobian sets how Jacobians are stored; --no-jacobian renders none")
+    assert not (tmp_path / "o").exists()
+    from risp_data.errors import RispError
+    from risp_data.verify import VerifyConfig, verify_folder
+
+    r = CliRunner().invoke(cli, ["inspect", str(tmp_path), "--png", str(tmp_path / "sheet.jpg")])
+    _error_line(r, "the contact sheet is a PNG image; give a path ending in .png")
+    assert not (tmp_path / "sheet.jpg").exists()
+    with pytest.raises(RispError, match=r"--eps 2 is a step of 2× each ψ's range; use at most 0.1"):
+        verify_folder(VerifyConfig(folder=str(tmp_path), samples=2, eps=2.0, tol=1e-3, checksums=False, repair=False))
+
+
 def test_bad_name_with_the_default_folder(tmp_path, monkeypatch):
     """Without --out, a bad name is the only line: no 'output folder' announced, no shards/ made."""
     monkeypatch.chdir(tmp_path)
