@@ -146,15 +146,25 @@ def available_memory() -> int | None:
     return min(limits) if limits else None
 
 
+def check_image_size(resolution: int, spp: int, domain: str, option: str = "--res") -> None:
+    """Refuse images Mitsuba cannot render: sides above MAX_RESOLUTION, or more samples in one pass than its
+    uint32 counter holds (the domain's spp factor included: the target domain renders 4× --spp)."""
+    from .render import DOMAIN_SETTINGS
+
+    if resolution > MAX_RESOLUTION:
+        raise RispError(f"{option} {resolution} is larger than the supported {MAX_RESOLUTION} pixels")
+    settings = DOMAIN_SETTINGS.get(domain)
+    samples = resolution * resolution * spp * (settings.spp_factor if settings is not None else 1)
+    if samples >= MITSUBA_MAX_SAMPLES:
+        raise RispError(f"{option} {resolution} with --spp {spp} needs {samples:,} samples per pass in the {domain} "
+                        f"domain, beyond Mitsuba's limit of 2^32; lower {option} or --spp")
+
+
 def check_render_size(job: RenderJob) -> None:
     """Refuse, before anything is written, image sizes Mitsuba cannot render or this machine cannot hold."""
     from .psi import psi_specs
 
-    if job.resolution > MAX_RESOLUTION:
-        raise RispError(f"--res {job.resolution} is larger than the supported {MAX_RESOLUTION} pixels")
-    if job.resolution * job.resolution * job.spp >= MITSUBA_MAX_SAMPLES:
-        raise RispError(f"--res {job.resolution} with --spp {job.spp} needs {job.resolution**2 * job.spp:,} samples "
-                        f"per pass, beyond Mitsuba's limit of 2^32; lower --res or --spp")
+    check_image_size(job.resolution, job.spp, job.domain)
     need = memory_estimate(job, len(psi_specs(job.env)))
     have = available_memory()
     if have is not None and need > have:

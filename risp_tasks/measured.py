@@ -397,12 +397,10 @@ def _check_range(cols: dict, names: tuple[str, ...], limit: float, unit: str, pa
                                 f"(|{name}| ≤ {limit:g}); check the unit and the data")
 
 
-def _check_position_speed(pos: np.ndarray, t: np.ndarray, path: Path) -> None:
-    """The speed the positions themselves imply, whether or not velocity columns are given: positions in
-    millimetres (a thousandfold speed) are caught here even when the given velocities are in m/s."""
-    if len(t) < 2:
-        return
-    speed = np.abs(np.gradient(pos, t, axis=0))
+def _check_position_speed(dpos: np.ndarray, path: Path) -> None:
+    """The speed the positions themselves imply (``dpos`` = dp/dt), whether or not velocity columns are given:
+    positions in millimetres (a thousandfold speed) are caught here even when the given velocities are in m/s."""
+    speed = np.abs(dpos)
     row, axis = np.unravel_index(int(np.argmax(speed)), speed.shape)
     if speed[row, axis] > MAX_SPEED:
         name = "xyz"[axis]
@@ -490,10 +488,11 @@ def read_trajectory(path: Path, env: str, overrides: dict | None = None) -> Traj
     _check_range(cols, OMEGA_COLUMNS, MAX_ANGULAR_SPEED, "rad/s", path)
     _check_consistency(env, cols, sidecar, path)
     pos = np.stack([cols[c] for c in ("x", "y", "z")], 1)
-    _check_position_speed(pos, t, path)
+    dpos = np.gradient(pos, t, axis=0)
+    _check_position_speed(dpos, path)
     quat = _check_quat(np.stack([cols[c] for c in quat_cols], 1), path, quat_cols)
     vel_est = "vx" not in cols
-    vel = np.gradient(pos, t, axis=0) if vel_est else np.stack([cols[c] for c in VEL_COLUMNS], 1)
+    vel = dpos if vel_est else np.stack([cols[c] for c in VEL_COLUMNS], 1)
     om_est = "wx" not in cols
     omega = body_rates_from_quat(t, quat) if om_est else np.stack([cols[c] for c in OMEGA_COLUMNS], 1)
     if frame == "world":  # ω_body = Rᵀ ω_world

@@ -212,19 +212,17 @@ def run_ablation(cfg: AblationConfig, progress: bool = True) -> dict:
 def _check_reused_run(run_dir: str, tcfg, env: str) -> None:
     """A finished run of an earlier ablation in this --out is reused only if its training options are today's
     (a rerun with another --epochs used to report the old networks under the new options)."""
-    from .train import check_resume_options
+    from .train import option_changes
 
     try:
         with open(os.path.join(run_dir, "config.json")) as f:
-            stored = json.load(f)["config"]
-        check_resume_options({"config": stored}, tcfg, env, run_dir)
+            changes = option_changes(json.load(f)["config"], tcfg, env)
     except (OSError, ValueError, KeyError) as e:
         raise RispError(f"{run_dir}: cannot read the finished run's config.json ({type(e).__name__}); remove the "
                         "run folder to train it again") from None
-    except RispError as e:
-        changed = str(e).split("different options: ", 1)[-1]
-        raise RispError(f"{run_dir} was trained with other options than this ablation asks for ({changed}); "
-                        "choose another --out, or remove that run folder to train it again") from None
+    if changes:
+        raise RispError(f"{run_dir} was trained with other options than this ablation asks for "
+                        f"({', '.join(changes)}); choose another --out, or remove that run folder to train it again")
 
 
 def ablation_markdown(summary: dict) -> str:

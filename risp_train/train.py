@@ -31,7 +31,7 @@ from .config import RESUME_FIELDS, TrainConfig, resolved_gamma, resolved_gamma_s
 from .data import (ShardSet, check_complete, check_environment, iter_batches, make_loader, manifest_hash,
                    map_style_steps, open_shards, sample_counts, steps_per_epoch)
 from .memory import load_memory_set, memory_batches, resolve_cache
-from .model import STEM_FACTOR, ModelConfig, ResNet18, build_model, min_resolution, stem_for_resolution
+from .model import ModelConfig, ResNet18, build_model, min_resolution, stem_for_resolution
 from .normalization import Normalization, StatsAccumulator
 from .regularizers import gamma_at, psi_scale, risp_loss
 from risp_data.atomic import atomic_write, remove_temporaries, write_text_atomic
@@ -178,16 +178,15 @@ def check_run_folder(out: str, resume: bool, overwrite: bool, remove: bool = Tru
                         "train it again, or choose another --out")
 
 
-def check_resume_options(state: dict, cfg: TrainConfig, env: str, last_path: str) -> None:
-    """Refuse to continue a checkpoint with options that change the run (RESUME_FIELDS), compared as resolved:
-    ``--gamma 0.3`` resumes a run started without --gamma when the environment's default is 0.3."""
+def option_changes(stored_config: dict, cfg: TrainConfig, env: str) -> list[str]:
+    """``name=old→new`` for every option of RESUME_FIELDS (those that change a run) in which ``cfg`` differs from
+    a stored run's config, compared as resolved: ``--gamma 0.3`` equals a run started without --gamma when the
+    environment's default is 0.3."""
     def resolved(c: TrainConfig) -> dict:
         return {**c.to_dict(), "gamma": resolved_gamma(c, env), "gamma_start": resolved_gamma_start(c, env)}
 
-    stored, now = resolved(TrainConfig.from_dict(state["config"])), resolved(cfg)  # fields added since: defaults
-    diffs = [f"{k}={stored.get(k)!r}→{now[k]!r}" for k in RESUME_FIELDS if stored.get(k) != now[k]]
-    if diffs:
-        raise RispError(f"cannot resume {last_path} with different options: {', '.join(diffs)}")
+    stored, now = resolved(TrainConfig.from_dict(stored_config)), resolved(cfg)  # fields added since: defaults
+    return [f"{k}={stored.get(k)!r}→{now[k]!r}" for k in RESUME_FIELDS if stored.get(k) != now[k]]
 
 
 def fit(cfg: TrainConfig, *, resume: bool = False, progress: bool = True,
@@ -230,10 +229,11 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
         if val.resolution != shards.resolution:
             raise RispError(f"--val shards {cfg.val} are {val.resolution}×{val.resolution} images, the training "
                             f"shards {shards.resolution}×{shards.resolution}: render them at --res {shards.resolution}")
+    last_path = os.path.join(cfg.out, LAST)
+    resuming = resume and not overwrite and os.path.exists(last_path)
     # a new network must fit the images (a resumed one keeps its checkpoint's stem, which has trained on them)
     stem = stem_for_resolution(shards.resolution) if cfg.stem == "auto" else cfg.stem
-    resuming = resume and not overwrite and os.path.exists(os.path.join(cfg.out, LAST))
-    if not resuming and stem in STEM_FACTOR and shards.resolution < min_resolution(stem):
+    if not resuming and shards.resolution < min_resolution(stem):
         need = min_resolution(stem)
         raise RispError(f"{cfg.shards}: {shards.resolution}×{shards.resolution} images are too small for the network "
                         f"(stem {stem!r} needs at least {need}×{need}); render them with --res {need} or more")
@@ -242,9 +242,8 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
     mhash = manifest_hash(shards.manifest)
 
     cache = resolve_cache(cfg.cache, shards, need_j)  # memory | stream (memory.py); a resume keeps its own below
-    last_path = os.path.join(cfg.out, LAST)
     state = None
-    if resume and not overwrite and os.path.exists(last_path):
+    if resuming:
         state = ckpt_io.load_checkpoint(last_path)
         stored_cache = state.get("cache", "stream")  # checkpoints from before the cache streamed
         if cfg.cache == "auto":
@@ -252,7 +251,9 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
         elif cfg.cache != stored_cache:
             raise RispError(f"cannot resume {last_path} with --cache {cfg.cache}: it was trained with --cache "
                             f"{stored_cache} (another sample order); pass --cache {stored_cache} or auto")
-        check_resume_options(state, cfg, shards.env, last_path)  # before the data set is decoded below
+        changes = option_changes(state["config"], cfg, shards.env)  # before the data set is decoded below
+        if changes:
+            raise RispError(f"cannot resume {last_path} with different options: {', '.join(changes)}")
     # the same default from memory, although its workers only decode before the first step: a second torch thread
     # is 1.6x faster on an idle 2-core machine but 2-3x slower than one when the cores are shared (OpenMP's
     # threads spin; docs/PERFORMANCE.md §Training data in memory): --threads 2 is the user's call
@@ -288,7 +289,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
         model_cfg = ModelConfig.from_dict(state["model_config"])
     else:
         model_cfg = ModelConfig(out_dim=env.target_dim, width=cfg.width, blocks=cfg.blocks,
-                                stem=stem_for_resolution(shards.resolution) if cfg.stem == "auto" else cfg.stem)
+                                stem=stem)
     net = build_model(model_cfg, cfg.seed).to(device)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=total_steps)

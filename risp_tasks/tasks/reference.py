@@ -228,18 +228,10 @@ def outside_warning(outside: dict) -> str | None:
 def check_video_size(cfg: ReferenceConfig) -> None:
     """Refuse, before anything is rendered, frames Mitsuba cannot render or a video this machine cannot hold
     (the frames are kept as float32 RGB until the video is written; the renderer's film needs ≈ 3× one frame)."""
-    from risp_data.generate import MAX_RESOLUTION, MITSUBA_MAX_SAMPLES, available_memory
-    from risp_data.render import DOMAIN_SETTINGS
+    from risp_data.generate import available_memory, check_image_size
 
-    pixels = cfg.resolution * cfg.resolution
-    if cfg.resolution > MAX_RESOLUTION:
-        raise RispError(f"--resolution {cfg.resolution} is larger than the supported {MAX_RESOLUTION} pixels")
-    settings = DOMAIN_SETTINGS.get(cfg.domain)
-    samples = pixels * cfg.spp * (settings.spp_factor if settings is not None else 1)
-    if samples >= MITSUBA_MAX_SAMPLES:
-        raise RispError(f"--resolution {cfg.resolution} with --spp {cfg.spp} needs {samples:,} samples per pass in "
-                        f"the {cfg.domain} domain, beyond Mitsuba's limit of 2^32; lower --resolution or --spp")
-    need = (cfg.frames + 4) * pixels * 3 * 4
+    check_image_size(cfg.resolution, cfg.spp, cfg.domain, "--resolution")
+    need = (cfg.frames + 4) * cfg.resolution * cfg.resolution * 3 * 4
     have = available_memory()
     if have is not None and need > have:
         raise RispError(f"--resolution {cfg.resolution} for {cfg.frames} frames needs about {need / 2**30:.1f} GiB of "
