@@ -310,3 +310,16 @@ def test_ray_executor_matches_local(rendered, tmp_path):
     pytest.importorskip("ray")
     _ok(_render(tmp_path / "ray", "--executor", "ray", n=5, shard_size=2, workers=2))
     _assert_same(_samples(rendered), _samples(tmp_path / "ray"))
+
+
+def test_image_size_counts_the_domains_samples_per_pass():
+    """The target domain renders 4× --spp: 8192² pixels × 16 spp is 2^30 samples in the train domain but 2^32 in
+    the target domain, beyond Mitsuba's uint32 sample counter (one check for render and make-video)."""
+    from risp_data.errors import RispError
+    from risp_data.generate import check_image_size
+
+    check_image_size(8192, 16, "train")
+    with pytest.raises(RispError, match=r"--res 8192 with --spp 16 needs 4,294,967,296 samples per pass in the target"):
+        check_image_size(8192, 16, "target")
+    with pytest.raises(RispError, match=r"--resolution 9000 is larger than the supported 8192 pixels"):
+        check_image_size(9000, 1, "train", "--resolution")
