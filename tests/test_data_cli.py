@@ -99,6 +99,24 @@ def test_inspect_prints_summary_and_writes_png(rendered, tmp_path):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_a_folder_of_data_sets_is_named_not_called_missing(rendered, tmp_path):
+    """inspect/verify (and everything that reads a manifest) given a parent folder, such as the default
+    shards/, list the data sets in it instead of saying that a manifest is missing."""
+    import shutil
+
+    parent = tmp_path / "shards"
+    for name in ("cube-train", "cube-target"):
+        shutil.copytree(rendered, parent / name)
+    for cmd in (["inspect", str(parent)], ["verify", str(parent)]):
+        r = CliRunner().invoke(cli, cmd)
+        _error_line(r, "holds 2")
+        assert "cube-target" in r.output and "cube-train" in r.output and "pass one of them" in r.output
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(Exception, match="manifest not found"):  # a folder with no data set at all: as before
+        load_manifest(str(empty))
+
+
 def test_verify_passes_then_fails_on_tampered_jacobian(tmp_path):
     out = tmp_path / "v"
     _ok(_render(out, n=2, shard_size=2))

@@ -106,11 +106,25 @@ def _read_json(path: str, what: str) -> dict[str, Any]:
     return obj
 
 
+def datasets_in(folder: str) -> list[str]:
+    """The subfolders of ``folder`` that hold a manifest.json (its data sets), as paths, sorted."""
+    try:
+        names = sorted(os.listdir(folder))
+    except OSError:
+        return []
+    return [os.path.join(folder, n) for n in names if os.path.isfile(os.path.join(folder, n, MANIFEST))]
+
+
 def load_manifest(folder: str) -> dict[str, Any]:
     """Read ``folder/manifest.json``; RispError when it is missing, corrupt or not a risp shard manifest."""
     path = os.path.join(folder, MANIFEST)
     if not os.path.isdir(folder):
         raise RispError(f"shard folder not found: {folder}")
+    if not os.path.exists(path):
+        inside = datasets_in(folder)
+        if inside:  # a parent folder (e.g. the default shards/) given where one data set is meant: name them
+            raise RispError(f"{folder} is not a data set but holds {len(inside)}: {', '.join(inside)}; "
+                            "pass one of them")
     m = _read_json(path, "manifest")
     if m.get("format") != FORMAT_NAME:
         raise RispError(f"corrupt manifest {path}: not a {FORMAT_NAME} manifest")
