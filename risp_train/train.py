@@ -18,6 +18,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import sys
 import time
 from dataclasses import dataclass
 
@@ -189,6 +190,24 @@ def option_changes(stored_config: dict, cfg: TrainConfig, env: str) -> list[str]
     return [f"{k}={stored.get(k)!r}→{now[k]!r}" for k in RESUME_FIELDS if stored.get(k) != now[k]]
 
 
+def check_resume_counts(state: dict, cache: str, threads: int, workers: int, path: str, *, quiet: bool) -> None:
+    """Resuming with other --workers / --threads than a run began with. Streamed from shards, each worker reads
+    its own shards, so the worker count fixes the sample order and the steps per epoch: refused. From memory the
+    workers only decode and the thread count changes only the float sums' order: said, then continued (the
+    result equals an uninterrupted run's up to the last bits; bitwise equality needs the same counts)."""
+    was_threads, was_workers = state.get("threads"), state.get("workers")
+    if was_workers is not None and cache == "stream" and was_workers != workers:
+        raise RispError(f"cannot resume {path} with --workers {workers}: it was trained streaming with --workers "
+                        f"{was_workers} (each worker reads its own shards: another sample order); "
+                        f"pass --workers {was_workers}")
+    changed = [f"{name} {old}→{new}" for name, old, new in (("torch threads", was_threads, threads),
+                                                           ("workers", was_workers, workers))
+               if old is not None and old != new]
+    if changed and not quiet:
+        print(f"note: resuming with {', '.join(changed)}: the run continues, equal to an uninterrupted one up to "
+              "the last bits (bitwise equality needs the same counts)", file=sys.stderr)
+
+
 def fit(cfg: TrainConfig, *, resume: bool = False, progress: bool = True,
         stop_after_step: int | None = None, overwrite: bool = False, allow_incomplete: bool = False) -> str:
     """Train according to ``cfg``; returns the path of the final checkpoint (``cfg.out/model.pt``).
@@ -259,6 +278,8 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
     # threads spin; docs/PERFORMANCE.md §Training data in memory): --threads 2 is the user's call
     threads = set_torch_threads(cfg.threads, workers=cfg.workers,
                                 processes=int(os.environ.get("LOCAL_WORLD_SIZE", str(world))))
+    if resuming:
+        check_resume_counts(state, cache, threads, cfg.workers, last_path, quiet=rank != 0)
     if cache == "memory":
         plan = [map_style_steps(shards.num_samples, cfg.batch_size, world)] * cfg.epochs
     else:

@@ -105,6 +105,28 @@ def test_memory_run_resumes_bitwise_and_keeps_its_cache(shards, tmp_path):
     _assert_same_weights(a, b)
 
 
+def test_resuming_with_other_counts_is_said_or_refused(shards, tmp_path, capsys):
+    """From memory, other --threads/--workers continue the run with a note; streamed, other --workers (another
+    sample order) are refused before anything is written."""
+    kw = dict(cache="memory", checkpoint_every=5, epochs=1)
+    with pytest.raises(TrainingStopped):
+        fit(_cfg(shards, tmp_path / "m", **kw), progress=False, stop_after_step=5)
+    capsys.readouterr()
+    fit(_cfg(shards, tmp_path / "m", **dict(kw, threads=2, workers=1)), resume=True, progress=False)
+    err = capsys.readouterr().err
+    assert "note: resuming with torch threads 1→2, workers 0→1" in err
+    kw = dict(cache="stream", format="zarr", checkpoint_every=5, epochs=1)
+    with pytest.raises(TrainingStopped):
+        fit(_cfg(shards, tmp_path / "s", **kw), progress=False, stop_after_step=5)
+    before = sorted(p.name for p in (tmp_path / "s").iterdir())
+    with pytest.raises(RispError, match="pass --workers 0"):
+        fit(_cfg(shards, tmp_path / "s", **dict(kw, workers=1)), resume=True, progress=False)
+    assert sorted(p.name for p in (tmp_path / "s").iterdir()) == before
+    capsys.readouterr()
+    fit(_cfg(shards, tmp_path / "s", **dict(kw, threads=2)), resume=True, progress=False)  # threads alone: a note
+    assert "torch threads 1→2" in capsys.readouterr().err
+
+
 def test_auto_streams_when_memory_is_short_and_memory_refuses_clearly(shards):
     s = open_shards(shards["train"])
     need = estimate_bytes(s, True)
