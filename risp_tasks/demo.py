@@ -68,6 +68,22 @@ def _run(group: click.Group, args: list[str], log: list[dict]) -> None:
     log.append({"command": f"{name} {' '.join(args)}", "seconds": round(time.perf_counter() - t0, 2)})
 
 
+DEMO_ENTRIES = frozenset({"preview", "shards", "runs", "video", "sysid", "diagnose", "demo.json", "README.md"})
+
+
+def check_demo_folder(out: Path) -> None:
+    """A demo folder is new, empty, or an earlier demo's (whose finished steps are reused); any other folder is
+    refused before anything is written, so the demo's files never land beside a user's."""
+    if out.is_file():
+        raise RispError(f"--out {out} is a file; pass a folder")
+    if not out.is_dir():
+        return
+    foreign = sorted(p.name for p in out.iterdir() if p.name not in DEMO_ENTRIES)
+    if foreign:
+        shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
+        raise RispError(f"--out {out} holds files that are not a demo's ({shown}); pass a new or empty folder")
+
+
 def run_demo(cfg: DemoConfig) -> Path:
     """Render previews of all environments; train on one; evaluate; identify a parameter from a target-domain
     video; diagnose real cube tosses. Returns the folder."""
@@ -77,6 +93,7 @@ def run_demo(cfg: DemoConfig) -> Path:
 
     data_cli.name, train_cli.name, task_cli.name = "risp-data", "risp-train", "risp-task"
     out = Path(cfg.out)
+    check_demo_folder(out)
     out.mkdir(parents=True, exist_ok=True)
     log: list[dict] = []
     seed, env = str(cfg.seed), cfg.env

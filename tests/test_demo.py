@@ -87,3 +87,21 @@ def test_random_guess_error_is_the_mean_absolute_error_of_a_uniform_guess():
     draws = np.random.default_rng(0).uniform(2.8, 3.2, 200_000)
     for truth in (2.8, 2.95, 3.1):
         assert random_guess_error(truth, 2.8, 3.2) == pytest.approx(np.abs(draws - truth).mean(), rel=1e-2)
+
+
+def test_demo_refuses_a_folder_that_is_not_a_demos(tmp_path):
+    """--out into a user's folder: one line, nothing written beside its files; a demo's own folder is resumed."""
+    from risp_tasks.demo import check_demo_folder
+
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "thesis.tex").write_text("keep me")
+    proc = subprocess.run([sys.executable, "-m", "cli", "demo", "--quick", "--out", str(mine)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 1 and "not a demo's (thesis.tex)" in proc.stderr
+    assert sorted(p.name for p in mine.iterdir()) == ["thesis.tex"]
+    earlier = tmp_path / "earlier"
+    (earlier / "shards").mkdir(parents=True)
+    (earlier / "demo.json").write_text("{}")
+    check_demo_folder(earlier)  # an earlier (or interrupted) demo: its finished steps are reused
+    check_demo_folder(tmp_path / "new")
