@@ -263,6 +263,20 @@ def test_control_initial_state_that_is_not_a_state(quad, tmp_path, content, word
     assert "s0.json" in line and words in line, line
 
 
+def test_control_warns_of_an_initial_state_outside_the_trained_range(quad, tmp_path):
+    from risp_tasks.cli import cli
+    from risp_tasks.video import read_video, write_video
+
+    model, video = quad
+    write_video(tmp_path / "goal", read_video(video).frames[-1:], fps=10)
+    (tmp_path / "s0.json").write_text(json.dumps({"env_state": [5.0, 0.0, 1.1, 0.0, 0.0, 0.0]}))
+    res = CliRunner().invoke(cli, ["control", str(tmp_path / "goal" / "frame_00000.png"), "--model", model,
+                                   "--initial-state", str(tmp_path / "s0.json"), "--horizon", "1", "--loss", "state",
+                                   "--out", str(tmp_path / "res"), "--quiet", "--iterations", "1", "--no-plots"])
+    assert res.exit_code == 0, res.output
+    assert "warning: " + str(tmp_path / "s0.json") + ": the initial state's x lie(s) outside" in res.output
+
+
 @pytest.mark.parametrize("params,words", [('{"mass": "heavy"}', "'mass' must be a finite number"),
                                           ('{"mass": [3.0]}', "'mass' must be a finite number"),
                                           ('{"mass": NaN}', "'mass' must be a finite number"),

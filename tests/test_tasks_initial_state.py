@@ -100,3 +100,19 @@ def test_fit_initial_state_is_refused_for_estimate_and_control():
         with pytest.raises(RispError, match="fit-initial-state"):
             TaskConfig(task=task, video="v.mp4", fit_initial_state=True)
     TaskConfig(task="control", video="v.png")  # the default (None) is fine for every task
+
+
+def test_control_warns_of_an_initial_state_outside_the_trained_range():
+    """control --initial-state far outside the box the training states were drawn from: a warning naming the
+    states that leave it; inside the box (and the simulator's default state): none."""
+    from risp_tasks.sims import get_simulator
+    from risp_tasks.tasks.control import initial_state_warning
+    from risp_tasks.tasks.simulate import initial_sim_state
+
+    sim = get_simulator("quadrotor")
+    inside = initial_sim_state(sim, torch.tensor([0.05, -0.1, 1.1, 0.3, 0.05, -0.04], dtype=torch.float64), None, 1.0)
+    assert initial_state_warning(sim, inside, "s0.json") is None
+    assert initial_state_warning(sim, sim.default_state(1, torch.float64), "s0.json") is None
+    far = initial_sim_state(sim, torch.tensor([5.0, -0.1, 1.1, 0.3, 0.05, 1.2], dtype=torch.float64), None, 1.0)
+    warning = initial_state_warning(sim, far, "s0.json")
+    assert warning.startswith("warning: s0.json") and "x, roll" in warning and "y" not in warning.split("state's")[1][:4]

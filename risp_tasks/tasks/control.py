@@ -45,6 +45,21 @@ def read_initial_state(path: str | None, sim) -> torch.Tensor:
     return s
 
 
+def initial_state_warning(sim, s0: torch.Tensor, path: str) -> str | None:
+    """A warning when the given initial state lies outside the box the networks' training states were drawn from:
+    the network never saw the system there, so its reading of the rendered frames (the `render` loss) is an
+    extrapolation. None when it lies inside (risp_tasks.tasks.reference.outside_sampled_states' tolerance)."""
+    from .reference import outside_sampled_states
+
+    env_state = sim.to_env_state(s0.reshape(1, -1)).detach().numpy()
+    outside = outside_sampled_states(sim.env, env_state)
+    if not outside["fraction"] > 0:
+        return None
+    names = ", ".join(outside["states"])
+    return (f"warning: {path}: the initial state's {names} lie(s) outside the range the networks are trained on: "
+            "the network's readings near it are extrapolations (docs/tasks.md §Reference videos)")
+
+
 def _numbers(value, path: str, key: str) -> torch.Tensor:
     """A flat list of numbers as float64, or one error line (strings, nested or ragged lists)."""
     try:
@@ -57,4 +72,6 @@ def build(ctx: Context) -> Problem:
     s0 = read_initial_state(ctx.cfg.initial_state, ctx.sim)
     problem = imitate.build(ctx, n_frames=ctx.cfg.horizon + 1, s0=s0)
     problem.frames = [ctx.cfg.horizon]  # only the final frame is compared with the goal image
+    if ctx.cfg.initial_state is not None:
+        problem.info["warnings"] = [w for w in [initial_state_warning(ctx.sim, s0, ctx.cfg.initial_state)] if w]
     return problem

@@ -116,6 +116,8 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
                   fps=fps, k=k, predicted=predicted.double(), predicted_targets=predicted_targets.double(),
                   file_actions=file_actions, truth=truth, rng=np.random.default_rng(cfg.seed))
     problem = importlib.import_module(f"{__package__}.{cfg.task}").build(ctx)
+    for warning in problem.info.pop("warnings", []):
+        echo(warning)
     if cfg.fit_params is None and problem.info.get("fitted_parameters"):  # imitate's default for this environment
         echo(f"identifying the {env_name}'s {', '.join(problem.info['fitted_parameters'])} with the actions "
              "(--params to give them, --no-fit-params for the nominal ones)")
