@@ -214,6 +214,25 @@ def test_killed_and_resumed_run_gives_the_same_table(cache, tmp_path):
     assert strip(open(whole["files"][0]).read()) == strip(open(resumed["files"][0]).read())
 
 
+def test_a_subset_run_keeps_the_rows_earlier_runs_finished_in_the_shared_table(cache, tmp_path):
+    """The folder's table.md is the folder's: a later run with fewer --methods still shows the rows the first one
+    finished there (same numbers, no cell recomputed); a row without all the repeats is not shown."""
+    kw = dict(TINY, repeats=2, out=str(tmp_path / "t"), envs=("cube",))
+    first = run_table(make_config("estimation", quick=True, methods=("average", "random"), **kw), cache=cache,
+                      echo=lambda *_: None)
+    seen = []
+    later = run_table(make_config("estimation", quick=True, methods=("oracle",), **kw), cache=cache,
+                      on_cell=lambda c, r: seen.append(c), echo=lambda *_: None)
+    assert [c.method for c in seen] == ["oracle", "oracle"]  # only the new row was computed
+    assert later["config"]["methods"] == ["oracle", "average", "random"]
+    assert later["cells"]["cube"]["random"]["values"] == first["cells"]["cube"]["random"]["values"]
+    text = open(later["files"][0]).read()
+    assert "| average |" in text and "| random |" in text and "| oracle |" in text
+    more = run_table(make_config("estimation", quick=True, methods=("oracle",), **dict(kw, repeats=3)), cache=cache,
+                     echo=lambda *_: None)  # average and random have 2 of 3 repeats: not shown
+    assert more["config"]["methods"] == ["oracle"]
+
+
 def test_parallel_cells_give_the_same_table_as_one_process(cache, tmp_path):
     """--jobs 2: cells in two spawned single-threaded processes; every cell's number equals the serial run's."""
     kw = dict(TINY, repeats=2)

@@ -133,7 +133,40 @@ def run_table(cfg: TableConfig, cache: str | None = None, on_cell: Callable[[Cel
                 if on_cell is not None:
                     on_cell(cell, result)
     results = [read_cell(cell_path(folder, c), cell_look(c, cfg.table)) or _failed(folder, c) for c in cells]
-    return write_report(cfg, folder, results)
+    shown, earlier = widened(cfg, folder)
+    return write_report(shown, folder, results + earlier)
+
+
+def widened(cfg: TableConfig, folder: str) -> tuple[TableConfig, list[dict]]:
+    """The report's configuration and the extra results it shows: the folder's table.md is the folder's, so a run
+    with a subset of --envs/--methods also shows the environments and rows that earlier runs finished there
+    (each with all of this run's repeats; appended after the requested ones in the usual order)."""
+    from risp_data.envs import ENV_NAMES
+    from risp_train.regularizers import REGULARIZERS
+
+    from .methods import METHODS
+    from .sampling import SCHEMES
+
+    rows = {"regularizers": REGULARIZERS, "sampling": SCHEMES}.get(cfg.table, METHODS)
+    envs = list(cfg.envs) + [e for e in ENV_NAMES if e not in cfg.envs]
+    methods = list(cfg.methods) + [m for m in rows if m not in cfg.methods]
+    found: dict = {}
+    for e in envs:
+        for m in methods:
+            if e in cfg.envs and m in cfg.methods:
+                continue
+            cells = [read_cell(cell_path(folder, Cell(e, m, r)), cell_look(Cell(e, m, r), cfg.table))
+                     for r in range(cfg.repeats)]
+            if all(c is not None for c in cells):
+                found[(e, m)] = cells
+    # a row or column is shown when every one of its cells is there (the requested ones, or finished earlier)
+    have = lambda e, m: (e in cfg.envs and m in cfg.methods) or (e, m) in found  # noqa: E731
+    shown_envs = [e for e in envs if e in cfg.envs or all(have(e, m) for m in cfg.methods)]
+    shown_methods = [m for m in methods if m in cfg.methods or all(have(e, m) for e in shown_envs)]
+    if not all(have(e, m) for e in shown_envs for m in shown_methods):  # an extra row and column that do not meet
+        shown_methods = [m for m in shown_methods if m in cfg.methods]
+    extra = [r for (e, m), cells in found.items() if e in shown_envs and m in shown_methods for r in cells]
+    return replace(cfg, envs=tuple(shown_envs), methods=tuple(shown_methods)), extra
 
 
 def _failed(folder: str, cell: Cell) -> dict:
