@@ -193,19 +193,16 @@ def option_changes(stored_config: dict, cfg: TrainConfig, env: str) -> list[str]
 def check_resume_counts(state: dict, cache: str, threads: int, workers: int, path: str, *, quiet: bool) -> None:
     """Resuming with other --workers / --threads than a run began with. Streamed from shards, each worker reads
     its own shards, so the worker count fixes the sample order and the steps per epoch: refused. From memory the
-    workers only decode and the thread count changes only the float sums' order: said, then continued (the
-    result equals an uninterrupted run's up to the last bits; bitwise equality needs the same counts)."""
+    workers only decode (no effect). Another thread count changes the float sums' order: said, then continued
+    (rounding differences that training may grow; bitwise equal to an uninterrupted run only with the same count)."""
     was_threads, was_workers = state.get("threads"), state.get("workers")
     if was_workers is not None and cache == "stream" and was_workers != workers:
         raise RispError(f"cannot resume {path} with --workers {workers}: it was trained streaming with --workers "
                         f"{was_workers} (each worker reads its own shards: another sample order); "
                         f"pass --workers {was_workers}")
-    changed = [f"{name} {old}→{new}" for name, old, new in (("torch threads", was_threads, threads),
-                                                           ("workers", was_workers, workers))
-               if old is not None and old != new]
-    if changed and not quiet:
-        print(f"note: resuming with {', '.join(changed)}: the run continues, equal to an uninterrupted one up to "
-              "the last bits (bitwise equality needs the same counts)", file=sys.stderr)
+    if was_threads is not None and was_threads != threads and not quiet:
+        print(f"note: resuming with torch threads {was_threads}→{threads}: the run continues, with rounding "
+              "differences from an uninterrupted run (bitwise equality needs the same thread count)", file=sys.stderr)
 
 
 def fit(cfg: TrainConfig, *, resume: bool = False, progress: bool = True,
