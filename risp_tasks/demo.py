@@ -68,20 +68,22 @@ def _run(group: click.Group, args: list[str], log: list[dict]) -> None:
     log.append({"command": f"{name} {' '.join(args)}", "seconds": round(time.perf_counter() - t0, 2)})
 
 
-DEMO_ENTRIES = frozenset({"preview", "shards", "runs", "video", "sysid", "diagnose", "demo.json", "README.md"})
+#: written first into a demo's folder: what lets a later demo resume there (demo.json, written last, marks older ones)
+DEMO_MARKER = ".risp-demo"
 
 
 def check_demo_folder(out: Path) -> None:
-    """A demo folder is new, empty, or an earlier demo's (whose finished steps are reused); any other folder is
-    refused before anything is written, so the demo's files never land beside a user's."""
+    """A demo folder is new, empty (hidden files such as .DS_Store aside), or an earlier demo's — it holds the
+    marker written first, or demo.json — whose finished steps are reused. Any other folder is refused before
+    anything is written, so the demo's files (its README.md, its shards/) never land in or over a user's."""
     if out.is_file():
         raise RispError(f"--out {out} is a file; pass a folder")
-    if not out.is_dir():
+    if not out.is_dir() or (out / DEMO_MARKER).exists() or (out / "demo.json").is_file():
         return
-    foreign = sorted(p.name for p in out.iterdir() if p.name not in DEMO_ENTRIES)
+    foreign = sorted(p.name for p in out.iterdir() if not p.name.startswith("."))
     if foreign:
         shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
-        raise RispError(f"--out {out} holds files that are not a demo's ({shown}); pass a new or empty folder")
+        raise RispError(f"--out {out} is not empty and not a demo's ({shown}); pass a new or empty folder")
 
 
 def run_demo(cfg: DemoConfig) -> Path:
@@ -95,6 +97,7 @@ def run_demo(cfg: DemoConfig) -> Path:
     out = Path(cfg.out)
     check_demo_folder(out)
     out.mkdir(parents=True, exist_ok=True)
+    (out / DEMO_MARKER).touch()
     log: list[dict] = []
     seed, env = str(cfg.seed), cfg.env
 

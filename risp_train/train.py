@@ -190,19 +190,35 @@ def option_changes(stored_config: dict, cfg: TrainConfig, env: str) -> list[str]
     return [f"{k}={stored.get(k)!r}→{now[k]!r}" for k in RESUME_FIELDS if stored.get(k) != now[k]]
 
 
-def check_resume_counts(state: dict, cache: str, threads: int, workers: int, path: str, *, quiet: bool) -> None:
-    """Resuming with other --workers / --threads than a run began with. Streamed from shards, each worker reads
-    its own shards, so the worker count fixes the sample order and the steps per epoch: refused. From memory the
-    workers only decode (no effect). Another thread count changes the float sums' order: said, then continued
-    (rounding differences that training may grow; bitwise equal to an uninterrupted run only with the same count)."""
+def check_resume_counts(state: dict, shards, cache: str, world: int, threads: int, workers: int, path: str, *,
+                        quiet: bool) -> None:
+    """Resuming with other process, worker or thread counts than a run began with.
+
+    Another world size (torchrun's process count) splits the samples among other ranks: refused. Streamed from
+    webdataset shards, each (rank, worker) reads its own shards, so the effective worker count (capped at the
+    shards per rank, 0 and 1 alike) fixes the sample order and the steps per epoch: another one is refused. The
+    zarr stream and memory index samples map-style, whatever the workers. Another thread count changes the float
+    sums' order: said, then continued (rounding differences that training may grow)."""
+    from .data import effective_workers
+
+    was_world = int(state.get("world_size", 1))
+    if was_world != world:
+        raise RispError(f"cannot resume {path} with {world} process(es): it was trained with {was_world} "
+                        "(another split of the samples among the ranks); resume it with the same count")
     was_threads, was_workers = state.get("threads"), state.get("workers")
-    if was_workers is not None and cache == "stream" and was_workers != workers:
-        raise RispError(f"cannot resume {path} with --workers {workers}: it was trained streaming with --workers "
-                        f"{was_workers} (each worker reads its own shards: another sample order); "
-                        f"pass --workers {was_workers}")
+    if was_workers is not None and cache == "stream" and shards.format == "wds":
+        def effective(n: int) -> int:
+            return max(1, effective_workers(len(shards.counts), world, n))
+
+        if effective(was_workers) != effective(workers):
+            raise RispError(f"cannot resume {path} with --workers {workers}: it was trained streaming webdataset "
+                            f"shards with --workers {was_workers} (each worker reads its own shards: another "
+                            f"sample order); pass --workers {was_workers}")
     if was_threads is not None and was_threads != threads and not quiet:
-        print(f"note: resuming with torch threads {was_threads}→{threads}: the run continues, with rounding "
-              "differences from an uninterrupted run (bitwise equality needs the same thread count)", file=sys.stderr)
+        print(f"note: resuming with torch threads {was_threads}→{threads}"
+              f"{' (--threads 0 follows --workers)' if was_workers != workers else ''}: the run continues, with "
+              "rounding differences from an uninterrupted run (bitwise equality needs the same thread count)",
+              file=sys.stderr)
 
 
 def fit(cfg: TrainConfig, *, resume: bool = False, progress: bool = True,
@@ -276,7 +292,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
     threads = set_torch_threads(cfg.threads, workers=cfg.workers,
                                 processes=int(os.environ.get("LOCAL_WORLD_SIZE", str(world))))
     if resuming:
-        check_resume_counts(state, cache, threads, cfg.workers, last_path, quiet=rank != 0)
+        check_resume_counts(state, shards, cache, world, threads, cfg.workers, last_path, quiet=rank != 0)
     if cache == "memory":
         plan = [map_style_steps(shards.num_samples, cfg.batch_size, world)] * cfg.epochs
     else:

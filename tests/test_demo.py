@@ -90,8 +90,9 @@ def test_random_guess_error_is_the_mean_absolute_error_of_a_uniform_guess():
 
 
 def test_demo_refuses_a_folder_that_is_not_a_demos(tmp_path):
-    """--out into a user's folder: one line, nothing written beside its files; a demo's own folder is resumed."""
-    from risp_tasks.demo import check_demo_folder
+    """--out into a user's folder: one line, nothing written beside its files, even when its names are the demo's
+    (a README.md, a shards/); a demo's own folder (marker or demo.json) is resumed, hidden files do not count."""
+    from risp_tasks.demo import DEMO_MARKER, check_demo_folder
 
     mine = tmp_path / "mine"
     mine.mkdir()
@@ -100,8 +101,22 @@ def test_demo_refuses_a_folder_that_is_not_a_demos(tmp_path):
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 1 and "not a demo's (thesis.tex)" in proc.stderr
     assert sorted(p.name for p in mine.iterdir()) == ["thesis.tex"]
-    earlier = tmp_path / "earlier"
-    (earlier / "shards").mkdir(parents=True)
-    (earlier / "demo.json").write_text("{}")
-    check_demo_folder(earlier)  # an earlier (or interrupted) demo: its finished steps are reused
+    project = tmp_path / "project"
+    (project / "shards").mkdir(parents=True)
+    (project / "README.md").write_text("my project")
+    with pytest.raises(Exception, match=r"not a demo's \(README.md, shards\)"):
+        check_demo_folder(project)
+    interrupted = tmp_path / "interrupted"
+    (interrupted / "preview").mkdir(parents=True)
+    (interrupted / DEMO_MARKER).touch()
+    (interrupted / ".tmp-k2j").mkdir()  # a hard-killed task's temporary
+    check_demo_folder(interrupted)
+    older = tmp_path / "older"
+    (older / "shards").mkdir(parents=True)
+    (older / "demo.json").write_text("{}")
+    check_demo_folder(older)
+    hidden = tmp_path / "hidden"
+    hidden.mkdir()
+    (hidden / ".DS_Store").write_text("")
+    check_demo_folder(hidden)
     check_demo_folder(tmp_path / "new")

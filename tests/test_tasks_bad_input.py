@@ -275,6 +275,8 @@ def test_control_warns_of_an_initial_state_outside_the_trained_range(quad, tmp_p
                                    "--out", str(tmp_path / "res"), "--quiet", "--iterations", "1", "--no-plots"])
     assert res.exit_code == 0, res.output
     assert "warning: " + str(tmp_path / "s0.json") + ": the initial state's x lie(s) outside" in res.output
+    result = json.loads((tmp_path / "res" / "result.json").read_text())
+    assert any("the initial state's x lie(s) outside" in w for w in result["warnings"])
 
 
 @pytest.mark.parametrize("params,words", [('{"mass": "heavy"}', "'mass' must be a finite number"),

@@ -115,4 +115,4 @@ def test_control_warns_of_an_initial_state_outside_the_trained_range():
     assert initial_state_warning(sim, sim.default_state(1, torch.float64), "s0.json") is None
     far = initial_sim_state(sim, torch.tensor([5.0, -0.1, 1.1, 0.3, 0.05, 1.2], dtype=torch.float64), None, 1.0)
     warning = initial_state_warning(sim, far, "s0.json")
-    assert warning.startswith("warning: s0.json") and "x, roll" in warning and "y" not in warning.split("state's")[1][:4]
+    assert warning.startswith("s0.json: the initial state's") and "x, roll" in warning and "y" not in warning.split("state's")[1][:4]

@@ -106,25 +106,34 @@ def test_memory_run_resumes_bitwise_and_keeps_its_cache(shards, tmp_path):
 
 
 def test_resuming_with_other_counts_is_said_or_refused(shards, tmp_path, capsys):
-    """Another --threads continues a run with a note (from memory another --workers makes no difference);
-    streamed, another --workers (another sample order) is refused before anything is written."""
+    """Another --threads continues a run with a note; another --workers matters only where it changes the sample
+    order — streamed webdataset shards, 1 → 2 effective workers (refused before anything is written) — and not
+    from memory or the zarr stream; another process count is refused."""
+    import risp_train.train as train_mod
+
     kw = dict(cache="memory", checkpoint_every=5, epochs=1)
     with pytest.raises(TrainingStopped):
         fit(_cfg(shards, tmp_path / "m", **kw), progress=False, stop_after_step=5)
     capsys.readouterr()
     fit(_cfg(shards, tmp_path / "m", **dict(kw, threads=2, workers=1)), resume=True, progress=False)
     err = capsys.readouterr().err
-    assert "note: resuming with torch threads 1→2:" in err and "workers" not in err
-    kw = dict(cache="stream", format="zarr", checkpoint_every=5, epochs=1)
-    with pytest.raises(TrainingStopped):
-        fit(_cfg(shards, tmp_path / "s", **kw), progress=False, stop_after_step=5)
-    before = sorted(p.name for p in (tmp_path / "s").iterdir())
-    with pytest.raises(RispError, match="pass --workers 0"):
-        fit(_cfg(shards, tmp_path / "s", **dict(kw, workers=1)), resume=True, progress=False)
-    assert sorted(p.name for p in (tmp_path / "s").iterdir()) == before
-    capsys.readouterr()
-    fit(_cfg(shards, tmp_path / "s", **dict(kw, threads=2)), resume=True, progress=False)  # threads alone: a note
-    assert "torch threads 1→2" in capsys.readouterr().err
+    assert "note: resuming with torch threads 1→2" in err
+    for fmt, refused in (("wds", True), ("zarr", False)):  # 48 samples in 3 shards
+        kw = dict(cache="stream", format=fmt, checkpoint_every=5, epochs=1)
+        run = tmp_path / f"s-{fmt}"
+        with pytest.raises(TrainingStopped):
+            fit(_cfg(shards, run, **kw), progress=False, stop_after_step=5)
+        before = sorted(p.name for p in run.iterdir())
+        if refused:
+            with pytest.raises(RispError, match="pass --workers 0"):
+                fit(_cfg(shards, run, **dict(kw, workers=2)), resume=True, progress=False)
+            assert sorted(p.name for p in run.iterdir()) == before
+            fit(_cfg(shards, run, **dict(kw, workers=1)), resume=True, progress=False)  # 0 and 1: one reader
+        else:
+            fit(_cfg(shards, run, **dict(kw, workers=2)), resume=True, progress=False)
+    state = {"world_size": 2, "threads": 1, "workers": 0}
+    with pytest.raises(RispError, match="trained with 2"):
+        train_mod.check_resume_counts(state, open_shards(shards["train"]), "memory", 1, 1, 0, "last.pt", quiet=True)
 
 
 def test_auto_streams_when_memory_is_short_and_memory_refuses_clearly(shards):

@@ -46,7 +46,7 @@ def read_initial_state(path: str | None, sim) -> torch.Tensor:
 
 
 def initial_state_warning(sim, s0: torch.Tensor, path: str) -> str | None:
-    """A warning when the given initial state lies outside the box the networks' training states were drawn from:
+    """A warning (for result.json's ``warnings``, printed at the end) when the given initial state lies outside the box the networks' training states were drawn from:
     the network never saw the system there, so its reading of the rendered frames (the `render` loss) is an
     extrapolation. None when it lies inside (risp_tasks.tasks.reference.outside_sampled_states' tolerance)."""
     from .reference import outside_sampled_states
@@ -56,7 +56,7 @@ def initial_state_warning(sim, s0: torch.Tensor, path: str) -> str | None:
     if not outside["fraction"] > 0:
         return None
     names = ", ".join(outside["states"])
-    return (f"warning: {path}: the initial state's {names} lie(s) outside the range the networks are trained on: "
+    return (f"{path}: the initial state's {names} lie(s) outside the range the networks are trained on: "
             "the network's readings near it are extrapolations (docs/tasks.md §Reference videos)")
 
 

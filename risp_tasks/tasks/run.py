@@ -116,8 +116,7 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
                   fps=fps, k=k, predicted=predicted.double(), predicted_targets=predicted_targets.double(),
                   file_actions=file_actions, truth=truth, rng=np.random.default_rng(cfg.seed))
     problem = importlib.import_module(f"{__package__}.{cfg.task}").build(ctx)
-    for warning in problem.info.pop("warnings", []):
-        echo(warning)
+    warnings = problem.info.pop("warnings", [])  # the task's own (control's initial state), kept for result.json
     if cfg.fit_params is None and problem.info.get("fitted_parameters"):  # imitate's default for this environment
         echo(f"identifying the {env_name}'s {', '.join(problem.info['fitted_parameters'])} with the actions "
              "(--params to give them, --no-fit-params for the nominal ones)")
@@ -186,7 +185,7 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
     warning = None
     if cfg.loss in IMAGE_LOSSES:
         result["view"], warning = _view(cfg, renderer, loss_frames, initial_states, final_states)
-    result["warnings"] = [warning] if warning else []
+    result["warnings"] = warnings + ([warning] if warning else [])
     folder = ResultFolder(out)
     try:
         folder.write_json("result.json", result)
