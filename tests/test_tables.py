@@ -224,13 +224,36 @@ def test_a_subset_run_keeps_the_rows_earlier_runs_finished_in_the_shared_table(c
     later = run_table(make_config("estimation", quick=True, methods=("oracle",), **kw), cache=cache,
                       on_cell=lambda c, r: seen.append(c), echo=lambda *_: None)
     assert [c.method for c in seen] == ["oracle", "oracle"]  # only the new row was computed
-    assert later["config"]["methods"] == ["oracle", "average", "random"]
+    assert later["config"]["methods"] == ["average", "random", "oracle"]  # the usual order
     assert later["cells"]["cube"]["random"]["values"] == first["cells"]["cube"]["random"]["values"]
     text = open(later["files"][0]).read()
     assert "| average |" in text and "| random |" in text and "| oracle |" in text
     more = run_table(make_config("estimation", quick=True, methods=("oracle",), **dict(kw, repeats=3)), cache=cache,
                      echo=lambda *_: None)  # average and random have 2 of 3 repeats: not shown
     assert more["config"]["methods"] == ["oracle"]
+
+
+def test_the_widened_report_fills_cells_no_run_computed(tmp_path):
+    """Earlier cube × average and rod × random, now a run of cube × oracle: both environments and all three rows
+    are shown; the cells no run computed are N/A, so no finished row drops out."""
+    import json
+
+    from risp_tasks.tables.grid import NOT_COMPUTED, cell_look, widened
+
+    cfg = make_config("estimation", quick=True, out=str(tmp_path), envs=("cube",), methods=("oracle",), repeats=2)
+    folder = run_folder(cfg)
+    for env, method in (("cube", "average"), ("rod", "random"), ("cube", "oracle")):
+        for r in range(2):
+            path = cell_path(folder, Cell(env, method, r))
+            os.makedirs(os.path.dirname(path), exist_ok=True)
+            with open(path, "w") as f:
+                json.dump({"env": env, "method": method, "repeat": r, "value": 0.1 * (r + 1),
+                           "look": cell_look(Cell(env, method, r), "estimation")}, f)
+    shown, extra = widened(cfg, folder)
+    assert shown.envs == ("cube", "rod") and shown.methods == ("average", "random", "oracle")
+    na = {(r["env"], r["method"]) for r in extra if r.get("na") == NOT_COMPUTED}
+    assert na == {("cube", "random"), ("rod", "average"), ("rod", "oracle")}
+    assert sum(1 for r in extra if "value" in r) == 4  # cube × average and rod × random, two repeats each
 
 
 def test_parallel_cells_give_the_same_table_as_one_process(cache, tmp_path):

@@ -137,10 +137,15 @@ def run_table(cfg: TableConfig, cache: str | None = None, on_cell: Callable[[Cel
     return write_report(shown, folder, results + earlier)
 
 
+#: the entry of a shown cell that no run computed in the folder
+NOT_COMPUTED = "not computed in this folder (run the table with this environment and row)"
+
+
 def widened(cfg: TableConfig, folder: str) -> tuple[TableConfig, list[dict]]:
-    """The report's configuration and the extra results it shows: the folder's table.md is the folder's, so a run
-    with a subset of --envs/--methods also shows the environments and rows that earlier runs finished there
-    (each with all of this run's repeats; appended after the requested ones in the usual order)."""
+    """The report's configuration and the extra results it shows. The folder's table.md is the folder's: a run
+    with a subset of --envs/--methods also shows every environment and row that earlier runs finished there
+    (with all of this run's repeats), in the usual order; a cell of the widened grid that no run finished is
+    shown as N/A (NOT_COMPUTED), never dropped with its row."""
     from risp_data.envs import ENV_NAMES
     from risp_train.regularizers import REGULARIZERS
 
@@ -148,25 +153,24 @@ def widened(cfg: TableConfig, folder: str) -> tuple[TableConfig, list[dict]]:
     from .sampling import SCHEMES
 
     rows = {"regularizers": REGULARIZERS, "sampling": SCHEMES}.get(cfg.table, METHODS)
-    envs = list(cfg.envs) + [e for e in ENV_NAMES if e not in cfg.envs]
-    methods = list(cfg.methods) + [m for m in rows if m not in cfg.methods]
+    requested = {(e, m) for e in cfg.envs for m in cfg.methods}
     found: dict = {}
-    for e in envs:
-        for m in methods:
-            if e in cfg.envs and m in cfg.methods:
+    for e in ENV_NAMES:
+        for m in rows:
+            if (e, m) in requested:
                 continue
             cells = [read_cell(cell_path(folder, Cell(e, m, r)), cell_look(Cell(e, m, r), cfg.table))
                      for r in range(cfg.repeats)]
             if all(c is not None for c in cells):
                 found[(e, m)] = cells
-    # a row or column is shown when every one of its cells is there (the requested ones, or finished earlier)
-    have = lambda e, m: (e in cfg.envs and m in cfg.methods) or (e, m) in found  # noqa: E731
-    shown_envs = [e for e in envs if e in cfg.envs or all(have(e, m) for m in cfg.methods)]
-    shown_methods = [m for m in methods if m in cfg.methods or all(have(e, m) for e in shown_envs)]
-    if not all(have(e, m) for e in shown_envs for m in shown_methods):  # an extra row and column that do not meet
-        shown_methods = [m for m in shown_methods if m in cfg.methods]
-    extra = [r for (e, m), cells in found.items() if e in shown_envs and m in shown_methods for r in cells]
-    return replace(cfg, envs=tuple(shown_envs), methods=tuple(shown_methods)), extra
+    if not found:
+        return cfg, []
+    envs = [e for e in ENV_NAMES if e in cfg.envs or any(k[0] == e for k in found)]
+    methods = [m for m in rows if m in cfg.methods or any(k[1] == m for k in found)]
+    extra = [r for cells in found.values() for r in cells]
+    extra += [{"env": e, "method": m, "repeat": 0, "na": NOT_COMPUTED} for e in envs for m in methods
+              if (e, m) not in requested and (e, m) not in found]
+    return replace(cfg, envs=tuple(envs), methods=tuple(methods)), extra
 
 
 def _failed(folder: str, cell: Cell) -> dict:
