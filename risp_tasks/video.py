@@ -24,8 +24,6 @@ from risp_data.errors import RispError
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv")
 CODECS = {".mp4": "libx264", ".mkv": "libx264", ".mov": "libx264", ".avi": "mpeg4"}
-#: containers written with H.264, which needs even frame sizes
-EVEN_SIZE_SUFFIXES = tuple(s for s, codec in CODECS.items() if codec == "libx264")
 
 
 @dataclass(frozen=True)
@@ -221,8 +219,6 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float, crf: in
         return
     av = _av()
     H, W = data.shape[1:3]
-    if p.suffix.lower() in EVEN_SIZE_SUFFIXES and (H % 2 or W % 2):
-        raise RispError(f"{p}: H.264 needs even frame sizes, got {W}×{H}")
     from fractions import Fraction
 
     with atomic_write(p, "wb", suffix=p.suffix) as f:

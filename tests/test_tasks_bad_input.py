@@ -436,7 +436,6 @@ def test_video_fps_above_its_own_rate_is_refused(quad, tmp_path):
     (["--params", '{"mass": -3}'], "--params / --effect: mass must lie in"),
     (["--resolution", "100000"], "--resolution 100000 is larger than the supported 8192 pixels"),
     (["--spp", "0"], "--spp must be >= 1, got 0"),
-    (["--res", "9"], "H.264 needs even frame sizes, got --resolution 9"),  # was refused after every frame rendered
 ])
 def test_make_video_checks_physics_and_size_first(tmp_path, args, words):
     """A negative mass used to fly (negative thrusts in the actions file); a huge frame failed in torch."""

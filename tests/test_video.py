@@ -15,9 +15,12 @@ def _frames(T=12, H=48, W=64):
                      for t in range(T)]).astype(np.float32)
 
 
-@pytest.mark.parametrize("name, tol", [("v.mp4", 0.03), ("v.avi", 0.06), ("pngs", 0.005)])
-def test_round_trip_within_codec_tolerance(tmp_path, name, tol):
-    frames = _frames()
+@pytest.mark.parametrize("name, tol, size", [("v.mp4", 0.03, (48, 64)), ("v.avi", 0.06, (48, 64)),
+                                            ("pngs", 0.005, (48, 64)), ("odd.mp4", 0.03, (9, 9)),
+                                            ("odd.mkv", 0.03, (33, 17))])
+def test_round_trip_within_codec_tolerance(tmp_path, name, tol, size):
+    """Odd sizes included: H.264 in 4:4:4 (the writer's pixel format) takes them, unlike 4:2:0."""
+    frames = _frames(H=size[0], W=size[1])
     write_video(tmp_path / name, frames, fps=10)
     video = read_video(tmp_path / name, source_fps=10)
     assert video.frames.shape == frames.shape and video.fps == 10

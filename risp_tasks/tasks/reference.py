@@ -231,11 +231,6 @@ def check_video_size(cfg: ReferenceConfig) -> None:
     from risp_data.generate import available_memory, check_image_size
 
     check_image_size(cfg.resolution, cfg.spp, cfg.domain, "--resolution")
-    from ..video import EVEN_SIZE_SUFFIXES
-
-    if os.path.splitext(cfg.out)[1].lower() in EVEN_SIZE_SUFFIXES and cfg.resolution % 2:
-        raise RispError(f"{cfg.out}: H.264 needs even frame sizes, got --resolution {cfg.resolution}; "
-                        "pass an even one, or write .avi or a folder of PNGs")
     need = (cfg.frames + 4) * cfg.resolution * cfg.resolution * 3 * 4
     have = available_memory()
     if have is not None and need > have:
