@@ -46,9 +46,10 @@ def read_initial_state(path: str | None, sim) -> torch.Tensor:
 
 
 def initial_state_warning(sim, s0: torch.Tensor, path: str) -> str | None:
-    """A warning (for result.json's ``warnings``, printed at the end) when the given initial state lies outside the box the networks' training states were drawn from:
-    the network never saw the system there, so its reading of the rendered frames (the `render` loss) is an
-    extrapolation. None when it lies inside (risp_tasks.tasks.reference.outside_sampled_states' tolerance)."""
+    """A warning (for result.json's ``warnings``, printed at the end) when the given initial state lies outside
+    the box the networks' training states were drawn from: the network never saw the system there, so its reading
+    of the rendered frames (the `render` loss) is an extrapolation. None when it lies inside
+    (risp_tasks.tasks.reference.outside_sampled_states' tolerance)."""
     from .reference import outside_sampled_states
 
     env_state = sim.to_env_state(s0.reshape(1, -1)).detach().numpy()
