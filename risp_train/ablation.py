@@ -216,7 +216,8 @@ def _check_reused_run(run_dir: str, tcfg, env: str) -> None:
 
     try:
         with open(os.path.join(run_dir, "config.json")) as f:
-            changes = option_changes(json.load(f)["config"], tcfg, env)
+            stored = json.load(f)
+        changes = option_changes(stored["config"], tcfg, env, used=stored)
     except (OSError, ValueError, KeyError) as e:
         raise RispError(f"{run_dir}: cannot read the finished run's config.json ({type(e).__name__}); remove the "
                         "run folder to train it again") from None

@@ -308,6 +308,13 @@ def _worker_init(_: int) -> None:
     torch.set_num_threads(1)  # workers decode EXRs; leave the cores to the training process
 
 
+def loader_generator() -> torch.Generator:
+    """A DataLoader's own generator: without one, every pass over a DataLoader draws its workers' base seed from
+    torch's global generator, moving the caller's RNG.  Nothing here depends on that seed (the sample order is
+    seeded explicitly, the workers draw nothing), so a fixed one keeps fit() off the caller's RNG."""
+    return torch.Generator().manual_seed(0)
+
+
 def make_loader(shards: ShardSet, *, seed: int, epoch: int, batch_size: int, workers: int, need_jacobian: bool,
                 rank: int = 0, world_size: int = 1, shuffle_buffer: int = 256,
                 state_dim: int | None = None) -> torch.utils.data.DataLoader:
@@ -320,11 +327,12 @@ def make_loader(shards: ShardSet, *, seed: int, epoch: int, batch_size: int, wor
         nw = effective_workers(len(shards.urls), world_size, workers)
         ds = WdsStream(shards.urls, seed, epoch, shuffle_buffer, need_jacobian, rank)
         return torch.utils.data.DataLoader(ds, batch_size=batch_size, num_workers=nw, collate_fn=fn,
-                                           drop_last=True, persistent_workers=False, worker_init_fn=_worker_init)
+                                           drop_last=True, persistent_workers=False, worker_init_fn=_worker_init,
+                                           generator=loader_generator())
     batches = zarr_batches(shards.num_samples, seed, epoch, batch_size, rank, world_size)
     ds = ZarrSamples(shards.folder, need_jacobian)
     return torch.utils.data.DataLoader(ds, batch_sampler=batches, num_workers=max(0, workers), collate_fn=fn,
-                                       worker_init_fn=_worker_init)
+                                       worker_init_fn=_worker_init, generator=loader_generator())
 
 
 def iter_samples(shards: ShardSet, need_jacobian: bool = False) -> Iterator[dict]:

@@ -179,14 +179,26 @@ def check_run_folder(out: str, resume: bool, overwrite: bool, remove: bool = Tru
                         "train it again, or choose another --out")
 
 
-def option_changes(stored_config: dict, cfg: TrainConfig, env: str) -> list[str]:
+def option_changes(stored_config: dict, cfg: TrainConfig, env: str, used: dict | None = None) -> list[str]:
     """``name=old→new`` for every option of RESUME_FIELDS (those that change a run) in which ``cfg`` differs from
     a stored run's config, compared as resolved: ``--gamma 0.3`` equals a run started without --gamma when the
-    environment's default is 0.3."""
+    environment's default is 0.3.
+
+    ``used`` is the stored run's own record of what it trained with (its checkpoint, or its ``config.json``): its
+    ``gamma`` and ``gamma_start`` win over today's defaults, which may have changed since the run began (the hand's
+    γ went from 0.3 to 0.05) — a resumed run must not switch to the new default half-way.  A record without
+    ``gamma_start`` predates the late start: its γ ramped in from the first step (0).  Without a regularizer on
+    either side γ and its start change nothing and are not compared."""
     def resolved(c: TrainConfig) -> dict:
         return {**c.to_dict(), "gamma": resolved_gamma(c, env), "gamma_start": resolved_gamma_start(c, env)}
 
     stored, now = resolved(TrainConfig.from_dict(stored_config)), resolved(cfg)  # fields added since: defaults
+    if used is not None:
+        if used.get("gamma") is not None:
+            stored["gamma"] = float(used["gamma"])
+        stored["gamma_start"] = float(used.get("gamma_start") or 0.0)
+    if stored.get("reg") == "none" and now["reg"] == "none":
+        stored["gamma_start"] = now["gamma_start"]
     return [f"{k}={stored.get(k)!r}→{now[k]!r}" for k in RESUME_FIELDS if stored.get(k) != now[k]]
 
 
@@ -283,7 +295,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
         elif cfg.cache != stored_cache:
             raise RispError(f"cannot resume {last_path} with --cache {cfg.cache}: it was trained with --cache "
                             f"{stored_cache} (another sample order); pass --cache {stored_cache} or auto")
-        changes = option_changes(state["config"], cfg, shards.env)  # before the data set is decoded below
+        changes = option_changes(state["config"], cfg, shards.env, used=state)  # before the data set is decoded below
         if changes:
             raise RispError(f"cannot resume {last_path} with different options: {', '.join(changes)}")
     # the same default from memory, although its workers only decode before the first step: a second torch thread
@@ -308,9 +320,14 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
     if cache == "memory":  # decoded once (checksums and all) before anything is written; the epochs only index it
         mset = load_memory_set(shards, need_jacobian=need_j, workers=cfg.workers, state_dim=env.state_dim,
                                progress=progress and rank == 0)
-    check_run_folder(cfg.out, resume, overwrite)
-    os.makedirs(cfg.out, exist_ok=True)
-    remove_temporaries(cfg.out)  # half-written checkpoints/logs of a killed run (never under their names)
+    if rank == 0:  # one process deletes: another rank's cleanup could remove rank 0's config.json temporary
+        check_run_folder(cfg.out, resume, overwrite)
+        os.makedirs(cfg.out, exist_ok=True)
+        remove_temporaries(cfg.out)  # half-written checkpoints/logs of a killed run (never under their names)
+    if world > 1:
+        import torch.distributed as dist
+
+        dist.barrier()  # the folder is ready before any rank goes on
     csv_path = os.path.join(cfg.out, "losses.csv")
     if state is not None:
         ckpt_io.check_compatible(state, last_path, env=shards.env, state_names=env.state_names,

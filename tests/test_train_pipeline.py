@@ -305,6 +305,15 @@ def test_fit_sets_its_thread_count_and_gives_it_back(shards, tmp_path):
     assert json.load(open(tmp_path / "t" / "config.json"))["threads"] == 1
 
 
+@pytest.mark.parametrize("cache", ["stream", "memory"])
+def test_fit_leaves_the_callers_rng_alone(shards, tmp_path, cache):
+    """fit() draws nothing from torch's global generator (a DataLoader pass used to draw its base seed there)."""
+    torch.manual_seed(1234)
+    before = torch.random.get_rng_state()
+    fit(_cfg(shards, tmp_path / "t", epochs=1, cache=cache), progress=False)
+    assert torch.equal(torch.random.get_rng_state(), before)
+
+
 @pytest.mark.parametrize("args, message", [(["--threads", "-1"], "--threads"), (["--device", "tpu:x"], "unknown --device")])
 def test_fit_refuses_bad_threads_or_device_before_writing(shards, tmp_path, args, message):
     out = tmp_path / "run"
@@ -326,6 +335,41 @@ def test_resume_compares_resolved_options(shards, tmp_path):
     with pytest.raises(RispError, match=r"different options: gamma=.*→0\.123"):
         fit(_cfg(shards, tmp_path / "r", gamma=0.123, **kw), resume=True, progress=False)
     assert os.path.isfile(fit(same, resume=True, progress=False))
+
+
+def test_resume_keeps_the_gamma_the_run_trained_with(shards, tmp_path, monkeypatch):
+    """A default γ changed between a run's start and its resume (the hand's went 0.3 → 0.05) is refused, not taken
+    over silently: the checkpoint's own γ is what the resume is compared with."""
+    import risp_train.config as config
+
+    kw = dict(reg="stochastic", epochs=2, batch_size=8, checkpoint_every=3)
+    with pytest.raises(TrainingStopped):
+        fit(_cfg(shards, tmp_path / "r", **kw), progress=False, stop_after_step=5)
+    was = config.GAMMA_DEFAULTS["cube"]
+    monkeypatch.setitem(config.GAMMA_DEFAULTS, "cube", was / 2)
+    with pytest.raises(RispError, match=rf"different options: gamma={was!r}→{was / 2!r}"):
+        fit(_cfg(shards, tmp_path / "r", **kw), resume=True, progress=False)
+    assert os.path.isfile(fit(_cfg(shards, tmp_path / "r", gamma=was, **kw), resume=True, progress=False))
+
+
+def test_option_changes_reads_the_stored_runs_own_gamma():
+    """option_changes against a run's record: its γ and γ start win over today's defaults; a record from before the
+    late start ramped from step 0; without a regularizer on either side γ's start is not compared."""
+    from risp_train.config import GAMMA_DEFAULTS, GAMMA_START_DEFAULTS
+    from risp_train.train import option_changes
+
+    stored = make_config("shards", "out", preset="cpu", reg="stochastic").to_dict()  # γ, start: the defaults then
+    today = make_config("shards", "out", preset="cpu", reg="stochastic")
+    assert option_changes(stored, today, "hand") == []  # nothing recorded: compared as resolved today
+    old_hand = {"gamma": 0.3, "gamma_start": 0.0}
+    assert option_changes(stored, today, "hand", used=old_hand) == [f"gamma=0.3→{GAMMA_DEFAULTS['hand']!r}"]
+    assert option_changes(stored, make_config("shards", "out", preset="cpu", reg="stochastic", gamma=0.3), "hand",
+                          used=old_hand) == []
+    before_late_start = {"gamma": GAMMA_DEFAULTS["cube"]}  # no gamma_start: the ramp began at the first step
+    assert option_changes(stored, today, "cube", used=before_late_start) == [
+        f"gamma_start=0.0→{GAMMA_START_DEFAULTS['cube']!r}"]
+    plain = make_config("shards", "out", preset="cpu", reg="none")
+    assert option_changes(plain.to_dict(), plain, "cube", used={"gamma": 0.0}) == []
 
 
 def test_images_too_small_for_the_network_are_refused_before_a_run_folder(tmp_path):
