@@ -7,6 +7,7 @@ import os
 
 import numpy as np
 import pytest
+import torch
 from click.testing import CliRunner
 
 from tasks_helpers import RES, shared_model, shared_video, vehicle_obj
@@ -197,6 +198,46 @@ def test_control_reaches_towards_pictured_state(quad, tmp_path):
         d = np.asarray(reached) - np.asarray(pictured)
         d[3:] = (d[3:] + np.pi) % (2 * np.pi) - np.pi  # yaw, pitch, roll
         assert r["errors"][f"goal_rmse_{when}"] == pytest.approx(float(np.sqrt(np.mean(d ** 2))), rel=1e-9)
+
+
+def test_control_with_make_videos_whole_truth_aims_at_its_last_state(quad, tmp_path):
+    """``--truth`` of a whole make-video run (one row per frame): the pictured state is its last row — for the
+    errors, for the oracle loss (which took the first row) and for the plot (which failed on the row count)."""
+    from risp_data.envs import get_environment
+    from risp_tasks.video import read_video, write_video
+
+    model, video = quad
+    write_video(tmp_path / "goal", read_video(video).frames[-1:], fps=10)
+    truth_file = _stem(video) + ".truth.json"
+    rows = np.asarray(json.load(open(truth_file))["env_states"])
+    r = _run("control", str(tmp_path / "goal" / "frame_00000.png"), tmp_path / "ctl", model=model, horizon=3,
+             iterations=1, loss="oracle", plots=True, truth=truth_file)
+    assert (tmp_path / "ctl" / "trajectory.png").is_file()
+    env = get_environment("quadrotor")
+    reached = torch.tensor([r["initial"]["reached_env_state"]], dtype=torch.float64)
+    for row, equal in ((rows[-1], True), (rows[0], False)):
+        d = env.state_to_target(reached) - env.state_to_target(torch.tensor(row[None], dtype=torch.float64))
+        assert (r["loss"][0] == pytest.approx(float(d.pow(2).sum()), rel=1e-6)) is equal
+    d = np.asarray(r["initial"]["reached_env_state"]) - rows[-1]
+    d[3:] = (d[3:] + np.pi) % (2 * np.pi) - np.pi
+    assert r["errors"]["goal_rmse_initial"] == pytest.approx(float(np.sqrt(np.mean(d ** 2))), rel=1e-9)
+
+
+def test_fps_resampling_keeps_the_actions_timeline_and_reads_the_truth_at_the_videos_rate(quad, tmp_path):
+    """--fps: the actions file has one row per resampled frame whatever --every keeps (6 frames at 10 fps, --fps 10
+    --every 2 kept 3 and asked for 5 rows), and the ground truth, written at the video's own rate, is read at the
+    decoded frames the resampling kept (at --fps 5: truth rows 0, 2, 4, not 0, 1, 2)."""
+    model, video = quad
+    truth_file = _stem(video) + ".truth.json"
+    r = _run("estimate", video, tmp_path / "a", model=model, fps=10, every=2, actions=_stem(video) + ".actions.csv",
+             iterations=0, plots=False)
+    assert r["video"]["frames"] == 6 and r["video"]["kept"] == [0, 2, 4]
+    r = _run("estimate", video, tmp_path / "b", model=model, fps=5, truth=truth_file, iterations=0, plots=False)
+    assert r["video"]["kept"] == [0, 1, 2] and r["video"]["decoded_kept"] == [0, 2, 4] and r["video"]["fps"] == 5
+    true = np.asarray(json.load(open(truth_file))["env_states"])[[0, 2, 4]]
+    d = np.asarray(r["estimates"]["env_states"]) - true
+    d[:, 3:] = (d[:, 3:] + np.pi) % (2 * np.pi) - np.pi
+    assert r["errors"]["state_rmse_final"] == pytest.approx(float(np.sqrt(np.mean(d ** 2))), rel=1e-9)
 
 
 def test_imitate_as_written_uses_the_most_recent_run(quad, tmp_path, monkeypatch):

@@ -39,7 +39,11 @@ def resolve_model(cfg: TaskConfig) -> tuple[str, str]:
 
 
 def _reference(cfg: TaskConfig, resolution: int):
-    """(frames (T, r, r, 3), keep, n_source, fps, sha256) — a video, or for ``control`` one goal image."""
+    """(frames (T, r, r, 3), keep, n_source, fps, sha256, source) — a video, or for ``control`` one goal image.
+
+    ``keep`` are the kept frames' indices on the simulation timeline of ``n_source`` frames at ``fps`` (one actions
+    row each); ``source`` = (the kept frames' indices among the decoded frames, their count, their rate): where a
+    ground truth written at the video's own rate is read (with ``--fps`` the two timelines differ)."""
     if cfg.task == "control":
         from ..video import read_rgb8, resize, sha256_file, srgb_to_linear
 
@@ -53,12 +57,16 @@ def _reference(cfg: TaskConfig, resolution: int):
         except Exception as e:  # noqa: BLE001 - PIL raises several types
             raise RispError(f"{path}: cannot read the target image ({type(e).__name__})") from None
         frames = resize(srgb_to_linear(img)[None], resolution)
-        return frames, [0], 1, float(cfg.fps or 10.0), sha256_file(path)
+        return frames, [0], 1, float(cfg.fps or 10.0), sha256_file(path), None
+    from ..video import sample_indices
+
     ref = read_reference(cfg.video, resolution, cfg.every, cfg.fps, cfg.source_fps)
+    source = (ref.indices, ref.n_source, ref.source_fps)
     if cfg.fps is not None:  # the timeline is the resampled one (an actions file has one row per resampled frame)
-        return ref.video.frames, list(range(0, len(ref.video.frames) * cfg.every, cfg.every)), \
-            (len(ref.video.frames) - 1) * cfg.every + 1, float(cfg.fps), ref.sha256
-    return ref.video.frames, ref.indices, ref.n_source, ref.source_fps, ref.sha256
+        n_resampled = len(sample_indices(ref.n_source, ref.source_fps, cfg.fps, 1))
+        return ref.video.frames, list(range(0, n_resampled, cfg.every)), n_resampled, float(cfg.fps), ref.sha256, \
+            source
+    return ref.video.frames, ref.indices, ref.n_source, ref.source_fps, ref.sha256, source
 
 
 def run_task(cfg: TaskConfig, echo=print) -> dict:
@@ -89,7 +97,7 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
         from .features import feature_extractor
 
         features = feature_extractor(cfg.perceptual_weights)
-    frames, keep, n_source, fps, video_sha = _reference(cfg, predictor.resolution)
+    frames, keep, n_source, fps, video_sha, source = _reference(cfg, predictor.resolution)
     if cfg.task in ("sysid", "imitate") and len(frames) < 2:  # nothing moves in one frame: the start would be the result
         raise RispError(f"{cfg.video}: {cfg.task} needs at least 2 frames (the initial state and its velocity are read "
                         f"from the first two), got {len(frames)} after --every {cfg.every}"
@@ -131,14 +139,17 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
                                  config=nominal_rendering(env_name, "train"), boundary=cfg.gradient)
         if camera is not None:
             set_camera(renderer.renderer, camera)
-    truth_targets = None
+    truth_targets, truth_rows = None, None
     if truth is not None:
         truth_states = torch.tensor(truth["env_states"], dtype=torch.float64)
-        if cfg.task != "control":
-            if len(truth_states) < n_source:
-                raise RispError(f"{cfg.truth}: {len(truth_states)} ground-truth states, the video has {n_source} frames")
-            truth_states = truth_states[keep]
-        truth_targets = env.state_to_target(truth_states)
+        if cfg.task == "control":  # the pictured state is the truth's last (make-video writes the whole run)
+            truth_rows = [len(truth_states) - 1]
+        else:  # one row per decoded frame, at the video's own rate (also with --fps)
+            rows, n_decoded, _ = source
+            if len(truth_states) < n_decoded:
+                raise RispError(f"{cfg.truth}: {len(truth_states)} ground-truth states, the video has {n_decoded} frames")
+            truth_rows = list(rows)
+        truth_targets = env.state_to_target(truth_states[truth_rows])
     timer = Timer()
     loss = make_loss(cfg.loss, env, loss_frames, predicted_targets.double(), truth_targets, frames_t,
                      predictor=predictor, renderer=renderer, timer=timer, features=features, residual=cfg.residual)
@@ -162,7 +173,9 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
     result = {
         "task": cfg.task, "env": env_name, "config": cfg.to_dict(), "seed": cfg.seed,
         "model": {"path": model_path, "sha256": sha256_file(model_path)},
-        "video": {"path": cfg.video, "sha256": video_sha, "frames": n_source, "kept": keep, "fps": fps},
+        "video": {"path": cfg.video, "sha256": video_sha, "frames": n_source, "kept": keep, "fps": fps,
+                  **({"decoded_frames": source[1], "decoded_kept": list(source[0]), "decoded_fps": source[2]}
+                     if source else {})},
         "estimates": problem.estimates(), "initial": initial_estimates,
         "loss": history["loss"], "final_loss": history["final_loss"], "last_loss": history["last_loss"],
         "best_iteration": history["best_iteration"],
@@ -180,7 +193,7 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
                                 "seconds_per_iteration": warm["seconds_per_iteration"]}
     if features is not None:
         result["info"] = {**problem.info, "perceptual_extractor": features.name}
-    result["errors"] = _errors(cfg, env, sim, truth, keep, loss_frames, initial_states, final_states, predicted,
+    result["errors"] = _errors(cfg, env, sim, truth, truth_rows, loss_frames, initial_states, final_states, predicted,
                                initial_estimates, result["estimates"])
     warning = None
     if cfg.loss in IMAGE_LOSSES:
@@ -198,7 +211,8 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
 
             write_actions(folder.path("actions.csv"), env_name, np.asarray(result["estimates"]["actions"]), fps)
         if cfg.plots:
-            _plots(folder, cfg, env, ctx, loss_frames, initial_states, final_states, truth, history, renderer)
+            _plots(folder, cfg, env, ctx, loss_frames, initial_states, final_states, truth, history, renderer,
+                   truth_fps=source[2] if source else fps)
         result["out"] = folder.commit()
     except BaseException:
         folder.discard()
@@ -228,15 +242,17 @@ def _view(cfg, renderer, loss_frames, initial_states, final_states) -> tuple[dic
                   f"--loss state, or --grow-horizon (docs/tasks.md §Out of view)")
 
 
-def _errors(cfg, env, sim, truth, keep, loss_frames, initial_states, final_states, predicted, initial, final) -> dict:
-    """Errors against the ground truth (when given): state RMSE per frame, parameter errors."""
+def _errors(cfg, env, sim, truth, truth_rows, loss_frames, initial_states, final_states, predicted, initial,
+            final) -> dict:
+    """Errors against the ground truth (when given; ``truth_rows``: its rows that go with the compared frames, for
+    ``control`` the pictured last one): state RMSE per frame, parameter errors."""
     if truth is None:
         return {}
     from .simulate import wrap_angles
 
     angular = [n in ("yaw", "pitch", "roll") for n in env.state_names]
     true = torch.tensor(truth["env_states"], dtype=torch.float64)
-    true = true[keep] if cfg.task != "control" else true
+    true = true[truth_rows]
     out = {}
     if cfg.task == "control":  # the goal is the truth's last state, the reached one the simulation's last frame
         def goal_rmse(states):
@@ -292,7 +308,8 @@ def _write_estimate_csv(path: str, ctx: Context, states: torch.Tensor, provenanc
     write_trajectory_csv(path, cols, sidecar)
 
 
-def _plots(folder, cfg, env, ctx, loss_frames, initial_states, final_states, truth, history, renderer) -> None:
+def _plots(folder, cfg, env, ctx, loss_frames, initial_states, final_states, truth, history, renderer, *,
+           truth_fps: float) -> None:
     plot_loss(folder.path("loss.png"), history["loss"], f"{cfg.task} ({env.name}), loss {cfg.loss}")
     t_keep = np.asarray(ctx.keep, np.float64) / ctx.fps
     if cfg.task == "control":
@@ -304,8 +321,8 @@ def _plots(folder, cfg, env, ctx, loss_frames, initial_states, final_states, tru
     curves = {"network N(video)": (t_keep if cfg.task != "control" else t_sim[-1:], ctx.predicted.numpy()),
               "initial": (t_sim, initial_states.numpy()), "optimized": (t_sim, final_states.numpy())}
     if truth is not None:
-        true = np.asarray(truth["env_states"], np.float64)
-        curves["truth"] = (np.arange(len(true)) / ctx.fps if cfg.task != "control" else t_sim[-1:], true)
+        true = np.asarray(truth["env_states"], np.float64)  # one row per decoded frame, at the video's own rate
+        curves["truth"] = (np.arange(len(true)) / truth_fps, true) if cfg.task != "control" else (t_sim[-1:], true[-1:])
     plot_trajectories(folder.path("trajectory.png"), env.state_names, None, curves)
     if renderer is None:
         return
