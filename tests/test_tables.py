@@ -429,6 +429,12 @@ def test_feature_extractors(tmp_path):
     assert vgg.name == "vgg16-relu2_2"
     assert torch.equal(vgg.features[0].weight, state["features.0.weight"])
     assert vgg(x.float().detach()).shape == (2, 128 * 8 * 8)
+    dark = x.float().detach().clone()  # an exactly black (or negative) pixel has a finite gradient, not NaN
+    dark[0, :4, :4] = 0.0
+    dark[1, :2, :2] = -0.01
+    dark.requires_grad_(True)
+    vgg(dark).square().sum().backward()
+    assert torch.isfinite(dark.grad).all() and dark.grad.abs().sum() > 0
     (tmp_path / "bad.pth").write_bytes(b"not a state dict")
     with pytest.raises(RispError, match="bad.pth: not a torchvision vgg16 state dict"):
         feature_extractor(str(tmp_path / "bad.pth"))

@@ -3,6 +3,7 @@ non-zero exit, and no result folder (not even a half-written one)."""
 
 import json
 import os
+import numpy as np
 import pytest
 from click.testing import CliRunner
 
@@ -79,6 +80,28 @@ def test_actions_wrong_width_and_nan(quad, tmp_path):
     line = _invoke(["sysid", video, "--model", model, "--actions", str(tmp_path / "wide.csv")], tmp_path)
     assert "wide.csv" in line and "unexpected column(s) f4" in line and "t,f0,f1,f2,f3" in line
     assert b"\r" not in open(_actions(video), "rb").read()  # written with plain newlines
+
+
+def test_actions_from_a_spreadsheet_read_as_written():
+    """A UTF-8 byte-order mark (Excel's "CSV UTF-8") and a blank last line are not errors: the file reads as the
+    plain one; a blank line is no row (the count check still applies)."""
+    import tempfile
+
+    from risp_data.errors import RispError
+    from risp_tasks.tasks.inputs import read_actions
+
+    plain = "t,f0,f1,f2,f3\n" + "".join(f"{i / 10},{i},1,2,3\n" for i in range(3))
+    with tempfile.TemporaryDirectory() as d:
+        ref = os.path.join(d, "plain.csv")
+        open(ref, "w").write(plain)
+        expected = read_actions(ref, "quadrotor", 3)
+        for name, data in (("bom.csv", "\ufeff" + plain), ("blank.csv", plain + "\n"), ("crlf.csv", plain.replace("\n", "\r\n"))):
+            path = os.path.join(d, name)
+            open(path, "w", encoding="utf-8", newline="").write(data)
+            assert np.array_equal(read_actions(path, "quadrotor", 3), expected), name
+        with pytest.raises(RispError, match="2 action rows but the video has 3 frames"):
+            open(path, "w").write("t,f0,f1,f2,f3\n0,1,1,1,1\n\n0.1,1,1,1,1\n\n")
+            read_actions(path, "quadrotor", 3)
 
 
 def test_model_for_another_environment(quad, tmp_path):
@@ -457,3 +480,7 @@ def test_a_frame_rate_off_the_hands_fixed_step_lists_the_ones_that_fit():
         timeline("hand", 30.0)
     assert timeline("quadrotor", 30.0)[1] == 3  # the quadrotor sets its step to 1/90 s instead
     assert timeline("hand", 25.0)[1] == 4
+    assert timeline("rod", 100 / 3)[1] == 3 and timeline("hand", 33.3)[1] == 3  # 0.1 % off: fits
+    for fps in (7.0, 9.8, 11.0, 14.0):  # 1-2 % off the nearest fitting rate: the simulated time would drift
+        with pytest.raises(RispError, match=f"{fps:g} frames per second do not fit"):
+            timeline("hand", fps)

@@ -75,7 +75,10 @@ def test_fitted_initial_state_starts_at_the_estimates_and_its_gradient_matches_c
         assert np.allclose(s0()[0, 10:13].numpy(), 1.0 * x[1, 3:6].numpy())
     info = s0.info()
     assert info["initial_state_fitted"] is True
-    assert np.allclose(info["initial_state_offsets"], (s0.step * x).detach().numpy())
+    offsets = np.asarray(info["initial_state_offsets"])  # what s₀ uses: σ ⊙ x, the second row's angles ω₀ in rad/s
+    assert np.allclose(offsets[0], (s0.step * x[0]).detach().numpy())
+    assert np.allclose(offsets[1, :3], (s0.step[:3] * x[1, :3]).detach().numpy())
+    assert np.allclose(offsets[1, 3:6], s0()[0, 10:13].detach().numpy())
 
 
 def test_default_fits_where_the_video_gives_the_initial_state_and_the_rod_keeps_rest():

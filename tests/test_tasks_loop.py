@@ -259,3 +259,24 @@ def test_a_result_folder_has_the_usual_permissions(tmp_path):
         os.umask(old)
     assert stat.S_IMODE(os.stat(out).st_mode) == 0o755
     assert os.path.isfile(os.path.join(out, "result.json"))
+
+
+def test_result_json_is_strict_json(tmp_path):
+    """A non-finite number (the last iterate's loss after a diverging final step) is written as null: strict
+    parsers (jq, JavaScript) read the file; arrays and tensors are lists."""
+    import json
+    import os
+
+    import numpy as np
+    import torch
+
+    from risp_tasks.tasks.results import ResultFolder
+
+    folder = ResultFolder(str(tmp_path / "res"))
+    folder.write_json("result.json", {"last_loss": float("nan"), "final_loss": 0.5, "loss": [1.0, float("inf")],
+                                      "x": np.arange(2), "t": torch.tensor([1.5]), "m": np.float64(2.0)})
+    out = folder.commit()
+    text = open(os.path.join(out, "result.json")).read()
+    assert "NaN" not in text and "Infinity" not in text
+    data = json.loads(text, parse_constant=lambda c: pytest.fail(f"non-strict constant {c}"))
+    assert data == {"last_loss": None, "final_loss": 0.5, "loss": [1.0, None], "x": [0, 1], "t": [1.5], "m": 2.0}

@@ -14,6 +14,8 @@ from .fit import make_segments, predict
 from .residuals import one_step, unit_of
 from risp_data.atomic import atomic_write, write_text_atomic
 
+from ..strict_json import strict_json
+
 PLOTS = {
     "residuals_time": "residuals_over_time.png",
     "residuals_regressors": "residuals_vs_regressors.png",
@@ -36,25 +38,6 @@ def _savefig(fig, path: Path) -> None:
             fig.savefig(f, format="png", dpi=110, bbox_inches="tight")
 
     _named(path, write)
-
-
-def _json_default(o):
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(type(o))
-
-
-def _clean(o):
-    """NaN/inf -> None so that report.json is strict JSON."""
-    if isinstance(o, float):
-        return o if math.isfinite(o) else None
-    if isinstance(o, dict):
-        return {k: _clean(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_clean(v) for v in o]
-    return o
 
 
 # ------------------------------------------------------------------------------------------------
@@ -346,6 +329,6 @@ def write_report(report: dict, cfg, evaluated, base_ev, ext_ev, fit_trajs, held_
     else:  # a report rewritten without plots: an earlier report's PNGs here would pass for this one's
         for fn in PLOTS.values():
             (out / fn).unlink(missing_ok=True)
-    text = json.dumps(_clean(report), indent=2, default=_json_default)
+    text = json.dumps(strict_json(report), indent=2, allow_nan=False)
     _named(out / "report.json", lambda: write_text_atomic(out / "report.json", text))
     _named(out / "report.md", lambda: write_text_atomic(out / "report.md", markdown(report)))

@@ -75,8 +75,21 @@ class VGGBlock(torch.nn.Module):
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1))
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        x = (images.clamp(min=0) ** (1 / 2.2)).permute(0, 3, 1, 2)  # linear → display-like, as ImageNet saw
+        x = display_gamma(images).permute(0, 3, 1, 2)  # linear → display-like, as ImageNet saw
         return self.features((x - self.mean.to(x.dtype)) / self.std.to(x.dtype)).flatten(1)
+
+
+#: Below this linear value the display curve x^(1/2.2) continues as the straight line to 0: the power's
+#: derivative is infinite at 0, and one exactly black pixel made the perceptual loss's gradient NaN.
+GAMMA_TOE = 1e-4
+
+
+def display_gamma(x: torch.Tensor) -> torch.Tensor:
+    """x^(1/2.2) for x ≥ GAMMA_TOE, the straight line from 0 to that point below it (continuous, finite slope);
+    negative values count as 0."""
+    x = x.clamp(min=0)
+    p = 1 / 2.2
+    return torch.where(x >= GAMMA_TOE, x.clamp(min=GAMMA_TOE) ** p, x * GAMMA_TOE ** (p - 1))
 
 
 def feature_extractor(weights: str | None) -> torch.nn.Module:

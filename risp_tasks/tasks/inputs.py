@@ -93,7 +93,7 @@ def read_actions(path: str, env: str, n_frames: int) -> np.ndarray:
     if not os.path.isfile(path):
         raise RispError(f"{path}: actions file not found")
     try:
-        with open(path, newline="") as f:
+        with open(path, newline="", encoding="utf-8-sig") as f:  # -sig: a spreadsheet's byte-order mark is no column
             rows = list(csv.reader(f))
     except (OSError, UnicodeDecodeError) as e:
         raise RispError(f"{path}: cannot read actions CSV ({type(e).__name__})") from None
@@ -111,6 +111,8 @@ def read_actions(path: str, env: str, n_frames: int) -> np.ndarray:
     idx = [header.index(c) for c in cols]
     data = []
     for i, row in enumerate(rows[1:], start=2):
+        if not row:  # a blank line (a trailing newline too many): no row
+            continue
         if len(row) != len(header):
             raise RispError(f"{path}: line {i} has {len(row)} fields, header has {len(header)}")
         try:

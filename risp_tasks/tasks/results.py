@@ -15,6 +15,8 @@ import numpy as np
 from risp_data.atomic import temp_folder
 from risp_data.errors import RispError
 
+from ..strict_json import strict_json
+
 
 def check_free(out: str) -> None:
     if os.path.exists(out):
@@ -52,8 +54,10 @@ class ResultFolder:
         return os.path.join(self.tmp, name)
 
     def write_json(self, name: str, data: dict) -> None:
+        """Strict JSON (what jq and JavaScript parse): a non-finite number, e.g. the last iterate's loss after a
+        diverging final step, is written as null."""
         with open(self.path(name), "w") as f:
-            json.dump(data, f, indent=1, default=_plain)
+            json.dump(strict_json(data), f, indent=1, allow_nan=False)
 
     def commit(self) -> str:
         check_free(self.out)
@@ -62,12 +66,6 @@ class ResultFolder:
 
     def discard(self) -> None:
         shutil.rmtree(self.tmp, ignore_errors=True)
-
-
-def _plain(x):
-    if hasattr(x, "tolist"):
-        return x.tolist()
-    raise TypeError(type(x).__name__)
 
 
 def plot_loss(path: str, history: list[float], title: str) -> None:
