@@ -72,7 +72,8 @@ def _av():
     return av
 
 
-def _decode_file(path: Path) -> tuple[list[np.ndarray], float]:
+def _decode_file(path: Path, each=lambda img: img) -> tuple[list[np.ndarray], float]:
+    """(``each`` of every decoded (H, W, 3) uint8 frame, the stream's frame rate)."""
     av = _av()
     try:
         with av.open(str(path)) as container:
@@ -81,7 +82,7 @@ def _decode_file(path: Path) -> tuple[list[np.ndarray], float]:
                 raise RispError(f"{path}: not a video (no video stream)")
             stream = streams[0]
             rate = stream.average_rate or stream.base_rate or stream.guessed_rate
-            frames = [f.to_ndarray(format="rgb24") for f in container.decode(stream)]
+            frames = [each(f.to_ndarray(format="rgb24")) for f in container.decode(stream)]
     except RispError:
         raise
     except Exception as e:  # noqa: BLE001 - PyAV raises many error types (InvalidDataError, …)
@@ -119,19 +120,22 @@ def read_rgb8(path: str | os.PathLike) -> np.ndarray:
         return np.asarray(im.convert("RGB"))
 
 
-def _decode_pngs(folder: Path) -> list[np.ndarray]:
+def _decode_pngs(folder: Path, each=lambda img: img) -> list[np.ndarray]:
+    """``each`` of every frame of a PNG folder, in name order (the frames must share one size)."""
     files = png_frames(folder)
     if not files:
         raise RispError(f"{folder}: folder holds no .png frames")
-    out = []
+    out, first = [], None
     for f in files:
         try:
-            out.append(read_rgb8(f))
+            img = read_rgb8(f)
         except Exception as e:  # noqa: BLE001 - PIL raises several types
             raise RispError(f"{f}: cannot read PNG frame ({type(e).__name__}{': ' + str(e) if isinstance(e, ValueError) else ''})") from None
-        if out[-1].shape != out[0].shape:
-            raise RispError(f"{f}: PNG frame of {out[-1].shape[1]}×{out[-1].shape[0]} pixels, but {files[0].name} "
-                            f"has {out[0].shape[1]}×{out[0].shape[0]}: the frames of a video share one size")
+        first = img.shape if first is None else first
+        if img.shape != first:
+            raise RispError(f"{f}: PNG frame of {img.shape[1]}×{img.shape[0]} pixels, but {files[0].name} "
+                            f"has {first[1]}×{first[0]}: the frames of a video share one size")
+        out.append(each(img))
     return out
 
 
@@ -184,21 +188,27 @@ def read_video(path: str | os.PathLike, resolution: int | None = None, every: in
         raise RispError(f"{p}: no such file or folder")
     if source_fps is not None and not (math.isfinite(source_fps) and source_fps > 0):
         raise RispError(f"--source-fps must be a positive finite number, got {source_fps:g}")
+    def each(img: np.ndarray) -> np.ndarray:
+        """A decoded frame as kept until the sampling below: at the network's resolution when one is given (a
+        full-size copy of every frame of a long 1080p clip would not fit in memory), else as decoded."""
+        return img if resolution is None else resize(srgb_to_linear(img[None].astype(np.float32) / 255.0),
+                                                     int(resolution))[0]
+
     if p.is_dir():
-        raw, rate = _decode_pngs(p), float(source_fps or 0.0)
+        raw, rate = _decode_pngs(p, each), float(source_fps or 0.0)
     else:
         if p.stat().st_size == 0:
             raise RispError(f"{p}: empty file (0 bytes)")
-        raw, rate = _decode_file(p)
+        raw, rate = _decode_file(p, each)
         rate = float(source_fps or rate)
     if not raw:
         raise RispError(f"{p}: the video has no frames")
     idx = sample_indices(len(raw), rate, fps, every)
     if not idx:
         raise RispError(f"{p}: no frames left after --fps {fps} / --every {every}")
-    frames = srgb_to_linear(np.stack([raw[i] for i in idx]).astype(np.float32) / 255.0)
-    if resolution is not None:
-        frames = resize(frames, int(resolution))
+    frames = np.stack([raw[i] for i in idx])
+    if resolution is None:
+        frames = srgb_to_linear(frames.astype(np.float32) / 255.0)
     out_fps = (fps if fps is not None else rate) / every if (fps or rate) else 0.0
     return Video(frames=frames, fps=float(out_fps), source=str(p), source_frames=len(raw), indices=tuple(idx),
                  source_fps=float(rate))

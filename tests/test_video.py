@@ -113,3 +113,27 @@ def test_png_frames_of_every_depth_and_case(tmp_path):
     Image.fromarray(np.zeros((8, 16, 3), np.uint8)).save(folder / "frame_00004.png")
     with pytest.raises(RispError, match=r"frame_00004.png: PNG frame of 16×8 pixels, but frame_00000.png has 16×16"):
         read_video(folder, source_fps=10)
+
+
+@pytest.mark.parametrize("name", ["clip.mp4", "frames"])
+def test_frames_are_reduced_to_the_resolution_as_they_are_decoded(tmp_path, name):
+    """A task's video is held at the network's resolution, not at the camera's: 40 frames of 512×512 are 31 MB
+    as decoded (the whole clip used to be kept so until the sampling); read at 16×16 the peak stays below that —
+    and the frames equal those resized after decoding at full size."""
+    import tracemalloc
+
+    from risp_tasks.video import resize
+
+    rng = np.random.default_rng(0)
+    path = str(tmp_path / name)
+    write_video(path, rng.random((40, 512, 512, 3)).astype(np.float32) * 0.1, fps=10)
+    tracemalloc.start()
+    try:
+        small = read_video(path, resolution=16, every=3)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert small.frames.shape == (14, 16, 16, 3) and small.source_frames == 40
+    # below the decoded clip's own 31 MB (measured: 14 MB, one frame's float temporaries; 190-220 MB before)
+    assert peak < 40 * 512 * 512 * 3, peak
+    assert np.array_equal(small.frames, resize(read_video(path, every=3).frames, 16))
