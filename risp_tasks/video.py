@@ -41,6 +41,10 @@ def srgb_to_linear(x: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
+#: srgb_to_linear of every 8-bit value: a frame converts by table look-up, to the same bits as the formula.
+SRGB8_TO_LINEAR = srgb_to_linear(np.arange(256, dtype=np.float32) / 255.0)
+
+
 def linear_to_srgb(x: np.ndarray) -> np.ndarray:
     x = np.clip(np.asarray(x, np.float32), 0.0, 1.0)
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055).astype(np.float32)
@@ -72,9 +76,26 @@ def _av():
     return av
 
 
+class _Converting(Exception):
+    """An error of a frame's conversion (``each``), not of the decoder: re-raised as what it was."""
+
+
 def _decode_file(path: Path, each=lambda img: img) -> tuple[list[np.ndarray], float]:
     """(``each`` of every decoded (H, W, 3) uint8 frame, the stream's frame rate)."""
     av = _av()
+    first = None
+
+    def convert(img: np.ndarray) -> np.ndarray:
+        nonlocal first
+        first = img.shape if first is None else first
+        if img.shape != first:  # one size per video (a resized frame would hide the change)
+            raise RispError(f"{path}: the frame size changes from {first[1]}×{first[0]} to {img.shape[1]}×{img.shape[0]} "
+                            "pixels within the video")
+        try:
+            return each(img)
+        except Exception as e:  # noqa: BLE001 - whatever the conversion raised, e.g. MemoryError
+            raise _Converting() from e
+
     try:
         with av.open(str(path)) as container:
             streams = container.streams.video
@@ -82,9 +103,11 @@ def _decode_file(path: Path, each=lambda img: img) -> tuple[list[np.ndarray], fl
                 raise RispError(f"{path}: not a video (no video stream)")
             stream = streams[0]
             rate = stream.average_rate or stream.base_rate or stream.guessed_rate
-            frames = [each(f.to_ndarray(format="rgb24")) for f in container.decode(stream)]
+            frames = [convert(f.to_ndarray(format="rgb24")) for f in container.decode(stream)]
     except RispError:
         raise
+    except _Converting as e:
+        raise e.__cause__ from None
     except Exception as e:  # noqa: BLE001 - PyAV raises many error types (InvalidDataError, …)
         raise RispError(f"{path}: cannot decode as a video ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
     return frames, float(rate) if rate else 0.0
@@ -191,8 +214,7 @@ def read_video(path: str | os.PathLike, resolution: int | None = None, every: in
     def each(img: np.ndarray) -> np.ndarray:
         """A decoded frame as kept until the sampling below: at the network's resolution when one is given (a
         full-size copy of every frame of a long 1080p clip would not fit in memory), else as decoded."""
-        return img if resolution is None else resize(srgb_to_linear(img[None].astype(np.float32) / 255.0),
-                                                     int(resolution))[0]
+        return img if resolution is None else resize(SRGB8_TO_LINEAR[img][None], int(resolution))[0]
 
     if p.is_dir():
         raw, rate = _decode_pngs(p, each), float(source_fps or 0.0)

@@ -187,7 +187,8 @@ def option_changes(stored_config: dict, cfg: TrainConfig, env: str, used: dict |
     ``used`` is the stored run's own record of what it trained with (its checkpoint, or its ``config.json``): its
     ``gamma`` and ``gamma_start`` win over today's defaults, which may have changed since the run began (the hand's
     γ went from 0.3 to 0.05) — a resumed run must not switch to the new default half-way.  A record without
-    ``gamma_start`` predates the late start: its γ ramped in from the first step (0).  Without a regularizer on
+    ``gamma_start`` took its start from its own config (``--gamma-start`` was stored only there at first) and, where
+    that has none either, predates the late start: its γ ramped in from the first step (0).  Without a regularizer on
     either side γ and its start change nothing and are not compared."""
     def resolved(c: TrainConfig) -> dict:
         return {**c.to_dict(), "gamma": resolved_gamma(c, env), "gamma_start": resolved_gamma_start(c, env)}
@@ -196,7 +197,9 @@ def option_changes(stored_config: dict, cfg: TrainConfig, env: str, used: dict |
     if used is not None:
         if used.get("gamma") is not None:
             stored["gamma"] = float(used["gamma"])
-        stored["gamma_start"] = float(used.get("gamma_start") or 0.0)
+        start = used.get("gamma_start")  # not in the record: the run's own --gamma-start (stored only in its config
+        start = stored_config.get("gamma_start") if start is None else start  # for a while), else from step 0
+        stored["gamma_start"] = float(start or 0.0)
     if stored.get("reg") == "none" and now["reg"] == "none":
         stored["gamma_start"] = now["gamma_start"]
     return [f"{k}={stored.get(k)!r}→{now[k]!r}" for k in RESUME_FIELDS if stored.get(k) != now[k]]

@@ -368,6 +368,9 @@ def test_option_changes_reads_the_stored_runs_own_gamma():
     before_late_start = {"gamma": GAMMA_DEFAULTS["cube"]}  # no gamma_start: the ramp began at the first step
     assert option_changes(stored, today, "cube", used=before_late_start) == [
         f"gamma_start=0.0→{GAMMA_START_DEFAULTS['cube']!r}"]
+    own_start = {**stored, "gamma_start": 0.3}  # --gamma-start stored only in the config (before the record had it)
+    assert option_changes(own_start, make_config("shards", "out", preset="cpu", reg="stochastic", gamma_start=0.3),
+                          "cube", used=before_late_start) == []
     plain = make_config("shards", "out", preset="cpu", reg="none")
     assert option_changes(plain.to_dict(), plain, "cube", used={"gamma": 0.0}) == []
 

@@ -126,14 +126,33 @@ def test_frames_are_reduced_to_the_resolution_as_they_are_decoded(tmp_path, name
 
     rng = np.random.default_rng(0)
     path = str(tmp_path / name)
-    write_video(path, rng.random((40, 512, 512, 3)).astype(np.float32) * 0.1, fps=10)
+    write_video(path, rng.random((40, 512, 512, 3), dtype=np.float32) * 0.1, fps=10)
+    tracing = tracemalloc.is_tracing()  # a caller's own tracing (-X tracemalloc) is left on
     tracemalloc.start()
+    tracemalloc.reset_peak()
     try:
         small = read_video(path, resolution=16, every=3)
         peak = tracemalloc.get_traced_memory()[1]
     finally:
-        tracemalloc.stop()
+        if not tracing:
+            tracemalloc.stop()
     assert small.frames.shape == (14, 16, 16, 3) and small.source_frames == 40
     # below the decoded clip's own 31 MB (measured: 14 MB, one frame's float temporaries; 190-220 MB before)
     assert peak < 40 * 512 * 512 * 3, peak
     assert np.array_equal(small.frames, resize(read_video(path, every=3).frames, 16))
+
+
+def test_a_frame_conversion_error_is_not_called_a_decoding_error(tmp_path, monkeypatch):
+    """The frames are converted while the decoder runs; an error of the conversion (here out of memory) is raised as
+    what it is, not reported as "cannot decode as a video"."""
+    import risp_tasks.video as video
+
+    path = str(tmp_path / "clip.mp4")
+    write_video(path, np.full((3, 16, 16, 3), 0.5, np.float32), fps=10)
+
+    def no_memory(*_args, **_kw):
+        raise MemoryError("resize")
+
+    monkeypatch.setattr(video, "resize", no_memory)
+    with pytest.raises(MemoryError, match="resize"):
+        read_video(path, resolution=8)

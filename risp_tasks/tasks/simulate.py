@@ -28,7 +28,8 @@ def steps_per_frame(sim, fps: float) -> int:
         fitting = ", ".join(f"{1.0 / (j * sim.dt):.4g}" for j in (1, 2, 3, 4, 5, 10))
         raise RispError(f"{fps:g} frames per second do not fit the {sim.env} simulator's fixed step of {sim.dt:g} s "
                         f"(1/fps must be a multiple of it: {fitting}, … fps); a video at another rate can be "
-                        f"resampled with --fps")
+                        f"resampled with --fps, one whose file states a rate slightly off (24.9 for 25) given its own "
+                        f"with --source-fps")
     return k
 
 
