@@ -124,6 +124,18 @@ def _task_options(f):
     return f
 
 
+def _loss_change(result: dict) -> str:
+    """"loss A -> B": A the first loss over all compared frames (with --grow-horizon the first iterations compare
+    fewer, and a two-frame loss is not comparable with the final one), B the returned iterate's."""
+    loss, full = result["loss"], result.get("frames_compared")
+    if full:
+        first = next((i for i, n in enumerate(full) if n == full[-1]), None)
+        if first is None or first >= len(loss):
+            return f"loss {result['final_loss']:.4g} over all frames"
+        return f"loss {loss[first]:.4g} (iteration {first}, the first over all frames) -> {result['final_loss']:.4g}"
+    return f"loss {loss[0] if loss else result['final_loss']:.4g} -> {result['final_loss']:.4g}"
+
+
 def _run(task, video, **kw):
     from risp_tasks.tasks.config import TaskConfig
     from risp_tasks.tasks.run import run_task
@@ -133,8 +145,7 @@ def _run(task, video, **kw):
                      plots=not kw.pop("no_plots"), progress=not kw.pop("quiet"), **kw)
     result = run_task(cfg, echo=click.echo)
     loss = result["loss"]
-    click.echo(f"{task} ({result['env']}): loss {loss[0] if loss else result['final_loss']:.4g} -> {result['final_loss']:.4g} "
-               f"in {len(loss)} iterations; results: {result['out']}")
+    click.echo(f"{task} ({result['env']}): {_loss_change(result)} in {len(loss)} iterations; results: {result['out']}")
     if loss and result.get("best_iteration") == 0:
         kept = ("the warm start's result is kept" if result["config"].get("warm_start") else
                 "the start is kept — a smaller --lr or another --init may help")

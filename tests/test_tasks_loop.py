@@ -280,3 +280,14 @@ def test_result_json_is_strict_json(tmp_path):
     assert "NaN" not in text and "Infinity" not in text
     data = json.loads(text, parse_constant=lambda c: pytest.fail(f"non-strict constant {c}"))
     assert data == {"last_loss": None, "final_loss": 0.5, "loss": [1.0, None], "x": [0, 1], "t": [1.5], "m": 2.0}
+
+
+def test_the_summary_line_compares_full_horizon_losses():
+    """With --grow-horizon the first losses compare fewer frames: the CLI's "loss A -> B" takes A from the first
+    iteration over all frames, not the two-frame first loss."""
+    from risp_tasks.cli import _loss_change
+
+    grown = {"loss": [0.1, 0.5, 2.0, 1.5], "frames_compared": [2, 4, 6, 6], "final_loss": 1.2}
+    assert _loss_change(grown) == "loss 2 (iteration 2, the first over all frames) -> 1.2"
+    assert _loss_change({"loss": [3.0, 2.0], "final_loss": 1.5}) == "loss 3 -> 1.5"
+    assert _loss_change({"loss": [], "final_loss": 1.5}) == "loss 1.5 -> 1.5"
