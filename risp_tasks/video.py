@@ -230,7 +230,7 @@ def read_video(path: str | os.PathLike, resolution: int | None = None, every: in
         raise RispError(f"{p}: no frames left after --fps {fps} / --every {every}")
     frames = np.stack([raw[i] for i in idx])
     if resolution is None:
-        frames = srgb_to_linear(frames.astype(np.float32) / 255.0)
+        frames = SRGB8_TO_LINEAR[frames]
     out_fps = (fps if fps is not None else rate) / every if (fps or rate) else 0.0
     return Video(frames=frames, fps=float(out_fps), source=str(p), source_frames=len(raw), indices=tuple(idx),
                  source_fps=float(rate))

@@ -39,11 +39,12 @@ def resolve_model(cfg: TaskConfig) -> tuple[str, str]:
 
 
 def _reference(cfg: TaskConfig, resolution: int):
-    """(frames (T, r, r, 3), keep, n_source, fps, sha256, source) — a video, or for ``control`` one goal image.
+    """(frames (T, r, r, 3), keep, n_source, fps, sha256, ref) — a video, or for ``control`` one goal image.
 
     ``keep`` are the kept frames' indices on the simulation timeline of ``n_source`` frames at ``fps`` (one actions
-    row each); ``source`` = (the kept frames' indices among the decoded frames, their count, their rate): where a
-    ground truth written at the video's own rate is read (with ``--fps`` the two timelines differ)."""
+    row each); ``ref`` (inputs.Reference; None for ``control``) has the kept frames' indices among the decoded ones,
+    their count and rate: where a ground truth written at the video's own rate is read (with ``--fps`` the two
+    timelines differ)."""
     if cfg.task == "control":
         from ..video import read_rgb8, resize, sha256_file, srgb_to_linear
 
@@ -61,12 +62,10 @@ def _reference(cfg: TaskConfig, resolution: int):
     from ..video import sample_indices
 
     ref = read_reference(cfg.video, resolution, cfg.every, cfg.fps, cfg.source_fps)
-    source = (ref.indices, ref.n_source, ref.source_fps)
     if cfg.fps is not None:  # the timeline is the resampled one (an actions file has one row per resampled frame)
         n_resampled = len(sample_indices(ref.n_source, ref.source_fps, cfg.fps, 1))
-        return ref.video.frames, list(range(0, n_resampled, cfg.every)), n_resampled, float(cfg.fps), ref.sha256, \
-            source
-    return ref.video.frames, ref.indices, ref.n_source, ref.source_fps, ref.sha256, source
+        return ref.video.frames, list(range(0, n_resampled, cfg.every)), n_resampled, float(cfg.fps), ref.sha256, ref
+    return ref.video.frames, ref.indices, ref.n_source, ref.source_fps, ref.sha256, ref
 
 
 def run_task(cfg: TaskConfig, echo=print) -> dict:
@@ -97,7 +96,7 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
         from .features import feature_extractor
 
         features = feature_extractor(cfg.perceptual_weights)
-    frames, keep, n_source, fps, video_sha, source = _reference(cfg, predictor.resolution)
+    frames, keep, n_source, fps, video_sha, ref = _reference(cfg, predictor.resolution)
     if cfg.task in ("sysid", "imitate") and len(frames) < 2:  # nothing moves in one frame: the start would be the result
         raise RispError(f"{cfg.video}: {cfg.task} needs at least 2 frames (the initial state and its velocity are read "
                         f"from the first two), got {len(frames)} after --every {cfg.every}"
@@ -145,10 +144,9 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
         if cfg.task == "control":  # the pictured state is the truth's last (make-video writes the whole run)
             truth_rows = [len(truth_states) - 1]
         else:  # one row per decoded frame, at the video's own rate (also with --fps)
-            rows, n_decoded, _ = source
-            if len(truth_states) < n_decoded:
-                raise RispError(f"{cfg.truth}: {len(truth_states)} ground-truth states, the video has {n_decoded} frames")
-            truth_rows = list(rows)
+            if len(truth_states) < ref.n_source:
+                raise RispError(f"{cfg.truth}: {len(truth_states)} ground-truth states, the video has {ref.n_source} frames")
+            truth_rows = ref.indices
         truth_targets = env.state_to_target(truth_states[truth_rows])
     timer = Timer()
     loss = make_loss(cfg.loss, env, loss_frames, predicted_targets.double(), truth_targets, frames_t,
@@ -174,8 +172,8 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
         "task": cfg.task, "env": env_name, "config": cfg.to_dict(), "seed": cfg.seed,
         "model": {"path": model_path, "sha256": sha256_file(model_path)},
         "video": {"path": cfg.video, "sha256": video_sha, "frames": n_source, "kept": keep, "fps": fps,
-                  **({"decoded_frames": source[1], "decoded_kept": list(source[0]), "decoded_fps": source[2]}
-                     if source else {})},
+                  **({"decoded_frames": ref.n_source, "decoded_kept": ref.indices, "decoded_fps": ref.source_fps}
+                     if ref is not None else {})},
         "estimates": problem.estimates(), "initial": initial_estimates,
         "loss": history["loss"], "final_loss": history["final_loss"], "last_loss": history["last_loss"],
         "best_iteration": history["best_iteration"],
@@ -212,7 +210,7 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
             write_actions(folder.path("actions.csv"), env_name, np.asarray(result["estimates"]["actions"]), fps)
         if cfg.plots:
             _plots(folder, cfg, env, ctx, loss_frames, initial_states, final_states, truth, history, renderer,
-                   truth_fps=source[2] if source else fps)
+                   truth_fps=ref.source_fps if ref is not None else fps)
         result["out"] = folder.commit()
     except BaseException:
         folder.discard()
