@@ -261,6 +261,9 @@ def make_video(env, out, frames, fps, resolution, spp, domain, params, effect, c
 @click.option("--iterations", type=int, default=None, help="optimisation iterations [preset]")
 @click.option("--control-start", default=None, help="control: where the optimisers start, neutral (the `average` "
               "row's actions) | random [default: neutral]")
+@click.option("--residual", type=click.Choice(("l2", "l1")), default=None,
+              help="sysid/imitation/control: residual norm of the render, state and oracle losses [default: l2, "
+              "the paper's; risp-task sysid's own default is l1]")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--executor", type=click.Choice(("local", "ray")), default="local", show_default=True,
               help="ray: cells as Ray tasks (optional extra risp[ray])")
@@ -268,7 +271,7 @@ def make_video(env, out, frames, fps, resolution, spp, domain, params, effect, c
               help="local: cells computed at once, one single-threaded process each (0: one per available CPU)")
 @click.option("--quiet", is_flag=True, help="no progress bar")
 def table(table, preset, repeats, quick, out, envs, methods, reg, perceptual_weights, n_train, n_test, iterations,
-          control_start, seed, executor, jobs, quiet):
+          control_start, residual, seed, executor, jobs, quiet):
     """One of the paper's tables: every method on every environment, mean ± std over repeats (resumable)."""
     from risp_tasks.tables.config import make_config
     from risp_tasks.tables.grid import run_table
@@ -278,8 +281,8 @@ def table(table, preset, repeats, quick, out, envs, methods, reg, perceptual_wei
 
     cfg = make_config(table, preset=preset, quick=quick, out=out, repeats=repeats, envs=names(envs),
                       methods=names(methods), reg=reg, perceptual_weights=perceptual_weights, n_train=n_train,
-                      n_test=n_test, iterations=iterations, control_start=control_start, seed=seed, executor=executor, jobs=jobs,
-                      progress=not quiet)
+                      n_test=n_test, iterations=iterations, control_start=control_start, residual=residual, seed=seed,
+                      executor=executor, jobs=jobs, progress=not quiet)
     report = run_table(cfg, echo=click.echo)
     click.echo(open(report["files"][0]).read())
     click.echo(f"wrote {report['files'][0]} and {report['files'][1]}")

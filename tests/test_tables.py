@@ -72,11 +72,13 @@ def test_every_method_sysid_and_imitation(cache, tmp_path, monkeypatch):
     import risp_tasks.tasks.run as task_run
 
     residuals, real = [], task_run.run_task
-    monkeypatch.setattr(task_run, "run_task", lambda tcfg, **kw: residuals.append(tcfg.residual) or real(tcfg, **kw))
+    monkeypatch.setattr(task_run, "run_task",
+                        lambda tcfg, **kw: residuals.append((tcfg.loss, tcfg.residual)) or real(tcfg, **kw))
     cfg = make_config("sysid", quick=True, out=str(tmp_path), envs=("cube",), **TINY)
     report = run_table(cfg, cache=cache, echo=lambda *_: None)
-    # every cell keeps the squared residual the tables were made with (sysid's own default is l1)
-    assert len(residuals) == len(METHODS) and set(residuals) == {"l2"}, residuals
+    # by default every cell keeps the squared residual the tables were made with (sysid's own default is l1)
+    assert len(residuals) == len(METHODS) and {r for _, r in residuals} == {"l2"}, residuals
+    assert "- Residual of the network-space losses: `l2`" in open(report["files"][0]).read()
     cells = _cells(report, "cube")
     for m in METHODS:
         assert "na" not in cells[m] and math.isfinite(cells[m]["mean"]), (m, cells[m])
@@ -88,6 +90,27 @@ def test_every_method_sysid_and_imitation(cache, tmp_path, monkeypatch):
     cfg = make_config("imitation", quick=True, out=str(tmp_path), envs=("cube",), **TINY)
     cells = _cells(run_table(cfg, cache=cache, echo=lambda *_: None), "cube")
     assert all(e["na"] == "the cube has no actions" for e in cells.values())
+    # --residual l1: the network-space losses (render, state, oracle) take it, the image losses stay squared,
+    # in a folder of its own
+    residuals.clear()
+    cfg = make_config("sysid", quick=True, out=str(tmp_path), envs=("cube",), residual="l1",
+                      methods=("ours", "ours-state", "pixelwise", "oracle"), **TINY)
+    l1 = run_table(cfg, cache=cache, echo=lambda *_: None)
+    assert sorted(residuals) == [("oracle", "l1"), ("pixelwise", "l2"), ("render", "l1"), ("state", "l1")], residuals
+    assert l1["folder"] != report["folder"] and "- Residual of the network-space losses: `l1`" in open(l1["files"][0]).read()
+
+
+def test_the_residual_is_in_the_key_of_the_task_tables_only_when_not_l2(monkeypatch, tmp_path):
+    """Folders made before --residual existed (l2) keep their key; l1 changes sysid/imitation/control's only."""
+    from risp_tasks.tables import grid
+
+    keyed, real = [], grid.checksum
+    monkeypatch.setattr(grid, "checksum", lambda d: keyed.append(set(d)) or real(d))
+    for table in ("estimation", "sysid", "imitation", "control", "regularizers"):
+        folders = {r: run_folder(make_config(table, out=str(tmp_path), residual=r)) for r in ("l2", "l1")}
+        assert ("residual" in keyed[-1]) == (table in ("sysid", "imitation", "control")), table
+        assert "residual" not in keyed[-2], table
+        assert (folders["l1"] != folders["l2"]) == (table in ("sysid", "imitation", "control")), table
 
 
 def test_imitation_runs_on_an_actuated_system(cache, tmp_path):

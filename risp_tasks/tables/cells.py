@@ -121,13 +121,17 @@ def _task_run(cfg, art: Artifacts, task: str, env_name: str, method: str, repeat
     # optimisers start at the seeded random guess (``start="random"``) or, for control, at the neutral actions
     init = "default" if m.name == "average" or (start == "neutral" and m.loss is not None) else "random"
     iterations = 0 if m.loss is None else cfg.iterations
-    # the squared residual of every method, as the tables were made (sysid's own default is l1 since 2026-11-28)
+    # the residual norm of the network-space losses: the table's (l2 by default, as the tables were made; sysid's
+    # own default is l1 since 2026-11-28); the image losses (pixelwise, perceptual) are always squared
+    from risp_tasks.tasks.config import NETWORK_LOSSES
+
+    residual = cfg.residual if loss in NETWORK_LOSSES else "l2"
     with tempfile.TemporaryDirectory(prefix=".tmp-cell-", dir=art.root) as tmp:
         tcfg = TaskConfig(task=task, video=video or ref["video"], out=os.path.join(tmp, "result"), model=model,
                           loss=loss, init=init, iterations=iterations, seed=cfg.seed + repeat,
                           actions=None if task == "control" else ref["actions"], truth=truth or ref["truth"],
                           perceptual_weights=cfg.perceptual_weights if m.loss == "perceptual" else None,
-                          spp=cfg.spp, residual="l2", plots=False, progress=False, **task_kw)
+                          spp=cfg.spp, residual=residual, plots=False, progress=False, **task_kw)
         return run_task(tcfg, echo=lambda *_: None)
 
 

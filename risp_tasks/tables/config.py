@@ -41,6 +41,7 @@ class TableConfig:
     frames: int = 8  # reference-video frames (sysid, imitation; control: horizon)
     iterations: int = 40  # optimisation iterations of the optimising methods
     control_start: str = "neutral"  # control: the optimisers' initial actions, neutral (x = 0) | random (seeded)
+    residual: str = "l2"  # the task tables' residual norm in N's space (render/state/oracle losses): l2 (the paper's) | l1
     lr: float = 1e-2  # RMSProp step of the per-image state optimisation (estimation: pixelwise, perceptual)
     epochs: int | None = None  # training epochs (None: the risp-train preset's)
     width: int | None = None  # network width (None: the risp-train preset's)
@@ -120,6 +121,10 @@ def validate(cfg: TableConfig) -> None:
             raise RispError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(cfg, name)}")
     if cfg.iterations < 0 or not cfg.lr > 0:
         raise RispError("--iterations must be >= 0 and --lr > 0")
+    from risp_tasks.tasks.config import RESIDUALS
+
+    if cfg.residual not in RESIDUALS:
+        raise RispError(f"unknown residual {cfg.residual!r}; choose one of: {', '.join(RESIDUALS)}")
     if cfg.control_start not in CONTROL_STARTS:
         raise RispError(f"unknown control start {cfg.control_start!r}; choose one of: {', '.join(CONTROL_STARTS)}")
     if cfg.seed < 0:

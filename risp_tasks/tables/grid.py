@@ -48,8 +48,11 @@ def grid(cfg: TableConfig) -> list[Cell]:
 
 
 def run_folder(cfg: TableConfig) -> str:
-    # control_start changes only the control table's numbers: the other tables' keys stay as they were
+    # control_start changes only the control table's numbers, and the residual norm only the task tables' (its
+    # default l2 stays out of the key): the keys of the tables made before either option stay as they were
     skip = NOT_IN_KEY + (() if cfg.table == "control" else ("control_start",))
+    if cfg.residual == "l2" or cfg.table not in ("sysid", "imitation", "control"):
+        skip += ("residual",)
     key = checksum({k: v for k, v in cfg.to_dict().items() if k not in skip})
     return os.path.join(cfg.out, f"{cfg.table}-{cfg.preset}{'-quick' if cfg.quick else ''}-{key}")
 

@@ -120,6 +120,9 @@ def markdown(report: dict) -> str:
                       "`ours-state`: the `ours` network, `state` loss ‖s − N(I)‖ (no rendering).",
                   "- `perceptual` feature extractor: " + (f"`{report['perceptual_extractor']}` (risp_tasks/tasks/features.py)."
                                                           if report["perceptual_extractor"] else "not used in this table.")]
+        if report["table"] in ("sysid", "imitation", "control"):
+            lines += [f"- Residual of the network-space losses: `{cfg.get('residual', 'l2')}` (`render`, `state`, "
+                      "`oracle`; `pixelwise` and `perceptual` are squared image/feature differences)."]
     from .sampling import SAMPLING_FRAMES
 
     frames = SAMPLING_FRAMES if report["rows"] == "scheme" else cfg["frames"]
