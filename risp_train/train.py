@@ -205,6 +205,17 @@ def option_changes(stored_config: dict, cfg: TrainConfig, env: str, used: dict |
     return [f"{k}={stored.get(k)!r}→{now[k]!r}" for k in RESUME_FIELDS if stored.get(k) != now[k]]
 
 
+def helper_workers(shards, cache: str, world: int, workers: int) -> int:
+    """The data-worker processes that run beside each training process: streaming webdataset shards, each worker
+    needs a shard of its own, so ``--workers`` beyond the shards per rank start no process (``effective_workers``)
+    and must not take a CPU from the default thread count; the zarr stream and the memory set start them all."""
+    from .data import effective_workers
+
+    if cache == "stream" and shards.format == "wds":
+        return effective_workers(len(shards.counts), world, workers)
+    return max(0, workers)
+
+
 def check_resume_counts(state: dict, shards, cache: str, world: int, threads: int, workers: int, path: str, *,
                         quiet: bool) -> None:
     """Resuming with other process, worker or thread counts than a run began with.
@@ -304,7 +315,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
     # the same default from memory, although its workers only decode before the first step: a second torch thread
     # is 1.6x faster on an idle 2-core machine but 2-3x slower than one when the cores are shared (OpenMP's
     # threads spin; docs/PERFORMANCE.md §Training data in memory): --threads 2 is the user's call
-    threads = set_torch_threads(cfg.threads, workers=cfg.workers,
+    threads = set_torch_threads(cfg.threads, workers=helper_workers(shards, cache, world, cfg.workers),
                                 processes=int(os.environ.get("LOCAL_WORLD_SIZE", str(world))))
     if resuming:
         check_resume_counts(state, shards, cache, world, threads, cfg.workers, last_path, quiet=rank != 0)

@@ -305,6 +305,23 @@ def test_fit_sets_its_thread_count_and_gives_it_back(shards, tmp_path):
     assert json.load(open(tmp_path / "t" / "config.json"))["threads"] == 1
 
 
+def test_default_threads_leave_cpus_only_for_the_workers_that_start(shards, tmp_path, monkeypatch):
+    """Streaming 4 webdataset shards, --workers 6 starts 4 workers (one shard each at least): the default thread
+    count leaves 4 CPUs to them, not 6 (with 7 CPUs: 3 threads, not 1)."""
+    from risp_data import threads
+    from risp_train.data import open_shards
+
+    monkeypatch.setattr(threads, "available_cpus", lambda: 7)
+    assert len(open_shards(shards["train"], "wds").counts) == 4
+    caller = torch.get_num_threads()
+    try:
+        path = fit(_cfg(shards, tmp_path / "t", epochs=1, workers=6, threads=0, cache="stream", format="wds"),
+                   progress=False)
+    finally:
+        torch.set_num_threads(caller)
+    assert torch.load(path, weights_only=True)["threads"] == 3
+
+
 @pytest.mark.parametrize("cache", ["stream", "memory"])
 def test_fit_leaves_the_callers_rng_alone(shards, tmp_path, cache):
     """fit() draws nothing from torch's global generator (a DataLoader pass used to draw its base seed there)."""
