@@ -34,7 +34,8 @@ uses them calibrated to one quantity with a meaning: the first-order *rendering-
 
 i.e. the L1 distance (in the state error's own units) by which the prediction moves when the rendering
 parameters are redrawn from the training distribution (σ_ψj = (high_j − low_j)/√12, the standard
-deviation of the uniform ψ_j; Gaussian approximation of E|·|).  Per batch, with c_T = √(2/π)/√T and the
+deviation of the uniform ψ_j; for shards of the target domain, whose colours are drawn from two intervals, that
+mixture's standard deviation: ``psi_scale``; Gaussian approximation of E|·|).  Per batch, with c_T = √(2/π)/√T and the
 tangents scaled by σ_ψ:
 
 * ``exact``       R = c_T · (1/B) Σ_b ‖M̃_b‖_F
@@ -130,11 +131,21 @@ def surrogate_regularizer(
     return pred, err, torch.linalg.vector_norm(dl_dpsi, dim=1)
 
 
-def psi_scale(env: str) -> torch.Tensor:
-    """σ_ψ (K,) float64: the standard deviation (high − low)/√12 of each uniformly sampled ψ_j of ``env``."""
+def psi_scale(env: str, domain: str = "train") -> torch.Tensor:
+    """σ_ψ (K,) float64: the standard deviation of each ψ_j of ``env`` as ``domain`` samples it (the shards'
+    manifest says which).  One interval [a, b] (every train-domain ψ_j): (b − a)/√12.  Several intervals, one
+    chosen uniformly and ψ_j uniform in it (target-domain colours, risp_data.psi.sample_rendering): the
+    mixture's σ² = mean_i((b_i − a_i)²/12 + m_i²) − (mean_i m_i)², m_i = (a_i + b_i)/2."""
     from risp_data.psi import psi_specs
 
-    return torch.tensor([(s.high - s.low) / math.sqrt(12.0) for s in psi_specs(env)], dtype=torch.float64)
+    def sigma(spec) -> float:
+        if len(spec.intervals) <= 1:
+            return (spec.high - spec.low) / math.sqrt(12.0)
+        mids = [(a + b) / 2 for a, b in spec.intervals]
+        second = sum((b - a) ** 2 / 12 + m * m for (a, b), m in zip(spec.intervals, mids)) / len(mids)
+        return math.sqrt(second - (sum(mids) / len(mids)) ** 2)
+
+    return torch.tensor([sigma(s) for s in psi_specs(env, domain)], dtype=torch.float64)
 
 
 def calibrated_regularizer(net: nn.Module, x: torch.Tensor, target: torch.Tensor, reg: str, tangents: torch.Tensor,

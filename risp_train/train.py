@@ -296,7 +296,8 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
         raise RispError(f"{cfg.shards}: {shards.resolution}×{shards.resolution} images are too small for the network "
                         f"(stem {stem!r} needs at least {need}×{need}); render them with --res {need} or more")
     gamma, gamma_start = resolved_gamma(cfg, shards.env), resolved_gamma_start(cfg, shards.env)
-    psi_std = psi_scale(shards.env)  # σ_ψ: the regularizer measures ψ in standard deviations (regularizers.py)
+    # σ_ψ of the shards' own ψ distribution: the regularizer measures ψ in standard deviations (regularizers.py)
+    psi_std = psi_scale(shards.env, shards.manifest.get("domain", "train"))
     mhash = manifest_hash(shards.manifest)
 
     cache = resolve_cache(cfg.cache, shards, need_j)  # memory | stream (memory.py); a resume keeps its own below

@@ -322,6 +322,19 @@ def test_default_threads_leave_cpus_only_for_the_workers_that_start(shards, tmp_
     assert torch.load(path, weights_only=True)["threads"] == 3
 
 
+def test_the_regularizer_scales_psi_by_the_shards_own_domain(tmp_path, monkeypatch):
+    """Target-domain training shards (with Jacobians) are regularized with the target domain's σ_ψ, not the train
+    domain's: the manifest's domain reaches psi_scale."""
+    import risp_train.train as train_mod
+
+    seen, real = [], train_mod.psi_scale
+    monkeypatch.setattr(train_mod, "psi_scale", lambda env, domain="train": seen.append((env, domain)) or real(env, domain))
+    target = _render(tmp_path / "target", 8, 8, 3, ("--domain", "target"))
+    fit(make_config(target, str(tmp_path / "t"), preset="cpu", epochs=1, batch_size=4, width=4, workers=0,
+                    stats_samples=8, reg="stochastic"), progress=False)
+    assert seen == [("cube", "target")]
+
+
 @pytest.mark.parametrize("cache", ["stream", "memory"])
 def test_fit_leaves_the_callers_rng_alone(shards, tmp_path, cache):
     """fit() draws nothing from torch's global generator (a DataLoader pass used to draw its base seed there)."""

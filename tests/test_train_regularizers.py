@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -261,3 +262,18 @@ def test_gamma_start_delays_the_ramp():
     assert gamma_at(75, 100, 20.0, 0.5, 0.5) == 20.0
     assert gamma_at(60, 200, 20.0, 0.5, 0.5) == 0.0
     assert gamma_at(10, 100, 20.0, 0.0, 0.3) == 0.0 and gamma_at(30, 100, 20.0, 0.0, 0.3) == 20.0
+
+
+@pytest.mark.parametrize("env", ["quadrotor", "hand"])
+def test_psi_scale_is_the_sampled_standard_deviation_in_each_domain(env):
+    """σ_ψ against 20 000 draws of risp_data.psi.sample_rendering: the train domain's uniform ranges and the target
+    domain's two-interval colours (a mixture whose σ is not the hull's (high − low)/√12)."""
+    from risp_data.psi import psi_specs, sample_rendering
+    from risp_train.regularizers import psi_scale
+
+    for domain in ("train", "target"):
+        rng = np.random.default_rng(7)
+        psi = np.stack([sample_rendering(env, domain, rng).psi for _ in range(20_000)])
+        np.testing.assert_allclose(psi_scale(env, domain).numpy(), psi.std(axis=0), rtol=0.02, err_msg=domain)
+    hull = torch.tensor([(s.high - s.low) / 12 ** 0.5 for s in psi_specs(env, "target")], dtype=torch.float64)
+    assert (psi_scale(env, "target")[2:] > 1.2 * hull[2:]).all()  # the colours' two intervals: wider than the hull's
