@@ -360,6 +360,46 @@ def test_jobs_workers_end_when_the_table_process_is_killed(tmp_path):
                 os.kill(w, signal.SIGKILL)
 
 
+@pytest.mark.skipif(not os.path.isdir("/proc"), reason="reads /proc")
+def test_ctrl_c_ends_a_jobs_table_at_once_with_one_line(tmp_path):
+    """Ctrl-C (SIGINT to the terminal's process group) on a `--jobs 2` table: the workers stop now, not after the
+    cells they compute (minutes each), no worker prints a traceback, and the command says `aborted` (exit 130)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    cmd = [sys.executable, "-m", "risp_tasks", "table", "--table", "estimation", "--quick", "--jobs", "2",
+           "--envs", "cube,rod", "--out", str(tmp_path), "--quiet"]
+    # SIGINT's default action restored: a job started in the background of a non-interactive shell (CI) inherits
+    # it ignored, and Python then installs no KeyboardInterrupt handler
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    workers: set[int] = set()
+    try:
+        deadline = time.time() + 120
+        while len(workers := _children(proc.pid)) < 2 and time.time() < deadline and proc.poll() is None:
+            time.sleep(0.5)
+        assert len(workers) >= 2, "the table did not start its two worker processes"
+        deadline = time.time() + 120  # until a network trains: the workers are busy with artifacts
+        while not set().union(*(_children(w) for w in workers)) and time.time() < deadline:
+            time.sleep(0.5)
+        os.killpg(proc.pid, signal.SIGINT)
+        out, err = proc.communicate(timeout=30)
+        assert proc.returncode == 130, (proc.returncode, err)
+        assert "Traceback" not in err and "Error: aborted" in err.splitlines(), err
+        deadline = time.time() + 15
+        while any(_running(w) for w in workers) and time.time() < deadline:
+            time.sleep(0.5)
+        assert not [w for w in workers if _running(w)], "workers went on after Ctrl-C"
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+        for w in workers:
+            if _running(w):
+                os.kill(w, signal.SIGKILL)
+
+
 def test_failed_cell_is_stored_and_retried(cache, tmp_path, monkeypatch):
     from risp_tasks.tables import cells as cells_mod
 
@@ -524,3 +564,49 @@ def test_a_revised_motion_recomputes_the_cells_that_read_its_videos(monkeypatch)
     monkeypatch.setitem(reference.MOTION_REVISIONS, "cube", reference.MOTION_REVISIONS["cube"] + 1)
     assert cell_look(cube, "sysid") != before["sysid"][0] and cell_look(quad, "sysid") == before["sysid"][1]
     assert cell_look(cube, "estimation") == before["estimation"][0] == cell_look(cube)
+
+
+def test_cells_made_with_an_old_network_are_computed_again(cache, tmp_path, monkeypatch):
+    """The folder key holds the table's settings, not risp-train's defaults: after a new γ default the `ours` cells
+    of a finished table read a new network, so they are computed again; cells that read no network are kept.
+    A cell stored without its networks (an older version) counts as not done."""
+    from risp_train import config as train_config
+
+    cfg = make_config("estimation", quick=True, out=str(tmp_path), envs=("cube",), methods=("average", "ours"), **TINY)
+    first = run_table(cfg, cache=cache, echo=lambda *_: None)
+    ours, average = (cell_path(first["folder"], Cell("cube", m, 0)) for m in ("ours", "average"))
+    stamp = {p: os.stat(p).st_mtime_ns for p in (ours, average)}
+    assert set(json.load(open(ours))["networks"]) == {"reg"} and json.load(open(average))["networks"] == {}
+    lines = []
+    run_table(cfg, cache=cache, echo=lines.append)  # nothing changed: nothing to run
+    assert "2 of 2 cells done, 0 to run" in lines[0], lines
+    monkeypatch.setitem(train_config.GAMMA_DEFAULTS, "cube", train_config.GAMMA_DEFAULTS["cube"] + 0.1)
+    lines = []
+    second = run_table(cfg, cache=cache, echo=lines.append)
+    assert second["folder"] == first["folder"] and "1 of 2 cells done, 1 to run" in lines[0], lines
+    assert os.stat(average).st_mtime_ns == stamp[average] and os.stat(ours).st_mtime_ns != stamp[ours]
+    stored = json.load(open(ours))
+    del stored["networks"]
+    open(ours, "w").write(json.dumps(stored))
+    lines = []
+    run_table(cfg, cache=cache, echo=lines.append)
+    assert "1 of 2 cells done, 1 to run" in lines[0], lines
+
+
+def test_a_ctrl_c_inside_drjit_stops_the_table_instead_of_failing_the_cell(tmp_path, monkeypatch):
+    """Ctrl-C inside a Dr.Jit loop comes back wrapped (RuntimeError from dr.while_loop); it must end the run like
+    a plain KeyboardInterrupt, not be stored as a failed cell while the next one starts."""
+    from risp_tasks.tables import cells as cells_mod
+    from risp_tasks.tables.grid import compute_cell
+
+    def wrapped(*_args, **_kw):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as e:
+            raise RuntimeError("dr.while_loop(): encountered an exception (see above)") from e
+
+    monkeypatch.setitem(cells_mod.CELLS, "estimation", wrapped)
+    cfg = make_config("estimation", quick=True, out=str(tmp_path), envs=("cube",), methods=("average",), **TINY)
+    with pytest.raises(KeyboardInterrupt):
+        compute_cell(cfg, Cell("cube", "average", 0), str(tmp_path / "f"), None)
+    assert not os.path.exists(cell_path(str(tmp_path / "f"), Cell("cube", "average", 0)))

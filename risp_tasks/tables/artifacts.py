@@ -85,20 +85,15 @@ class Artifacts:
     def network(self, env: str, which: str, seed: int | None = None) -> str:
         """Checkpoint of the network ``which`` ("none": ours-no-grad; "reg": ours with cfg.reg; or a regularizer's
         name) trained with ``seed`` (default: the table's seed) on the environment's training set."""
-        from risp_train.config import make_config
         from risp_train.data import manifest_hash, open_shards
         from risp_train.train import MODEL, fit
 
-        cfg = self.cfg
         shards = self.train_shards(env)
-        reg = cfg.reg if which == "reg" else which
-        tcfg = make_config(shards, "", preset=cfg.train_preset, reg=reg, epochs=cfg.epochs, width=cfg.width,
-                           batch_size=cfg.batch_size, seed=cfg.seed if seed is None else seed, workers=cfg.workers,
-                           cache="memory", threads=1)  # one thread, as every cell (grid.py); memory: a fixed order
-        out = os.path.join(self.root, "runs", f"{env}-{reg}-{network_key(tcfg, env, manifest_hash(open_shards(shards).manifest))}")
+        tcfg = train_config(self.cfg, which, seed, shards)
+        out = os.path.join(self.root, "runs", f"{env}-{tcfg.reg}-{network_key(tcfg, env, manifest_hash(open_shards(shards).manifest))}")
         model = os.path.join(out, MODEL)
         if not os.path.exists(model):
-            fit(replace(tcfg, out=out), resume=True, progress=cfg.progress)
+            fit(replace(tcfg, out=out), resume=True, progress=self.cfg.progress)
         return model
 
     # ------------------------------------------------------------------ reference videos
@@ -127,6 +122,23 @@ class Artifacts:
         return {"video": out, "truth": truth_path(out), "actions": actions if os.path.exists(actions) else None}
 
 
+def train_config(cfg: TableConfig, which: str, seed: int | None = None, shards: str = ""):
+    """The risp-train configuration of the table's network ``which`` (see Artifacts.network)."""
+    from risp_train.config import make_config
+
+    reg = cfg.reg if which == "reg" else which
+    return make_config(shards, "", preset=cfg.train_preset, reg=reg, epochs=cfg.epochs, width=cfg.width,
+                       batch_size=cfg.batch_size, seed=cfg.seed if seed is None else seed, workers=cfg.workers,
+                       cache="memory", threads=1)  # one thread, as every cell (grid.py); memory: a fixed order
+
+
+def network_identity(cfg: TableConfig, env: str, which: str, seed: int | None = None) -> str:
+    """network_key less the data: what a cell records of the network it read (grid.cell_networks).  The data's own
+    settings are in the table's folder key and the look in the cell's; a new risp-train default (preset values,
+    γ, the stem rule) changes this, so cells made with the old network are computed again."""
+    return network_key(train_config(cfg, which, seed), env, "")
+
+
 def network_key(tcfg, env: str, data_hash: str) -> str:
     """Checksum of what makes a network: its training configuration, the γ schedule it trains with (resolved: a
     new per-environment default in GAMMA_DEFAULTS or GAMMA_START_DEFAULTS is a new network), the rule that picks
@@ -148,6 +160,9 @@ def prepare(cfg: TableConfig, env: str, cache: str | None = None) -> None:
     art = Artifacts(cfg, cache)
     if cfg.table == "sampling":
         from .sampling import landscape
+
+        if env != "rod":  # the landscapes are the rod's whatever --envs says: one task makes them, not one per env
+            return
 
         for r in range(cfg.repeats):
             landscape(cfg, art, r)

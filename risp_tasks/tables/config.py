@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 
 from risp_data.envs import ENV_NAMES
 from risp_data.errors import RispError
@@ -46,7 +46,7 @@ class TableConfig:
     epochs: int | None = None  # training epochs (None: the risp-train preset's)
     width: int | None = None  # network width (None: the risp-train preset's)
     batch_size: int | None = None  # training batch (None: the risp-train preset's)
-    reg: str = "surrogate"  # the regularizer of `ours` (make_config: default_reg()); `ours-no-grad`: none
+    reg: str = field(default_factory=lambda: default_reg())  # the regularizer of `ours`; `ours-no-grad`: none
     train_preset: str = "cpu"  # risp-train preset of both networks
     perceptual_weights: str | None = None  # local feature-extractor weights (methods.FeatureExtractor)
     workers: int = 1  # data workers of training

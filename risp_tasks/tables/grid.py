@@ -61,16 +61,45 @@ def cell_path(folder: str, cell: Cell) -> str:
     return os.path.join(folder, "cells", cell.env, cell.method, f"r{cell.repeat}.json")
 
 
-def read_cell(path: str, look: str | None = None) -> dict | None:
-    """A finished cell's result, or None when absent, failed or made with another ``look`` of its environment
-    (risp_data.envs.look; cells from before looks were recorded count as another look): to be (re)computed."""
+def read_cell(path: str, look: str | None = None, networks: dict | None = None) -> dict | None:
+    """A finished cell's result, or None when absent, failed, made with another ``look`` of its environment
+    (risp_data.envs.look; cells from before looks were recorded count as another look) or with other
+    ``networks`` than the table's settings make today (cell_networks; cells from before networks were recorded
+    count as other networks): to be (re)computed."""
     if not os.path.exists(path):
         return None
     with open(path) as f:
         result = json.load(f)
     if result.get("failed") or (look is not None and result.get("look") != look):
         return None
+    if networks and result.get("networks") != networks:
+        return None
     return result
+
+
+def cell_networks(cfg: TableConfig, cell: Cell) -> dict:
+    """{role: identity} of the networks a cell reads (artifacts.network_identity), {} for one that reads none.  The
+    folder key holds the table's settings, not risp-train's defaults: a changed preset value, γ default or stem rule
+    trains a new network, and this makes the cells that read the old one count as not done."""
+    from .artifacts import network_identity
+    from .methods import get_method
+
+    if cfg.table == "sampling":
+        return {"reg": network_identity(cfg, "rod", "reg")} if cell.env == "rod" else {}
+    if cfg.table == "regularizers":
+        return {cell.method: network_identity(cfg, cell.env, cell.method, seed=cfg.seed + cell.repeat)}
+    which = get_method(cell.method).network
+    if cfg.table == "estimation":
+        return {which: network_identity(cfg, cell.env, which)} if which else {}
+    if cfg.table in ("imitation", "control") and cell.env == "cube":  # N/A: no actions, nothing is read
+        return {}
+    roles = {which or "reg", "reg"}  # the tasks read the initial state from the `ours` network
+    return {r: network_identity(cfg, cell.env, r) for r in sorted(roles)}
+
+
+def _done(cfg: TableConfig, folder: str, cell: Cell) -> dict | None:
+    """The cell's stored result if it counts as finished for ``cfg`` (read_cell), else None."""
+    return read_cell(cell_path(folder, cell), cell_look(cell, cfg.table), cell_networks(cfg, cell))
 
 
 #: tables whose cells read reference videos (risp_tasks.tasks.reference): a revised motion recomputes them
@@ -100,10 +129,15 @@ def compute_cell(cfg: TableConfig, cell: Cell, folder: str, cache: str | None) -
     except (KeyboardInterrupt, SystemExit):
         raise
     except Exception as e:  # noqa: BLE001 - one failing cell must not end a four-hour run
+        from risp_data.cli_util import caused_by_interrupt
+
+        if caused_by_interrupt(e):  # Ctrl-C inside Dr.Jit comes back wrapped: it stops the run, not the cell
+            raise KeyboardInterrupt from e
         line = str(e).splitlines()[0] if str(e) else ""
         result = {"na": f"failed: {type(e).__name__}: {line}", "failed": True,
                   "traceback": traceback.format_exc(limit=8)}
-    result.update({"table": cfg.table, "env": cell.env, "look": cell_look(cell, cfg.table), "method": cell.method,
+    result.update({"table": cfg.table, "env": cell.env, "look": cell_look(cell, cfg.table),
+                   "networks": cell_networks(cfg, cell), "method": cell.method,
                    "repeat": cell.repeat, "seed": cfg.seed, "seconds": time.perf_counter() - started,
                    "loadavg": list(os.getloadavg()), "pid": os.getpid()})
     write_text_atomic(cell_path(folder, cell), json.dumps(result, indent=1, sort_keys=True) + "\n")
@@ -121,7 +155,7 @@ def run_table(cfg: TableConfig, cache: str | None = None, on_cell: Callable[[Cel
     os.makedirs(folder, exist_ok=True)
     write_text_atomic(os.path.join(folder, "config.json"), json.dumps(cfg.to_dict(), indent=1, sort_keys=True) + "\n")
     cells = grid(cfg)
-    todo = [c for c in cells if read_cell(cell_path(folder, c), cell_look(c, cfg.table)) is None]
+    todo = [c for c in cells if _done(cfg, folder, c) is None]
     echo(f"{cfg.table}: {len(cells) - len(todo)} of {len(cells)} cells done, {len(todo)} to run; results: {folder}")
     jobs = cfg.jobs or available_cpus()
     if cfg.executor == "ray" and todo:
@@ -135,7 +169,7 @@ def run_table(cfg: TableConfig, cache: str | None = None, on_cell: Callable[[Cel
                 result = compute_cell(cfg, cell, folder, cache)
                 if on_cell is not None:
                     on_cell(cell, result)
-    results = [read_cell(cell_path(folder, c), cell_look(c, cfg.table)) or _failed(folder, c) for c in cells]
+    results = [_done(cfg, folder, c) or _failed(folder, c) for c in cells]
     shown, earlier = widened(cfg, folder)
     return write_report(shown, folder, results + earlier)
 
@@ -162,8 +196,7 @@ def widened(cfg: TableConfig, folder: str) -> tuple[TableConfig, list[dict]]:
         for m in rows:
             if (e, m) in requested:
                 continue
-            cells = [read_cell(cell_path(folder, Cell(e, m, r)), cell_look(Cell(e, m, r), cfg.table))
-                     for r in range(cfg.repeats)]
+            cells = [_done(cfg, folder, Cell(e, m, r)) for r in range(cfg.repeats)]
             if all(c is not None for c in cells):
                 found[(e, m)] = cells
     if not found:
@@ -196,9 +229,14 @@ def _pool_worker_init(parent: int) -> None:
     """A ``--jobs`` process: single-threaded (above), and it ends when the table process that started it is gone.
     Killed by a signal, the parent cannot shut its pool down, and the workers would go on computing, unseen,
     beside the next run; a watcher thread ends them (their results are atomic files, so nothing is half-written)."""
+    import signal
     import threading
 
     _single_threaded()
+    # Ctrl-C reaches the whole process group: the table process ends its workers itself (_run_processes), and an
+    # idle worker interrupted in the pool's queue would print a traceback of its own
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _end_worker)  # _end_workers: this worker and its data loaders
 
     def watch():
         import multiprocessing as mp
@@ -241,6 +279,7 @@ def _run_processes(cfg: TableConfig, todo: list[Cell], folder: str, cache: str |
     which process computed it or when (each cell is seeded by itself)."""
     import multiprocessing as mp
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+    from concurrent.futures.process import BrokenProcessPool
 
     from tqdm.auto import tqdm
 
@@ -269,8 +308,39 @@ def _run_processes(cfg: TableConfig, todo: list[Cell], folder: str, cache: str |
                     bar.update(1)
                     if on_cell is not None:
                         on_cell(cell, result)
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)  # a stopped run leaves only finished, atomic cells
+    except BrokenProcessPool:
+        _end_workers(pool)
+        raise RispError("a --jobs process died (killed, or out of memory); finished cells are kept: rerun the same "
+                        "command to resume, with fewer --jobs if memory is short") from None
+    except BaseException:  # Ctrl-C, or an artifact that cannot be made: the cells being computed are dropped
+        _end_workers(pool)
+        raise
+    pool.shutdown(wait=True)
+
+
+def _end_worker(*_) -> None:
+    """SIGTERM in a --jobs process: end its own children (a training's data loaders, which would hold the
+    terminal's pipes and go on decoding), then itself."""
+    import multiprocessing as mp
+
+    for child in mp.active_children():
+        child.kill()
+    os._exit(1)
+
+
+def _end_workers(pool, grace: float = 5.0) -> None:
+    """Stop a pool's workers now (their cells are atomic files: a stopped cell leaves nothing) instead of waiting
+    for the cells they compute, minutes each: SIGTERM (each ends its data loaders, _end_worker), then SIGKILL for
+    one that is still inside a native call after ``grace`` seconds."""
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    for proc in procs:
+        proc.terminate()
+    deadline = time.monotonic() + grace
+    for proc in procs:
+        proc.join(max(0.0, deadline - time.monotonic()))
+        if proc.is_alive():
+            proc.kill()
+    pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _require_ray():

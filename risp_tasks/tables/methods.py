@@ -11,8 +11,8 @@ Every method is one :class:`Method` value; the cells read its fields and never b
 * ``pixelwise``    — ∇Sim: ‖R(s) − I‖² through risp_data.diff_render, rendered in the train domain's nominal look.
 * ``perceptual``   — ‖F(R(s)) − F(I)‖² with F a convolutional feature extractor (risp_tasks.tasks.features.feature_extractor).
 * ``ours-no-grad`` — RISP's loss ‖N(R(s)) − N(I)‖² with N trained with ``--reg none``.
-* ``ours``         — the same with N trained with the table's regularizer (``TableConfig.reg``, default the
-                     paper's surrogate).
+* ``ours``         — the same with N trained with the table's regularizer (``TableConfig.reg``, default
+                     risp-train's default regularizer: config.default_reg).
 * ``ours-state``   — the ``ours`` network read once per reference frame, and the simulated states fitted to
                      those readings: ‖s(θ) − N(I)‖ (the tasks' ``state`` loss, ``risp-task``'s default; no rendering
                      in the loop).  Estimation: N/A, it is ``ours`` there (N(I) itself).
