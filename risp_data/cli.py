@@ -11,6 +11,7 @@ import time
 import click
 
 from .cli_util import RispGroup, run_cli
+from .threads import available_cpus
 
 
 @click.group(cls=RispGroup)
@@ -63,7 +64,7 @@ def render(env, n, out, fmt, resolution, spp, domain, seed, workers, shard_size,
         resolution=resolution,
         spp=spp,
         seed=seed,
-        workers=workers if workers is not None else (os.cpu_count() or 1),
+        workers=workers if workers is not None else available_cpus(),  # the CPUs this process may use (taskset)
         shard_size=shard_size,
         executor=executor,
         jacobian=not no_jacobian,

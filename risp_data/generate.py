@@ -17,6 +17,7 @@ import os
 import queue as _queue
 import tempfile
 import threading
+import time
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -24,6 +25,7 @@ import numpy as np
 
 from .atomic import remove_temporaries
 from .errors import RispError
+from .threads import available_cpus
 from .shards.manifest import (
     FORMAT_NAME,
     FORMAT_VERSION,
@@ -496,9 +498,42 @@ def worker_context():
     return ctx
 
 
-def _worker_init(job: RenderJob, threads: int, progress_queue) -> None:
+def _process_gone(pid: int) -> bool:
+    """True when process ``pid`` has ended (a zombie counts as ended: its exit is only not yet collected)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] in ("Z", "X")
+    except FileNotFoundError:
+        return True
+    except OSError:  # no /proc: ask the kernel whether the pid exists
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return True
+        except OSError:
+            pass
+        return False
+
+
+def exit_with(pid: int, period: float = 0.5) -> None:
+    """End this worker process when the job process ``pid`` is gone.  The render workers are forks of the fork
+    server, not children of the job, and only the job holds the folder lock: killed by a signal, the job cannot
+    stop its pool, and its workers would go on writing shards into a folder that a rerun has since locked and is
+    checking.  A watcher thread ends them within ``period`` seconds; a shard stopped half-way has no completion
+    marker, so the next run treats it as missing and renders it again (writer.write_shard)."""
+    def watch():
+        while not _process_gone(pid):
+            time.sleep(period)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-job", daemon=True).start()
+
+
+def _worker_init(job: RenderJob, threads: int, progress_queue, job_pid: int | None = None) -> None:
     import torch
 
+    if job_pid is not None:
+        exit_with(job_pid)
     torch.set_num_threads(1)
     _WORKER["renderer"] = make_renderer(job, threads)
     _WORKER["queue"] = progress_queue
@@ -522,7 +557,7 @@ def _run_pool(job, todo, on_record, bar):
     ctx = worker_context()
     q = ctx.Queue()
     workers = min(job.workers, len(todo))
-    threads = max(1, (os.cpu_count() or 1) // workers)
+    threads = max(1, available_cpus() // workers)  # the affinity mask's CPUs (taskset), not the host's
     stop = threading.Event()
 
     def drain():
@@ -535,7 +570,8 @@ def _run_pool(job, todo, on_record, bar):
     t = threading.Thread(target=drain, daemon=True)
     t.start()
     try:
-        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init, initargs=(job, threads, q)) as ex:
+        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init,
+                                 initargs=(job, threads, q, os.getpid())) as ex:
             pending = {ex.submit(_worker_run, i) for i in todo}
             try:
                 while pending:
@@ -619,8 +655,8 @@ def _run_locked(job: RenderJob, variant: str, progress: bool, log: Callable[[str
     todo = [i for i in range(job.num_shards) if i not in done]
     if done:
         log(f"resuming {job.out}: {len(done)} of {job.num_shards} shards complete, rendering {len(todo)}")
-    if not todo:
-        return manifest
+    if not todo:  # the folder's manifest as saved (counts, complete), also after markers were merged above
+        return load_manifest(job.out)
     lock = threading.Lock()
 
     def on_record(rec):

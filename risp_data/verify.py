@@ -86,7 +86,12 @@ def repair_folder(folder: str, progress: bool = True, log=print) -> int:
     args = {k: v for k, v in m.get("args", {}).items() if k in known}
     if not args:
         raise RispError(f"manifest of {folder} does not record its render job (args); cannot repair it")
-    args.update(out=folder, formats=tuple(args.get("formats", m["formats"])))
+    # the folder's own variant (a repair on a GPU machine of a folder rendered on a CPU must not switch to CUDA:
+    # another variant is another job); the pool that rendered it may not exist here (a ray cluster, more CPUs)
+    from .threads import available_cpus
+
+    args.update(out=folder, formats=tuple(args.get("formats", m["formats"])), variant=m.get("variant", args.get("variant")),
+                executor="local", workers=max(1, min(int(args.get("workers", 1)), available_cpus())))
     stats: dict = {}
     run_job(RenderJob(**args), progress=progress, log=log, stats=stats)
     return int(stats.get("rendered_samples", 0))

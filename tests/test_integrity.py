@@ -22,6 +22,7 @@ from click.testing import CliRunner
 
 from risp_data.cli import cli as data_cli
 from risp_data.errors import RispError
+from risp_data.shards.manifest import MARKER_DIR, save_manifest
 from risp_train.cli import cli as train_cli
 
 RES = 16
@@ -205,18 +206,39 @@ def test_render_resume_and_verify_repair_re_render_damaged_shards(data, tmp_path
         open(os.path.join(ref, "wds", "shard-000000.tar"), "rb").read()
 
 
+def test_repair_renders_with_the_folders_variant_and_a_local_pool_this_machine_has(data, tmp_path, monkeypatch):
+    """verify --repair re-renders with the job the manifest records: its resolved variant (not the one this machine
+    would pick: a CPU folder repaired on a GPU machine), and a local pool of at most this machine's CPUs (the
+    folder may have been rendered by a ray cluster or a bigger machine)."""
+    import risp_data.generate as generate
+    from risp_data import threads
+    from risp_data.verify import repair_folder
+
+    folder = _copy(data["train"], tmp_path / "to-repair")
+    m = _manifest(folder)
+    m["args"].update(variant=None, executor="ray", workers=64)  # as a default-variant ray job records them
+    _save_manifest(folder, m)
+    jobs = []
+    monkeypatch.setattr(generate, "run_job", lambda job, **kw: jobs.append(job) or {})
+    monkeypatch.setattr(threads, "available_cpus", lambda: 3)
+    repair_folder(folder, progress=False, log=lambda *_: None)
+    (job,) = jobs
+    assert job.variant == m["variant"] and job.variant is not None
+    assert job.executor == "local" and job.workers == 3 and job.out == folder
+
+
 def test_rendered_now_counts_only_this_call_and_partial_temporaries_are_removed(data, tmp_path):
     folder = _copy(data["train"], tmp_path / "resume")
     m = _manifest(folder)
     m["shards"] = m["shards"][:2]  # shards 2 and 3 finished (markers on disk) but their manifest update was lost
-    _save_manifest(folder, m)
+    save_manifest(folder, m)  # with the counts of the two listed shards, as the killed run left it
     stale = os.path.join(folder, "data.zarr", "images", "c", "0", "0", "0", "0.3f2a.partial")  # a killed zarr write
     open(stale, "wb").write(b"half")
     r = subprocess.run([sys.executable, "-m", "risp_data", "render", "--env", "cube", "--n", "16", "--res", str(RES),
                         "--spp", "1", "--shard-size", "4", "--workers", "1", "--quiet", "--out", folder],
                        capture_output=True, text=True, env=ENV, timeout=600)
     assert r.returncode == 0, r.stderr
-    assert "16/16 samples" in r.stdout and "rendered 0 now" in r.stdout, r.stdout
+    assert "16/16 samples in 4/4 shards" in r.stdout and "rendered 0 now" in r.stdout, r.stdout
     assert not os.path.exists(stale)
 
 
@@ -595,3 +617,45 @@ def test_a_killed_dataloader_worker_is_one_line(data, tmp_path):
     assert killed, "no DataLoader worker to kill: " + err[-2000:]
     assert proc.returncode == 1 and "Traceback" not in err, err[-3000:]
     assert err.strip().splitlines()[-1].startswith("Error: a data-loading worker process died"), err[-1000:]
+
+
+def _alive(pid):
+    """Running (a zombie, ended but not yet collected, is not)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] not in ("Z", "X")
+    except OSError:
+        return False
+
+
+def test_render_workers_end_when_the_job_process_is_killed(tmp_path):
+    """SIGKILL on a `--workers 2` render (no pool shutdown): its workers, forks of the fork server and not the
+    job's children, stop instead of writing on into a folder whose lock is gone (a rerun would take it)."""
+    import signal
+    import time
+
+    out = tmp_path / "orphans"
+    cmd = [sys.executable, "-m", "risp_data", "render", "--env", "cube", "--n", "400", "--res", "16", "--spp", "1",
+           "--shard-size", "2", "--workers", "2", "--quiet", "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=ENV)
+    workers = []
+    try:
+        deadline = time.time() + 120
+        while time.time() < deadline and proc.poll() is None:
+            workers = _pool_workers(proc.pid)
+            if len(workers) >= 2 and os.path.isdir(out / MARKER_DIR) and os.listdir(out / MARKER_DIR):
+                break  # both workers are rendering shards
+            time.sleep(0.2)
+        assert len(workers) >= 2, "the render did not start two pool workers"
+        proc.kill()
+        proc.wait()
+        deadline = time.time() + 20
+        while any(_alive(w) for w in workers) and time.time() < deadline:
+            time.sleep(0.2)
+        assert not [w for w in workers if _alive(w)], "render workers went on after their job was killed"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        for w in workers:
+            if _alive(w):
+                os.kill(w, signal.SIGKILL)
