@@ -643,6 +643,11 @@ def run_job(job: RenderJob, progress: bool = True, log: Callable[[str], None] = 
         return _run_locked(job, variant, progress, log, stats)
 
 
+def version_changes(recorded: dict, now: dict) -> list[str]:
+    """``name old (now new)`` for every package whose recorded version differs from the installed one."""
+    return [f"{k} {recorded[k]} (now {now.get(k)})" for k in sorted(recorded) if recorded[k] != now.get(k)]
+
+
 def _run_locked(job: RenderJob, variant: str, progress: bool, log: Callable[[str], None],
                 stats: dict | None) -> dict[str, Any]:
     from tqdm import tqdm
@@ -655,6 +660,10 @@ def _run_locked(job: RenderJob, variant: str, progress: bool, log: Callable[[str
     todo = [i for i in range(job.num_shards) if i not in done]
     if done:
         log(f"resuming {job.out}: {len(done)} of {job.num_shards} shards complete, rendering {len(todo)}")
+        changed = version_changes(manifest.get("versions") or {}, package_versions())
+        if changed and todo:  # the manifest keeps the versions it was created with: say that the new shards differ
+            log(f"note: {job.out} was rendered with {', '.join(changed)}; its missing shards are rendered with the "
+                "versions installed now (samples may differ from an uninterrupted run in rounding)")
     if not todo:  # the folder's manifest as saved (counts, complete), also after markers were merged above
         return load_manifest(job.out)
     lock = threading.Lock()

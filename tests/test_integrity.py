@@ -227,6 +227,21 @@ def test_repair_renders_with_the_folders_variant_and_a_local_pool_this_machine_h
     assert job.executor == "local" and job.workers == 3 and job.out == folder
 
 
+def test_a_resume_with_other_package_versions_says_so(data, tmp_path):
+    """The manifest records the versions a folder was created with; a resume that renders with others says so."""
+    folder = _copy(data["train"], tmp_path / "versions")
+    m = _manifest(folder)
+    m["shards"] = m["shards"][:3]
+    m["versions"]["mitsuba"] = "0.0.1"
+    save_manifest(folder, m)
+    shutil.rmtree(os.path.join(folder, MARKER_DIR))  # shard 3 must be rendered again, not merged from its marker
+    r = subprocess.run([sys.executable, "-m", "risp_data", "render", "--env", "cube", "--n", "16", "--res", str(RES),
+                        "--spp", "1", "--shard-size", "4", "--workers", "1", "--quiet", "--out", folder],
+                       capture_output=True, text=True, env=ENV, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert "was rendered with mitsuba 0.0.1 (now " in r.stderr and "rendered 4 now" in r.stdout, (r.stderr, r.stdout)
+
+
 def test_rendered_now_counts_only_this_call_and_partial_temporaries_are_removed(data, tmp_path):
     folder = _copy(data["train"], tmp_path / "resume")
     m = _manifest(folder)

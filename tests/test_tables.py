@@ -610,3 +610,37 @@ def test_a_ctrl_c_inside_drjit_stops_the_table_instead_of_failing_the_cell(tmp_p
     with pytest.raises(KeyboardInterrupt):
         compute_cell(cfg, Cell("cube", "average", 0), str(tmp_path / "f"), None)
     assert not os.path.exists(cell_path(str(tmp_path / "f"), Cell("cube", "average", 0)))
+
+
+def test_perceptual_weights_are_keyed_by_their_contents(tmp_path):
+    """A replaced weights file at the same path is another feature extractor (new folder); the same file under
+    another path is the same one (same folder)."""
+    a, b = tmp_path / "w.pth", tmp_path / "copy" / "w.pth"
+    b.parent.mkdir()
+    a.write_bytes(b"weights one")
+    b.write_bytes(b"weights one")
+    folder = lambda path: run_folder(make_config("estimation", out=str(tmp_path), perceptual_weights=str(path)))  # noqa: E731
+    first = folder(a)
+    assert folder(b) == first
+    a.write_bytes(b"weights two")
+    assert folder(a) != first
+
+
+def test_a_data_set_or_network_that_cannot_be_made_ends_a_serial_run(cache, tmp_path, monkeypatch):
+    """As with --jobs: each environment's artifacts are made once before its cells (not retried by every cell),
+    and a failure there ends the run with its error instead of storing every cell as failed."""
+    from risp_tasks.tables import artifacts
+
+    calls = []
+
+    def broken(self, env, which, seed=None):
+        calls.append(which)
+        raise RispError("the network cannot be trained (test)")
+
+    monkeypatch.setattr(artifacts.Artifacts, "network", broken)
+    cfg = make_config("estimation", quick=True, out=str(tmp_path), envs=("cube",), methods=("ours", "ours-no-grad"),
+                      **TINY)
+    with pytest.raises(RispError, match="cannot be trained"):
+        run_table(cfg, cache=cache, echo=lambda *_: None)
+    assert len(calls) == 1
+    assert not os.path.exists(os.path.join(run_folder(cfg), "cells"))

@@ -53,8 +53,21 @@ def run_folder(cfg: TableConfig) -> str:
     skip = NOT_IN_KEY + (() if cfg.table == "control" else ("control_start",))
     if cfg.residual == "l2" or cfg.table not in ("sysid", "imitation", "control"):
         skip += ("residual",)
-    key = checksum({k: v for k, v in cfg.to_dict().items() if k not in skip})
+    settings = {k: v for k, v in cfg.to_dict().items() if k not in skip}
+    if cfg.perceptual_weights and os.path.isfile(cfg.perceptual_weights):  # the file's contents, not its name:
+        settings["perceptual_weights"] = _file_sha256(cfg.perceptual_weights)  # a replaced file is another F
+    key = checksum(settings)
     return os.path.join(cfg.out, f"{cfg.table}-{cfg.preset}{'-quick' if cfg.quick else ''}-{key}")
+
+
+def _file_sha256(path: str) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 def cell_path(folder: str, cell: Cell) -> str:
@@ -163,8 +176,13 @@ def run_table(cfg: TableConfig, cache: str | None = None, on_cell: Callable[[Cel
     elif jobs > 1 and len(todo) > 1:
         _run_processes(cfg, todo, folder, cache, on_cell, jobs)
     else:
+        prepared: set[str] = set()
         with single_threaded(), tqdm(todo, unit="cell", desc=cfg.table, disable=not cfg.progress) as bar:
             for cell in bar:
+                if cell.env not in prepared:  # as with --jobs: made once, before the cells; a failure ends the run
+                    bar.set_description(f"{cfg.table} {cell.env}: data and networks")
+                    prepare(_for_todo(cfg, todo, cell.env), cell.env, cache)
+                    prepared.add(cell.env)
                 bar.set_description(f"{cfg.table} {cell.name}")
                 result = compute_cell(cfg, cell, folder, cache)
                 if on_cell is not None:
@@ -256,6 +274,19 @@ def _compute_cell_single_threaded(cfg: TableConfig, cell: Cell, folder: str, cac
     return compute_cell(cfg, cell, folder, cache)
 
 
+def _for_todo(cfg: TableConfig, todo: list[Cell], env: str) -> TableConfig:
+    """``cfg`` with the rows that still have cells of ``env`` to compute: what prepare makes (no network is trained
+    for rows whose cells are all done)."""
+    return replace(cfg, methods=tuple(m for m in cfg.methods if any(c.env == env and c.method == m for c in todo)))
+
+
+def _prepare_single_threaded(cfg: TableConfig, env: str, cache: str | None) -> None:
+    """prepare in a Ray worker: single-threaded like the --jobs and serial paths, so that the executor that made a
+    data set first does not decide the later cells' numbers."""
+    _single_threaded()
+    prepare(cfg, env, cache)
+
+
 @contextlib.contextmanager
 def single_threaded():
     """:func:`_single_threaded` for the serial runner, giving the caller's thread counts back afterwards."""
@@ -290,7 +321,7 @@ def _run_processes(cfg: TableConfig, todo: list[Cell], folder: str, cache: str |
     pool = ProcessPoolExecutor(min(jobs, len(todo)), mp_context=mp.get_context("spawn"), initializer=_pool_worker_init,
                                initargs=(os.getpid(),))
     try:
-        preparing = {pool.submit(prepare, quiet, env, cache): env for env in by_env}
+        preparing = {pool.submit(prepare, _for_todo(quiet, todo, env), env, cache): env for env in by_env}
         pending: dict = {}
         with tqdm(total=len(todo), unit="cell", desc=f"{cfg.table} ({jobs} jobs)", disable=not cfg.progress) as bar:
             while preparing or pending:
@@ -359,9 +390,9 @@ def _run_ray(cfg: TableConfig, todo: list[Cell], folder: str, cache: str | None,
     ray = _require_ray()
     if not ray.is_initialized():
         ray.init()
-    remote_prepare = ray.remote(prepare)
+    remote_prepare = ray.remote(_prepare_single_threaded)
     remote_cell = ray.remote(_compute_cell_single_threaded)
-    ray.get([remote_prepare.remote(cfg, env, cache) for env in sorted({c.env for c in todo})])
+    ray.get([remote_prepare.remote(_for_todo(cfg, todo, env), env, cache) for env in sorted({c.env for c in todo})])
     pending = {remote_cell.remote(cfg, c, folder, cache): c for c in todo}
     with tqdm(total=len(todo), unit="cell", desc=f"{cfg.table} (ray)", disable=not cfg.progress) as bar:
         while pending:
