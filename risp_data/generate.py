@@ -498,14 +498,25 @@ def worker_context():
     return ctx
 
 
-def _process_gone(pid: int) -> bool:
-    """True when process ``pid`` has ended (a zombie counts as ended: its exit is only not yet collected)."""
+def _proc_stat(pid: int) -> list[str] | None:
+    """/proc/<pid>/stat's fields from the state on (field 3; the command name may hold spaces), None if absent."""
     try:
         with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0] in ("Z", "X")
-    except FileNotFoundError:
-        return True
-    except OSError:  # no /proc: ask the kernel whether the pid exists
+            return f.read().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+
+
+def _start_time(pid: int) -> str | None:
+    """The process's start time (field 22, clock ticks since boot): with the pid, it names one process."""
+    fields = _proc_stat(pid)
+    return fields[19] if fields is not None and len(fields) > 19 else None
+
+
+def _process_gone(pid: int, started: str | None = None) -> bool:
+    """True when process ``pid`` has ended: absent, a zombie (its exit only not yet collected) or, with ``started``,
+    a process of another start time that has since been given the same pid."""
+    if not os.path.isdir("/proc"):  # no /proc: ask the kernel whether the pid exists
         try:
             os.kill(pid, 0)
         except ProcessLookupError:
@@ -513,6 +524,10 @@ def _process_gone(pid: int) -> bool:
         except OSError:
             pass
         return False
+    fields = _proc_stat(pid)
+    if fields is None or fields[0] in ("Z", "X"):
+        return True
+    return started is not None and len(fields) > 19 and fields[19] != started
 
 
 def exit_with(pid: int, period: float = 0.5) -> None:
@@ -521,8 +536,10 @@ def exit_with(pid: int, period: float = 0.5) -> None:
     stop its pool, and its workers would go on writing shards into a folder that a rerun has since locked and is
     checking.  A watcher thread ends them within ``period`` seconds; a shard stopped half-way has no completion
     marker, so the next run treats it as missing and renders it again (writer.write_shard)."""
+    started = _start_time(pid)
+
     def watch():
-        while not _process_gone(pid):
+        while not _process_gone(pid, started):
             time.sleep(period)
         os._exit(1)
 

@@ -313,6 +313,11 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
         changes = option_changes(state["config"], cfg, shards.env, used=state)  # before the data set is decoded below
         if changes:
             raise RispError(f"cannot resume {last_path} with different options: {', '.join(changes)}")
+        # a resumed run keeps the σ_ψ it began with; checkpoints from before σ_ψ followed the shards' domain
+        # (2026-11-28) trained with the train domain's
+        stored_psi = state.get("psi_std")
+        psi_std = (torch.tensor(stored_psi, dtype=torch.float64) if stored_psi is not None
+                   else psi_scale(shards.env, "train"))
     # the same default from memory, although its workers only decode before the first step: a second torch thread
     # is 1.6x faster on an idle 2-core machine but 2-3x slower than one when the cores are shared (OpenMP's
     # threads spin; docs/PERFORMANCE.md §Training data in memory): --threads 2 is the user's call
@@ -392,7 +397,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
             "progress": {"epoch": epoch, "batch": batch, "global_step": step, "total_steps": total_steps,
                          "complete": complete},
             "history": history, "world_size": world, "workers": cfg.workers, "threads": threads, "cache": cache,
-            "device": str(device), "torch_version": torch.__version__,
+            "device": str(device), "torch_version": torch.__version__, "psi_std": psi_std.tolist(),
             "epoch_sums": [float(v) for v in sums] if batch > 0 else [0.0, 0.0, 0.0],
             "samples": sample_counts(shards),
         }
@@ -403,7 +408,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
                      "gamma_start": gamma_start, "env": shards.env,
                      "manifest_hash": mhash, "normalization": norm.to_dict(), "world_size": world,
                      "threads": threads, "cache": cache, "device": str(device), "steps_per_epoch": plan,
-                     "samples": sample_counts(shards)})
+                     "samples": sample_counts(shards), "psi_std": psi_std.tolist()})
     from tqdm.auto import tqdm
 
     bar = tqdm(total=total_steps, initial=step, disable=(not progress) or rank != 0, unit="step",

@@ -674,3 +674,16 @@ def test_render_workers_end_when_the_job_process_is_killed(tmp_path):
         for w in workers:
             if _alive(w):
                 os.kill(w, signal.SIGKILL)
+
+
+def test_a_pid_given_to_another_process_counts_as_gone():
+    """exit_with's test: the job's pid with another start time (the pid reused after the job ended) is gone."""
+    from risp_data.generate import _process_gone, _start_time
+
+    me = os.getpid()
+    started = _start_time(me)
+    assert started is not None and not _process_gone(me, started) and not _process_gone(me)
+    assert _process_gone(me, str(int(started) + 1))
+    child = subprocess.Popen([sys.executable, "-c", "pass"])
+    child.wait()
+    assert _process_gone(child.pid)

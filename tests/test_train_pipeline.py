@@ -330,9 +330,22 @@ def test_the_regularizer_scales_psi_by_the_shards_own_domain(tmp_path, monkeypat
     seen, real = [], train_mod.psi_scale
     monkeypatch.setattr(train_mod, "psi_scale", lambda env, domain="train": seen.append((env, domain)) or real(env, domain))
     target = _render(tmp_path / "target", 8, 8, 3, ("--domain", "target"))
-    fit(make_config(target, str(tmp_path / "t"), preset="cpu", epochs=1, batch_size=4, width=4, workers=0,
-                    stats_samples=8, reg="stochastic"), progress=False)
+    cfg = make_config(target, str(tmp_path / "t"), preset="cpu", epochs=2, batch_size=4, width=4, workers=0,
+                      stats_samples=8, reg="stochastic", checkpoint_every=1)
+    with pytest.raises(TrainingStopped):
+        fit(cfg, progress=False, stop_after_step=2)
     assert seen == [("cube", "target")]
+    last = tmp_path / "t" / "last.pt"
+    ck = torch.load(last, weights_only=True)
+    assert ck["psi_std"] == real("cube", "target").tolist()
+    # a resumed run keeps the σ_ψ it began with: a checkpoint from before σ_ψ followed the domain (no psi_std)
+    # continues with the train domain's
+    used, loss = [], train_mod.risp_loss
+    monkeypatch.setattr(train_mod, "risp_loss", lambda *a, **k: used.append(a[-1].tolist()) or loss(*a, **k))
+    del ck["psi_std"]
+    torch.save(ck, last)
+    fit(cfg, resume=True, progress=False)
+    assert used and all(u == real("cube", "train").tolist() for u in used)
 
 
 @pytest.mark.parametrize("cache", ["stream", "memory"])

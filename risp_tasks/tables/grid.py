@@ -106,8 +106,8 @@ def cell_networks(cfg: TableConfig, cell: Cell) -> dict:
         return {which: network_identity(cfg, cell.env, which)} if which else {}
     if cfg.table in ("imitation", "control") and cell.env == "cube":  # N/A: no actions, nothing is read
         return {}
-    roles = {which or "reg", "reg"}  # the tasks read the initial state from the `ours` network
-    return {r: network_identity(cfg, cell.env, r) for r in sorted(roles)}
+    role = which or "reg"  # a task reads its initial state from the row's network; rows without one use `ours`'
+    return {role: network_identity(cfg, cell.env, role)}
 
 
 def _done(cfg: TableConfig, folder: str, cell: Cell) -> dict | None:
