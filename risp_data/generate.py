@@ -17,7 +17,6 @@ import os
 import queue as _queue
 import tempfile
 import threading
-import time
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -25,6 +24,7 @@ import numpy as np
 
 from .atomic import remove_temporaries
 from .errors import RispError
+from .processes import exit_with, start_time
 from .threads import available_cpus
 from .shards.manifest import (
     FORMAT_NAME,
@@ -498,59 +498,12 @@ def worker_context():
     return ctx
 
 
-def _proc_stat(pid: int) -> list[str] | None:
-    """/proc/<pid>/stat's fields from the state on (field 3; the command name may hold spaces), None if absent."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()
-    except OSError:
-        return None
-
-
-def _start_time(pid: int) -> str | None:
-    """The process's start time (field 22, clock ticks since boot): with the pid, it names one process."""
-    fields = _proc_stat(pid)
-    return fields[19] if fields is not None and len(fields) > 19 else None
-
-
-def _process_gone(pid: int, started: str | None = None) -> bool:
-    """True when process ``pid`` has ended: absent, a zombie (its exit only not yet collected) or, with ``started``,
-    a process of another start time that has since been given the same pid."""
-    if not os.path.isdir("/proc"):  # no /proc: ask the kernel whether the pid exists
-        try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
-            return True
-        except OSError:
-            pass
-        return False
-    fields = _proc_stat(pid)
-    if fields is None or fields[0] in ("Z", "X"):
-        return True
-    return started is not None and len(fields) > 19 and fields[19] != started
-
-
-def exit_with(pid: int, period: float = 0.5) -> None:
-    """End this worker process when the job process ``pid`` is gone.  The render workers are forks of the fork
-    server, not children of the job, and only the job holds the folder lock: killed by a signal, the job cannot
-    stop its pool, and its workers would go on writing shards into a folder that a rerun has since locked and is
-    checking.  A watcher thread ends them within ``period`` seconds; a shard stopped half-way has no completion
-    marker, so the next run treats it as missing and renders it again (writer.write_shard)."""
-    started = _start_time(pid)
-
-    def watch():
-        while not _process_gone(pid, started):
-            time.sleep(period)
-        os._exit(1)
-
-    threading.Thread(target=watch, name="exit-with-job", daemon=True).start()
-
-
-def _worker_init(job: RenderJob, threads: int, progress_queue, job_pid: int | None = None) -> None:
+def _worker_init(job: RenderJob, threads: int, progress_queue, job_pid: int | None = None,
+                 job_started: str | None = None) -> None:
     import torch
 
     if job_pid is not None:
-        exit_with(job_pid)
+        exit_with(job_pid, job_started)  # forks of the fork server, not the job's children: they end with the job
     torch.set_num_threads(1)
     _WORKER["renderer"] = make_renderer(job, threads)
     _WORKER["queue"] = progress_queue
@@ -588,7 +541,7 @@ def _run_pool(job, todo, on_record, bar):
     t.start()
     try:
         with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init,
-                                 initargs=(job, threads, q, os.getpid())) as ex:
+                                 initargs=(job, threads, q, os.getpid(), start_time(os.getpid()))) as ex:
             pending = {ex.submit(_worker_run, i) for i in todo}
             try:
                 while pending:

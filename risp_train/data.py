@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from dataclasses import dataclass
 from typing import Any, Iterator
 
@@ -304,8 +305,21 @@ class _Collate:
         return collate(samples, self.state_dim)
 
 
-def _worker_init(_: int) -> None:
-    torch.set_num_threads(1)  # workers decode EXRs; leave the cores to the training process
+class _WorkerInit:
+    """A DataLoader's worker_init_fn: one torch thread (workers decode EXRs; the cores are the training process's),
+    and the worker ends with the process that made the DataLoader (risp_data.processes.exit_with: a worker that
+    starts while its parent is killed would otherwise wait on its queue forever)."""
+
+    def __init__(self) -> None:
+        from risp_data.processes import start_time
+
+        self.parent, self.started = os.getpid(), start_time(os.getpid())
+
+    def __call__(self, _: int) -> None:
+        from risp_data.processes import exit_with
+
+        torch.set_num_threads(1)
+        exit_with(self.parent, self.started)
 
 
 def loader_generator() -> torch.Generator:
@@ -327,12 +341,12 @@ def make_loader(shards: ShardSet, *, seed: int, epoch: int, batch_size: int, wor
         nw = effective_workers(len(shards.urls), world_size, workers)
         ds = WdsStream(shards.urls, seed, epoch, shuffle_buffer, need_jacobian, rank)
         return torch.utils.data.DataLoader(ds, batch_size=batch_size, num_workers=nw, collate_fn=fn,
-                                           drop_last=True, persistent_workers=False, worker_init_fn=_worker_init,
+                                           drop_last=True, persistent_workers=False, worker_init_fn=_WorkerInit(),
                                            generator=loader_generator())
     batches = zarr_batches(shards.num_samples, seed, epoch, batch_size, rank, world_size)
     ds = ZarrSamples(shards.folder, need_jacobian)
     return torch.utils.data.DataLoader(ds, batch_sampler=batches, num_workers=max(0, workers), collate_fn=fn,
-                                       worker_init_fn=_worker_init, generator=loader_generator())
+                                       worker_init_fn=_WorkerInit(), generator=loader_generator())
 
 
 def iter_samples(shards: ShardSet, need_jacobian: bool = False) -> Iterator[dict]:

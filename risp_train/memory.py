@@ -26,7 +26,7 @@ import torch
 
 from risp_data.errors import RispError
 
-from .data import ShardSet, WdsStream, ZarrSamples, _Collate, _worker_init, loader_generator, zarr_batches
+from .data import ShardSet, WdsStream, ZarrSamples, _Collate, _WorkerInit, loader_generator, zarr_batches
 
 CACHE_MODES = ("auto", "memory", "stream")
 # --cache auto keeps the data in memory when it needs at most this share of the memory available at the start
@@ -133,7 +133,7 @@ def load_memory_set(shards: ShardSet, *, need_jacobian: bool, workers: int = 0, 
         ds = ZarrSamples(shards.folder, need_jacobian)
         nw = max(0, workers)
     loader = torch.utils.data.DataLoader(ds, batch_size=64, num_workers=nw, collate_fn=fn,
-                                         worker_init_fn=_worker_init if nw else None, generator=loader_generator())
+                                         worker_init_fn=_WorkerInit() if nw else None, generator=loader_generator())
     from tqdm.auto import tqdm
 
     with tqdm(total=n, disable=not progress, unit="sample", desc=f"decode {os.path.basename(shards.folder)}") as bar:

@@ -678,12 +678,30 @@ def test_render_workers_end_when_the_job_process_is_killed(tmp_path):
 
 def test_a_pid_given_to_another_process_counts_as_gone():
     """exit_with's test: the job's pid with another start time (the pid reused after the job ended) is gone."""
-    from risp_data.generate import _process_gone, _start_time
+    from risp_data.processes import process_gone, start_time
 
     me = os.getpid()
-    started = _start_time(me)
-    assert started is not None and not _process_gone(me, started) and not _process_gone(me)
-    assert _process_gone(me, str(int(started) + 1))
+    started = start_time(me)
+    assert started is not None and not process_gone(me, started) and not process_gone(me)
+    assert process_gone(me, str(int(started) + 1))
     child = subprocess.Popen([sys.executable, "-c", "pass"])
     child.wait()
-    assert _process_gone(child.pid)
+    assert process_gone(child.pid)
+
+
+def test_a_helper_whose_parent_is_already_gone_ends():
+    """A DataLoader worker (risp_train.data._WorkerInit) or render worker that starts after its parent died ends at
+    once instead of waiting on its queue forever: exit_with on a gone process exits within its period."""
+    import time
+
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    code = ("import time, sys; from risp_data.processes import exit_with; "
+            f"exit_with({gone.pid}, period=0.1); time.sleep(60); sys.exit(0)")
+    t0 = time.monotonic()
+    r = subprocess.run([sys.executable, "-c", code], env=ENV, timeout=50)
+    assert r.returncode == 1 and time.monotonic() - t0 < 30
+    from risp_train.data import _WorkerInit
+
+    init = _WorkerInit()  # made in the process that makes the DataLoader: names it by pid and start time
+    assert init.parent == os.getpid() and init.started is not None
