@@ -14,6 +14,7 @@ import torch
 from click.testing import CliRunner
 
 from risp_data.errors import RispError
+from risp_data.processes import proc_stat
 from risp_tasks.tables.config import make_config
 from risp_tasks.tables.grid import Cell, cell_path, run_folder, run_table
 from risp_tasks.tables.methods import METHODS
@@ -294,13 +295,7 @@ def test_parallel_cells_give_the_same_table_as_one_process(cache, tmp_path):
         assert a["values"] == pytest.approx(b["values"], rel=1e-6, abs=1e-9), m
 
 
-def _stat(pid: int) -> list[str] | None:
-    """/proc/<pid>/stat's fields after the command name (state, ppid, …), or None when the process is gone."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()
-    except OSError:
-        return None
+_stat = proc_stat  # /proc/<pid>/stat's fields after the command name (state, ppid, …), None when gone
 
 
 def _running(pid: int) -> bool:
