@@ -319,13 +319,39 @@ def _children(pid: int) -> set[int]:
     return out
 
 
+def _busy_workers(proc, timeout: float = 120) -> tuple[set[int], set[int]]:
+    """A `--jobs 2` table's two worker processes, once a network trains in them (its data loaders, their children,
+    are returned too)."""
+    import time
+
+    workers: set[int] = set()
+    deadline = time.time() + timeout
+    while len(workers := _children(proc.pid)) < 2 and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.5)
+    assert len(workers) >= 2, "the table did not start its two worker processes"
+    loaders: set[int] = set()
+    deadline = time.time() + timeout
+    while not (loaders := set().union(*(_children(w) for w in workers))) and time.time() < deadline:
+        time.sleep(0.5)
+    return workers, loaders
+
+
+def _still_running(pids: set[int], seconds: float) -> list[int]:
+    """The pids still running after up to ``seconds`` of waiting for them to end."""
+    import time
+
+    deadline = time.time() + seconds
+    while any(_running(p) for p in pids) and time.time() < deadline:
+        time.sleep(0.5)
+    return [p for p in pids if _running(p)]
+
+
 @pytest.mark.skipif(not os.path.isdir("/proc"), reason="reads /proc")
 def test_jobs_workers_end_when_the_table_process_is_killed(tmp_path):
     """A `--jobs 2` table killed by SIGKILL (no shutdown) leaves no worker computing on behind it."""
     import signal
     import subprocess
     import sys
-    import time
 
     cmd = [sys.executable, "-m", "risp_tasks", "table", "--table", "estimation", "--quick", "--jobs", "2",
            "--envs", "cube,rod", "--out", str(tmp_path), "--quiet"]
@@ -333,19 +359,10 @@ def test_jobs_workers_end_when_the_table_process_is_killed(tmp_path):
     workers: set[int] = set()
     loaders: set[int] = set()
     try:
-        deadline = time.time() + 120
-        while len(workers := _children(proc.pid)) < 2 and time.time() < deadline and proc.poll() is None:
-            time.sleep(0.5)
-        assert len(workers) >= 2, "the table did not start its two worker processes"
-        deadline = time.time() + 120  # until a network trains (its data loaders are the workers' children)
-        while not (loaders := set().union(*(_children(w) for w in workers))) and time.time() < deadline:
-            time.sleep(0.5)
+        workers, loaders = _busy_workers(proc)
         proc.send_signal(signal.SIGKILL)
         proc.wait()
-        deadline = time.time() + 30
-        while any(_running(w) for w in workers | loaders) and time.time() < deadline:
-            time.sleep(0.5)
-        alive = [w for w in workers | loaders if _running(w)]
+        alive = _still_running(workers | loaders, 30)
         assert not alive, f"workers {alive} went on after their table process was killed"
     finally:
         if proc.poll() is None:
@@ -362,7 +379,6 @@ def test_ctrl_c_ends_a_jobs_table_at_once_with_one_line(tmp_path):
     import signal
     import subprocess
     import sys
-    import time
 
     cmd = [sys.executable, "-m", "risp_tasks", "table", "--table", "estimation", "--quick", "--jobs", "2",
            "--envs", "cube,rod", "--out", str(tmp_path), "--quiet"]
@@ -372,21 +388,12 @@ def test_ctrl_c_ends_a_jobs_table_at_once_with_one_line(tmp_path):
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     workers: set[int] = set()
     try:
-        deadline = time.time() + 120
-        while len(workers := _children(proc.pid)) < 2 and time.time() < deadline and proc.poll() is None:
-            time.sleep(0.5)
-        assert len(workers) >= 2, "the table did not start its two worker processes"
-        deadline = time.time() + 120  # until a network trains: the workers are busy with artifacts
-        while not set().union(*(_children(w) for w in workers)) and time.time() < deadline:
-            time.sleep(0.5)
+        workers, _ = _busy_workers(proc)
         os.killpg(proc.pid, signal.SIGINT)
         out, err = proc.communicate(timeout=30)
         assert proc.returncode == 130, (proc.returncode, err)
         assert "Traceback" not in err and "Error: aborted" in err.splitlines(), err
-        deadline = time.time() + 15
-        while any(_running(w) for w in workers) and time.time() < deadline:
-            time.sleep(0.5)
-        assert not [w for w in workers if _running(w)], "workers went on after Ctrl-C"
+        assert not _still_running(workers, 15), "workers went on after Ctrl-C"
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
@@ -639,3 +646,13 @@ def test_a_data_set_or_network_that_cannot_be_made_ends_a_serial_run(cache, tmp_
         run_table(cfg, cache=cache, echo=lambda *_: None)
     assert len(calls) == 1
     assert not os.path.exists(os.path.join(run_folder(cfg), "cells"))
+
+
+def test_an_unknown_residual_is_refused_before_anything_is_made(tmp_path):
+    from risp_tasks.cli import cli
+
+    r = CliRunner().invoke(cli, ["table", "--table", "sysid", "--residual", "l3", "--out", str(tmp_path / "t")])
+    assert r.exit_code == 2 and "Invalid value for '--residual': 'l3' is not one of 'l2', 'l1'" in r.output, r.output
+    assert not os.path.exists(tmp_path / "t")
+    with pytest.raises(RispError, match="unknown residual 'l3'; choose one of: l2, l1"):
+        make_config("sysid", residual="l3")

@@ -21,6 +21,7 @@ from typing import Callable
 
 from risp_data.atomic import write_text_atomic
 from risp_data.errors import RispError
+from risp_data.shards.manifest import sha256_file
 
 from risp_data.threads import available_cpus
 
@@ -55,19 +56,9 @@ def run_folder(cfg: TableConfig) -> str:
         skip += ("residual",)
     settings = {k: v for k, v in cfg.to_dict().items() if k not in skip}
     if cfg.perceptual_weights and os.path.isfile(cfg.perceptual_weights):  # the file's contents, not its name:
-        settings["perceptual_weights"] = _file_sha256(cfg.perceptual_weights)  # a replaced file is another F
+        settings["perceptual_weights"] = sha256_file(cfg.perceptual_weights)  # a replaced file is another F
     key = checksum(settings)
     return os.path.join(cfg.out, f"{cfg.table}-{cfg.preset}{'-quick' if cfg.quick else ''}-{key}")
-
-
-def _file_sha256(path: str) -> str:
-    import hashlib
-
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def cell_path(folder: str, cell: Cell) -> str:
@@ -257,13 +248,9 @@ def _pool_worker_init(parent: int) -> None:
     signal.signal(signal.SIGTERM, _end_worker)  # _end_workers: this worker and its data loaders
 
     def watch():
-        import multiprocessing as mp
-
         while os.getppid() == parent:
             time.sleep(1.0)
-        for child in mp.active_children():  # a training's data loaders would outlive it
-            child.kill()
-        os._exit(1)
+        _end_worker()  # with a training's data loaders, which would outlive it
 
     threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
 
