@@ -25,6 +25,7 @@ import numpy as np
 from .atomic import remove_temporaries
 from .errors import RispError
 from .processes import exit_with, start_time
+from .ray_support import ray_errors, require_ray
 from .threads import available_cpus
 from .shards.manifest import (
     FORMAT_NAME,
@@ -557,17 +558,9 @@ def _run_pool(job, todo, on_record, bar):
         t.join()
 
 
-def _require_ray():
-    try:
-        import ray
-    except ImportError:
-        raise RispError("--executor ray needs the optional ray extra: pip install 'risp[ray]'") from None
-    return ray
-
-
 def _run_ray(job, todo, on_record, bar):
     """The same shard tasks on Ray actors (a running cluster when RAY_ADDRESS is set, else a local one)."""
-    ray = _require_ray()
+    ray = require_ray()
     from ray.util import ActorPool
 
     if not ray.is_initialized():
@@ -588,9 +581,10 @@ def _run_ray(job, todo, on_record, bar):
         ShardActor.options(num_cpus=threads).remote(job, threads) for _ in range(min(job.workers, len(todo)))
     ]
     pool = ActorPool(actors)
-    for rec in pool.map_unordered(lambda a, i: a.run.remote(i), list(todo)):
-        bar.update(rec["stop"] - rec["start"])
-        on_record(rec)
+    with ray_errors("rendering a shard"):
+        for rec in pool.map_unordered(lambda a, i: a.run.remote(i), list(todo)):
+            bar.update(rec["stop"] - rec["start"])
+            on_record(rec)
 
 
 def run_job(job: RenderJob, progress: bool = True, log: Callable[[str], None] = print,
@@ -605,7 +599,7 @@ def run_job(job: RenderJob, progress: bool = True, log: Callable[[str], None] = 
         worker_context()  # start the pool's fork server first: its imports overlap validation and set-up
     validate_job(job)
     if job.executor == "ray":
-        _require_ray()  # fail before anything is written
+        require_ray()  # fail before anything is written
     variant = init_mitsuba(job.variant)  # fails with one line when no usable libLLVM exists
     check_folder(job, variant)  # refuse another job's folder before creating or locking anything
     _check_writable(job.out)

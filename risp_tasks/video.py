@@ -55,13 +55,16 @@ def to_uint8(linear: np.ndarray) -> np.ndarray:
 
 
 def sha256_file(path: str | os.PathLike) -> str:
-    """sha256 of a file, or of a folder's PNGs (names and contents, sorted)."""
-    h = hashlib.sha256()
+    """sha256 of a file (risp_data's, so checksums agree across packages), or of a folder's PNGs (names and
+    contents, sorted)."""
+    from risp_data.shards.manifest import sha256_file as file_sha256
+
     p = Path(path)
-    files = png_frames(p) if p.is_dir() else [p]
-    for f in files:
-        if p.is_dir():
-            h.update(f.name.encode())
+    if not p.is_dir():
+        return file_sha256(str(p))
+    h = hashlib.sha256()
+    for f in png_frames(p):
+        h.update(f.name.encode())
         with open(f, "rb") as fh:
             for block in iter(lambda: fh.read(1 << 20), b""):
                 h.update(block)

@@ -21,6 +21,7 @@ from typing import Callable
 
 from risp_data.atomic import write_text_atomic
 from risp_data.errors import RispError
+from risp_data.ray_support import ray_errors, require_ray
 from risp_data.shards.manifest import sha256_file
 
 from risp_data.threads import available_cpus
@@ -361,31 +362,25 @@ def _end_workers(pool, grace: float = 5.0) -> None:
     pool.shutdown(wait=True, cancel_futures=True)
 
 
-def _require_ray():
-    try:
-        import ray
-    except ImportError:
-        raise RispError("--executor ray needs the optional ray extra: pip install 'risp[ray]'") from None
-    return ray
-
-
 def _run_ray(cfg: TableConfig, todo: list[Cell], folder: str, cache: str | None, on_cell) -> None:
     """Each environment's artifacts as one Ray task (so no two tasks make the same one), then every cell as a
     Ray task (a running cluster when RAY_ADDRESS is set, else a local one)."""
     from tqdm.auto import tqdm
 
-    ray = _require_ray()
+    ray = require_ray()
     if not ray.is_initialized():
         ray.init()
     remote_prepare = ray.remote(_prepare_single_threaded)
     remote_cell = ray.remote(_compute_cell_single_threaded)
-    ray.get([remote_prepare.remote(_for_todo(cfg, todo, env), env, cache) for env in sorted({c.env for c in todo})])
+    with ray_errors("making a table's data and networks"):
+        ray.get([remote_prepare.remote(_for_todo(cfg, todo, env), env, cache) for env in sorted({c.env for c in todo})])
     pending = {remote_cell.remote(cfg, c, folder, cache): c for c in todo}
     with tqdm(total=len(todo), unit="cell", desc=f"{cfg.table} (ray)", disable=not cfg.progress) as bar:
         while pending:
             done, _ = ray.wait(list(pending), num_returns=1)
             cell = pending.pop(done[0])
-            result = ray.get(done[0])
+            with ray_errors(f"cell {cell.name}"):
+                result = ray.get(done[0])
             bar.set_description(f"{cfg.table} {cell.name} done")
             bar.update(1)
             if on_cell is not None:

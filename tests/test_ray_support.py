@@ -1,0 +1,59 @@
+"""One error line from a failed Ray task (risp_data.ray_support): Ray itself is an optional extra that CI does not
+install, so its exception types are stood in for by classes shaped like ray.exceptions' (a ``cause`` attribute
+holding the task's own exception, a multi-line text holding the worker's traceback)."""
+
+import types
+
+import pytest
+
+from risp_data.errors import RispError
+from risp_data.ray_support import first_line, ray_errors
+
+TRACEBACK = "ray::run() (pid=4242, ip=10.0.0.1)\n  File \"x.py\", line 5, in run\n    raise RispError(...)\nRispError: {msg}"
+
+
+class RayError(Exception):
+    pass
+
+
+class RayTaskError(RayError):
+    def __init__(self, cause):
+        super().__init__(TRACEBACK.format(msg=cause))
+        self.cause = cause
+
+
+@pytest.fixture
+def fake_ray(monkeypatch):
+    module = types.SimpleNamespace(exceptions=types.SimpleNamespace(RayError=RayError))
+    monkeypatch.setitem(__import__("sys").modules, "ray", module)
+
+
+def test_first_line_is_the_task_s_own_message():
+    error = RayTaskError(RispError("shard 3: no usable libLLVM"))
+    assert "\n" in str(error)  # what ray.get raises is the worker's traceback
+    assert first_line(error) == "shard 3: no usable libLLVM"
+
+
+def test_first_line_without_a_cause_skips_blank_lines():
+    assert first_line(RayError("\n\n  the raylet died  \nmore")) == "the raylet died"
+    assert first_line(RayError("")) == "RayError"
+
+
+def test_ray_errors_makes_one_line(fake_ray):
+    with pytest.raises(RispError) as info:
+        with ray_errors("cell control/rod/ours/r0"):
+            raise RayTaskError(ValueError("bad\nsecond line"))
+    assert str(info.value) == "cell control/rod/ours/r0 failed on Ray: bad"
+
+
+def test_ray_errors_leaves_other_errors_alone(fake_ray):
+    with pytest.raises(KeyError):
+        with ray_errors("x"):
+            raise KeyError("not Ray's")
+
+
+def test_ray_errors_without_ray_imported_leaves_errors_alone(monkeypatch):
+    monkeypatch.delitem(__import__("sys").modules, "ray", raising=False)
+    with pytest.raises(ValueError):
+        with ray_errors("x"):
+            raise ValueError("no ray here")
