@@ -34,6 +34,7 @@ class _LazyGroup(RispGroup):
 
 
 @click.group(cls=_LazyGroup)
+@click.version_option(package_name="risp", message="%(prog)s (risp) %(version)s")
 def cli():
     """risp: recover states, parameters and actions from video with RISP."""
 

@@ -15,6 +15,7 @@ from .threads import available_cpus
 
 
 @click.group(cls=RispGroup)
+@click.version_option(package_name="risp", message="%(prog)s (risp) %(version)s")
 def cli():
     """Randomized Mitsuba renders with forward-mode Jacobian stacks, as webdataset and zarr shards."""
 

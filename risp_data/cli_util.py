@@ -110,6 +110,13 @@ def run_cli(group: click.Group, argv: list[str] | None = None) -> None:
     except click.exceptions.Abort:
         click.echo("Error: aborted", err=True)
         sys.exit(130)
+    except click.BadParameter as e:
+        if isinstance(e, click.MissingParameter):  # a usage error: click's usage lines and status 2
+            e.show()
+            sys.exit(e.exit_code)
+        # an unknown name or a malformed value (--env nosuch): bad input like any other, one line and status 1
+        click.echo(f"Error: {' '.join(e.format_message().split())}", err=True)
+        sys.exit(1)
     except click.ClickException as e:
         e.show()
         sys.exit(e.exit_code)

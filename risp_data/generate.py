@@ -429,7 +429,8 @@ def check_folder(job: RenderJob, variant: str) -> None:
     if os.path.exists(os.path.join(out, MANIFEST)):
         diffs = identity_mismatch(load_manifest(out), new_manifest(job, variant))
         if diffs and not _holds_no_samples(out):
-            raise RispError(f"output folder {out} holds another job ({'; '.join(diffs)}); use a new folder")
+            raise RispError(f"output folder {out} holds another job ({'; '.join(diffs)}); give a new folder with --out "
+                            f"(or remove {out})")
     elif not _is_fresh(out):
         raise RispError(f"output folder {out} is not empty and has no {MANIFEST}; use an empty or new folder")
 

@@ -19,6 +19,7 @@ from risp_data.envs import ENV_NAMES
 
 
 @click.group(cls=RispGroup)
+@click.version_option(package_name="risp", message="%(prog)s (risp) %(version)s")
 def cli():
     """From a video to states, physical parameters and actions (estimate, sysid, imitate, control); diagnose."""
 
@@ -77,6 +78,7 @@ def _task_options(f):
         click.option("--runs", default="runs", show_default=True, help="where to look for the most recent model"),
         click.option("--env", type=click.Choice(ENV_NAMES), default=None, help="expected environment (default: the model's)"),
         click.option("--out", default=None, help="result folder (default results/<task>-<video>-seed<seed>)"),
+        click.option("--overwrite", is_flag=True, help="replace an existing result folder at --out (a task's only)"),
         click.option("--loss", type=click.Choice(("render", "state", "oracle", "pixelwise", "perceptual")), default="state",
                      show_default=True, help="render: N(render(sim)) vs N(video); state: sim vs N(video); oracle: vs "
                      "--truth; pixelwise: render(sim) vs video; perceptual: F(render(sim)) vs F(video)"),
@@ -104,10 +106,12 @@ def _task_options(f):
                      help="imitate, control: known physical parameters — a JSON object, a JSON file, or a sysid "
                           "result.json (default: the simulator's nominal ones)"),
         click.option("--seed", type=int, default=0, show_default=True),
-        click.option("--every", type=int, default=1, show_default=True, help="keep every k-th frame"),
-        click.option("--fps", type=float, default=None, help="resample the video to this frame rate"),
-        click.option("--source-fps", type=float, default=None, help="frame rate of a PNG folder"),
-        click.option("--actions", default=None, help="actions CSV (t + f0..f3 [N] / u0.. ; one row per frame)"),
+        click.option("--every", type=int, default=1, show_default=True, help="keep every k-th frame (not control)"),
+        click.option("--fps", type=float, default=None, help="resample the video to this frame rate (a divisor of the "
+                     "video's own); control: the simulation's frame rate [default 10]"),
+        click.option("--source-fps", type=float, default=None, help="frame rate of a PNG folder (not control)"),
+        click.option("--actions", default=None, help="sysid, estimate: actions CSV (t + f0..f3 [N] / u0.. ; one row "
+                     "per frame)"),
         click.option("--truth", default=None, help="ground-truth JSON (oracle loss, error report)"),
         click.option("--camera", default=None, help="camera JSON (intrinsics, extrinsics) replacing the environment's"),
         click.option("--mesh", default=None, help="quadrotor vehicle mesh (OBJ/PLY/STL/glTF, metres, body frame) to render"),
@@ -124,12 +128,21 @@ def _task_options(f):
     return f
 
 
+def _first_full(result: dict) -> int | None:
+    """With --grow-horizon: the first iteration whose loss compares all frames (None if the horizon never got
+    there); without it 0, the start."""
+    full = result.get("frames_compared")
+    if not full:
+        return 0
+    total = result.get("frames_in_loss", full[-1])
+    return next((i for i, n in enumerate(full) if n == total), None)
+
+
 def _loss_change(result: dict) -> str:
     """"loss A -> B": A the first loss over all compared frames (with --grow-horizon the first iterations compare
     fewer, and a two-frame loss is not comparable with the final one), B the returned iterate's."""
-    loss, full = result["loss"], result.get("frames_compared")
-    if full:
-        first = next((i for i, n in enumerate(full) if n == full[-1]), None)
+    loss, first = result["loss"], _first_full(result)
+    if result.get("frames_compared"):
         if first is None or first >= len(loss):
             return f"loss {result['final_loss']:.4g} over all frames"
         return f"loss {loss[first]:.4g} (iteration {first}, the first over all frames) -> {result['final_loss']:.4g}"
@@ -146,10 +159,14 @@ def _run(task, video, **kw):
     result = run_task(cfg, echo=click.echo)
     loss = result["loss"]
     click.echo(f"{task} ({result['env']}): {_loss_change(result)} in {len(loss)} iterations; results: {result['out']}")
-    if loss and result.get("best_iteration") == 0:
+    first = _first_full(result)
+    if loss and first is not None and first < len(loss) and result.get("best_iteration") == first:
         kept = ("the warm start's result is kept" if result["config"].get("warm_start") else
                 "the start is kept — a smaller --lr or another --init may help")
-        click.echo(f"note: no step improved on the start (loss {loss[0]:.4g}); {kept} (docs/tasks.md §Pipeline)")
+        if first:  # a horizon curriculum: its first full-horizon iterate, not the start, is what no step beat
+            kept = "that iterate is kept — a smaller --lr or a shorter --grow-horizon may help"
+        start = "the start" if not first else f"iteration {first}, the first over all frames"
+        click.echo(f"note: no step improved on {start} (loss {loss[first]:.4g}); {kept} (docs/tasks.md §Pipeline)")
     for name, value in result["estimates"].get("parameters", {}).items():
         click.echo(f"  {name} = {value:.4g}")
     for name, value in result.get("errors", {}).items():
@@ -284,7 +301,8 @@ def table(table, preset, repeats, quick, out, envs, methods, reg, perceptual_wei
                       n_test=n_test, iterations=iterations, control_start=control_start, residual=residual, seed=seed,
                       executor=executor, jobs=jobs, progress=not quiet)
     report = run_table(cfg, echo=click.echo)
-    click.echo(open(report["files"][0]).read())
+    with open(report["files"][0]) as f:
+        click.echo(f.read())
     click.echo(f"wrote {report['files'][0]} and {report['files'][1]}")
 # ---- END table command ---------------------------------------------------------------------------------------
 

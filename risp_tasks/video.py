@@ -34,6 +34,7 @@ class Video:
     source_frames: int  # frames decoded from the file
     indices: tuple[int, ...]  # which decoded frames ``frames`` holds
     source_fps: float = 0.0  # frame rate of the decoded frames (0: unknown, a PNG folder without source_fps)
+    comment: str = ""  # the file's comment tag ("" for a PNG folder): make-video writes MADE_BY there
 
 
 def srgb_to_linear(x: np.ndarray) -> np.ndarray:
@@ -83,8 +84,8 @@ class _Converting(Exception):
     """An error of a frame's conversion (``each``), not of the decoder: re-raised as what it was."""
 
 
-def _decode_file(path: Path, each=lambda img: img) -> tuple[list[np.ndarray], float]:
-    """(``each`` of every decoded (H, W, 3) uint8 frame, the stream's frame rate)."""
+def _decode_file(path: Path, each=lambda img: img) -> tuple[list[np.ndarray], float, str]:
+    """(``each`` of every decoded (H, W, 3) uint8 frame, the stream's frame rate, the container's comment tag)."""
     av = _av()
     first = None
 
@@ -107,13 +108,14 @@ def _decode_file(path: Path, each=lambda img: img) -> tuple[list[np.ndarray], fl
             stream = streams[0]
             rate = stream.average_rate or stream.base_rate or stream.guessed_rate
             frames = [convert(f.to_ndarray(format="rgb24")) for f in container.decode(stream)]
+            tags = {k.lower(): v for k, v in container.metadata.items()}  # Matroska writes COMMENT
     except RispError:
         raise
     except _Converting as e:
         raise e.__cause__ from None
     except Exception as e:  # noqa: BLE001 - PyAV raises many error types (InvalidDataError, …)
         raise RispError(f"{path}: cannot decode as a video ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
-    return frames, float(rate) if rate else 0.0
+    return frames, float(rate) if rate else 0.0, str(tags.get("comment", ""))
 
 
 OTHER_IMAGE_SUFFIXES = (".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".exr")
@@ -183,11 +185,17 @@ def resize(frames: np.ndarray, resolution: int) -> np.ndarray:
     return out.permute(0, 2, 3, 1).contiguous().numpy().astype(np.float32)
 
 
+#: how far (as a fraction) the source rate / --fps ratio may be from a whole number: 29.97 fps to 10 is 2.997
+RATE_RATIO_TOLERANCE = 0.01
+
+
 def sample_indices(n: int, source_fps: float, fps: float | None, every: int) -> list[int]:
     """Frame indices after resampling to ``fps`` (nearest frame) and keeping every ``every``-th.
 
-    Resampling only drops frames: an ``fps`` above the source's own rate would have to invent the frames
-    between (or, picking nearest frames without repeats, squeeze the clip's time), so it is an error."""
+    Resampled frame k is the source frame nearest to t_k = k / fps, for every t_k up to the last frame's time
+    (n − 1) / source_fps.  Resampling only drops frames: an ``fps`` above the source's own rate would have to invent
+    the frames between, so it is an error; so is a rate that does not divide the source's (30 → 20 fps would keep
+    frames 0, 2, 3, 4, 6, …, unevenly spaced, while the tasks take them 1/fps apart)."""
     if every < 1:
         raise RispError(f"--every must be a positive integer, got {every}")
     idx = list(range(n))
@@ -199,8 +207,14 @@ def sample_indices(n: int, source_fps: float, fps: float | None, every: int) -> 
         if fps > source_fps * (1 + 1e-9):
             raise RispError(f"--fps {fps:g} is above the video's own {source_fps:g} frames per second: resampling "
                             f"only drops frames, it cannot make new ones (give --fps at most {source_fps:g})")
-        duration = n / source_fps
-        idx = sorted({min(n - 1, int(round(k * source_fps / fps))) for k in range(int(np.floor(duration * fps + 1e-9)))})
+        ratio = source_fps / fps
+        if abs(ratio - round(ratio)) > RATE_RATIO_TOLERANCE * ratio:
+            rates = ", ".join(f"{source_fps / k:.4g}" for k in range(1, 5))
+            raise RispError(f"--fps {fps:g} does not divide the video's {source_fps:g} frames per second (ratio "
+                            f"{ratio:.3g}): the kept frames would be unevenly spaced in time; give {source_fps:g}/k "
+                            f"({rates}, …)")
+        count = int(np.floor((n - 1) * fps / source_fps + 1e-9)) + 1  # every t_k <= the last frame's time
+        idx = sorted({min(n - 1, int(round(k * ratio))) for k in range(count)})
     return idx[::every]
 
 
@@ -219,12 +233,13 @@ def read_video(path: str | os.PathLike, resolution: int | None = None, every: in
         full-size copy of every frame of a long 1080p clip would not fit in memory), else as decoded."""
         return img if resolution is None else resize(SRGB8_TO_LINEAR[img][None], int(resolution))[0]
 
+    comment = ""
     if p.is_dir():
         raw, rate = _decode_pngs(p, each), float(source_fps or 0.0)
     else:
         if p.stat().st_size == 0:
             raise RispError(f"{p}: empty file (0 bytes)")
-        raw, rate = _decode_file(p, each)
+        raw, rate, comment = _decode_file(p, each)
         rate = float(source_fps or rate)
     if not raw:
         raise RispError(f"{p}: the video has no frames")
@@ -236,21 +251,41 @@ def read_video(path: str | os.PathLike, resolution: int | None = None, every: in
         frames = SRGB8_TO_LINEAR[frames]
     out_fps = (fps if fps is not None else rate) / every if (fps or rate) else 0.0
     return Video(frames=frames, fps=float(out_fps), source=str(p), source_frames=len(raw), indices=tuple(idx),
-                 source_fps=float(rate))
+                 source_fps=float(rate), comment=comment)
 
 
-def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float, crf: int = 12) -> None:
+#: the comment tag of make-video's files: "risp make-video env=<env> seed=<seed>" (made_by / made_for)
+MADE_BY = "risp make-video"
+
+
+def made_by(env: str, seed: int) -> str:
+    return f"{MADE_BY} env={env} seed={seed}"
+
+
+def made_for(comment: str) -> str | None:
+    """The environment a make-video file names in its comment tag, None for any other file."""
+    if not comment.startswith(MADE_BY + " "):
+        return None
+    fields = dict(part.split("=", 1) for part in comment[len(MADE_BY) + 1:].split() if "=" in part)
+    return fields.get("env")
+
+
+def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float, crf: int = 12,
+                overwrite: bool = False, comment: str | None = None) -> None:
     """Write linear-RGB frames (T, H, W, 3) as a video (by suffix: H.264 in .mp4/.mkv/.mov, MPEG-4 Part 2
-    in .avi) or, for a path without a video suffix, a folder of PNGs ``frame_00000.png`` …; atomically."""
+    in .avi) or, for a path without a suffix, a folder of PNGs ``frame_00000.png`` …; atomically.  Another suffix
+    (``.gif``) is an error, not a folder of that name.  A video file is replaced; a PNG folder only with
+    ``overwrite`` and only when it holds nothing but PNG frames.  ``comment``: the file's comment tag (files only)."""
     frames = np.asarray(frames)
+    p = Path(path)
+    check_video_path(p)
     if frames.ndim != 4 or frames.shape[-1] != 3 or len(frames) == 0:
         raise RispError(f"frames must have shape (T>0, H, W, 3), got {frames.shape}")
     if not np.isfinite(frames).all():
         raise RispError("frames contain NaN or inf")
     data = to_uint8(frames)
-    p = Path(path)
-    if p.suffix.lower() not in VIDEO_SUFFIXES:
-        _write_pngs(p, data)
+    if not p.suffix:
+        _write_pngs(p, data, overwrite)
         return
     av = _av()
     H, W = data.shape[1:3]
@@ -258,6 +293,8 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float, crf: in
 
     with atomic_write(p, "wb", suffix=p.suffix) as f:
         with av.open(f, mode="w", format={".mp4": "mp4", ".mkv": "matroska", ".mov": "mov", ".avi": "avi"}[p.suffix.lower()]) as out:
+            if comment:
+                out.metadata["comment"] = comment
             stream = out.add_stream(CODECS[p.suffix.lower()], rate=Fraction(fps).limit_denominator(1000))
             stream.width, stream.height = W, H
             stream.pix_fmt = "yuv444p" if CODECS[p.suffix.lower()] == "libx264" else "yuv420p"
@@ -272,27 +309,47 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float, crf: in
                 out.mux(packet)
 
 
-def _write_pngs(folder: Path, data: np.ndarray) -> None:
+def check_video_path(path: str | os.PathLike) -> None:
+    """A path ``write_video`` can write: a video suffix, or none (a folder of PNG frames)."""
+    p = Path(path)
+    if p.suffix and p.suffix.lower() not in VIDEO_SUFFIXES:
+        raise RispError(f"{p}: cannot write {p.suffix} videos; give a path ending in "
+                        f"{', '.join(VIDEO_SUFFIXES)}, or one without a suffix for a folder of PNG frames")
+
+
+def _write_pngs(folder: Path, data: np.ndarray, overwrite: bool = False) -> None:
+    import shutil
+
     from PIL import Image
 
     from risp_data.atomic import temp_folder
 
-    if folder.exists() and any(folder.iterdir()):
-        raise RispError(f"{folder}: folder exists and is not empty")
+    if folder.exists() and not folder.is_dir():
+        raise RispError(f"{folder}: exists and is not a folder of PNG frames")
+    held = list(folder.iterdir()) if folder.exists() else []
+    if held and not overwrite:
+        raise RispError(f"{folder}: folder exists and is not empty (--overwrite replaces a folder of PNG frames)")
+    if any(not (f.is_file() and f.suffix.lower() == ".png") for f in held):  # never delete what is not ours
+        raise RispError(f"{folder}: holds files other than PNG frames; give another --out")
     folder.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(temp_folder(folder.parent))
+    old = None
     try:
         for i, img in enumerate(data):
             Image.fromarray(img).save(tmp / f"frame_{i:05d}.png")
-        if folder.exists():
-            folder.rmdir()
+        if folder.exists():  # move the old frames aside, put the new ones in place, then delete the old
+            old = Path(temp_folder(folder.parent))
+            os.rmdir(old)
+            os.replace(folder, old)
         os.replace(tmp, folder)
     except BaseException:
-        import shutil
-
         shutil.rmtree(tmp, ignore_errors=True)
+        if old is not None and old.exists() and not folder.exists():
+            os.replace(old, folder)  # the old frames back where they were
         raise
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
 
 
-__all__ = ["Video", "read_video", "read_rgb8", "png_frames", "write_video", "resize", "sample_indices", "srgb_to_linear", "linear_to_srgb",
+__all__ = ["Video", "check_video_path", "read_video", "read_rgb8", "png_frames", "write_video", "resize", "sample_indices", "srgb_to_linear", "linear_to_srgb",
            "sha256_file", "to_uint8"]

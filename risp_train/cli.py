@@ -21,6 +21,7 @@ from .config import DEFAULT_REG
 
 
 @click.group(cls=RispGroup)
+@click.version_option(package_name="risp", message="%(prog)s (risp) %(version)s")
 def cli():
     """Train and evaluate the RISP state predictor on rendered shards."""
 

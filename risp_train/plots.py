@@ -20,30 +20,35 @@ def _save(fig, path: str) -> None:
         fig.savefig(f, format="png", dpi=110, bbox_inches="tight")
 
 
-def plot_losses(csv_path: str, png_path: str, history: list[dict] | None = None) -> None:
-    """State error and regularizer per step (log scale), held-out error per epoch when present."""
-    steps, err, reg = [], [], []
+def plot_losses(csv_path: str, png_path: str, history: list[dict] | None = None, reg: str = "none") -> None:
+    """State error and regularizer per step (log scale), held-out error per epoch when present.  ``reg``: the run's
+    regularizer (what the right panel says when no step evaluated it).  A run of a few steps gets point markers
+    (a line through one point is invisible)."""
+    steps, err, values = [], [], []
     with open(csv_path, newline="") as f:
         for row in csv.DictReader(f):
             steps.append(int(row["step"]))
             err.append(float(row["error"]))
-            reg.append(float(row["reg"]))
+            values.append(float(row["reg"]))
     if not steps:
         return
     plt = _pyplot()
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
-    ax[0].plot(steps, err, lw=0.8, label="train state error ℓ (normalized L1)")
+    marker = "o" if len(steps) <= 20 else None
+    ax[0].plot(steps, err, lw=0.8, marker=marker, label="train state error ℓ (normalized L1)")
     val = [(h["step"], h["val_error"]) for h in (history or []) if h.get("val_error") is not None]
     if val:
         ax[0].plot(*zip(*val), "o-", label="held-out state error")
     ax[0].set_xlabel("step")
     ax[0].set_yscale("log")
     ax[0].legend(fontsize=8)
-    if any(r > 0 for r in reg):
-        ax[1].plot(steps, [max(r, 1e-12) for r in reg], lw=0.8, color="C2")
+    if any(r > 0 for r in values):
+        ax[1].plot(steps, [max(r, 1e-12) for r in values], lw=0.8, marker=marker, color="C2")
         ax[1].set_yscale("log")
     else:
-        ax[1].text(0.5, 0.5, "no regularizer (--reg none)", ha="center", va="center", transform=ax[1].transAxes)
+        text = ("no regularizer (--reg none)" if reg == "none" else
+                f"--reg {reg}: not evaluated yet\n(γ = 0 before its ramp starts)")
+        ax[1].text(0.5, 0.5, text, ha="center", va="center", transform=ax[1].transAxes)
     ax[1].set_xlabel("step")
     ax[1].set_ylabel("regularizer r (batch mean)")
     _save(fig, png_path)

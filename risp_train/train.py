@@ -36,6 +36,7 @@ from .model import ModelConfig, ResNet18, build_model, min_resolution, stem_for_
 from .normalization import Normalization, StatsAccumulator
 from .regularizers import gamma_at, psi_scale, risp_loss
 from risp_data.atomic import atomic_write, remove_temporaries, write_text_atomic
+from risp_data.shards.manifest import package_versions
 from risp_data.threads import set_torch_threads
 
 LAST = "last.pt"  # the resumable checkpoint, rewritten at each epoch end (and every N steps)
@@ -408,7 +409,8 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
                      "gamma_start": gamma_start, "env": shards.env,
                      "manifest_hash": mhash, "normalization": norm.to_dict(), "world_size": world,
                      "threads": threads, "cache": cache, "device": str(device), "steps_per_epoch": plan,
-                     "samples": sample_counts(shards), "psi_std": psi_std.tolist()})
+                     "samples": sample_counts(shards), "psi_std": psi_std.tolist(),
+                     "versions": package_versions()})
     from tqdm.auto import tqdm
 
     bar = tqdm(total=total_steps, initial=step, disable=(not progress) or rank != 0, unit="step",
@@ -481,7 +483,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
                 ckpt_io.save_checkpoint(last_path, payload(epoch + 1, 0, epoch + 1 == cfg.epochs))
                 from .plots import plot_losses
 
-                plot_losses(csv_path, os.path.join(cfg.out, "losses.png"), history)
+                plot_losses(csv_path, os.path.join(cfg.out, "losses.png"), history, cfg.reg)
             if world > 1:
                 import torch.distributed as dist
 

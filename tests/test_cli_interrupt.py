@@ -87,3 +87,38 @@ def test_a_real_error_still_exits_1(capsys):
         run_cli(group, ["work"])
     assert info.value.code == 1
     assert capsys.readouterr().err.strip() == "Error: shards/x: not a data set"
+
+
+def test_an_unknown_name_is_one_line_and_status_1_a_missing_option_a_usage_error(capsys):
+    """--env nosuch is bad input like any other (docs/cli.md: one line, status 1), where click alone would print
+    its usage lines and exit 2; a missing required option stays click's usage error (status 2)."""
+    @click.group(cls=RispGroup)
+    def group():
+        pass
+
+    @group.command()
+    @click.option("--env", type=click.Choice(["cube", "rod"]), required=True)
+    @click.option("--n", type=int, default=1)
+    def work(env, n):
+        pass
+
+    for args, words in ((["--env", "nosuch"], "'nosuch' is not one of 'cube', 'rod'"),
+                        (["--env", "rod", "--n", "x"], "'x' is not a valid integer")):
+        with pytest.raises(SystemExit) as info:
+            run_cli(group, ["work", *args])
+        err = capsys.readouterr().err.strip()
+        assert info.value.code == 1 and err.startswith("Error: ") and words in err and "\n" not in err, err
+    with pytest.raises(SystemExit) as info:
+        run_cli(group, ["work"])
+    assert info.value.code == 2 and "Missing option '--env'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("module", ["cli", "risp_data.cli", "risp_train.cli", "risp_tasks.cli"])
+def test_every_command_group_prints_its_version(module):
+    import importlib
+    from importlib.metadata import version
+
+    from click.testing import CliRunner
+
+    res = CliRunner().invoke(importlib.import_module(module).cli, ["--version"])
+    assert res.exit_code == 0 and res.output.strip().endswith(f"(risp) {version('risp')}"), res.output

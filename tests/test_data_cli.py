@@ -273,7 +273,7 @@ def test_mismatched_and_foreign_folders_untouched(rendered, tmp_path):
     assert "5/5 samples" in r.output and "rendered 0" in r.output
     r = CliRunner().invoke(cli, ["render", *TINY[:2], "--res", "16", "--spp", "2", "--n", "5", "--shard-size", "2",
                                  "--out", str(rendered)])
-    _error_line(r, "holds another job (resolution=8 (folder) vs 16 (requested))")
+    _error_line(r, "holds another job (resolution=8 (folder) vs 16 (requested)); give a new folder with --out")
     _error_line(_render(rendered, "--seed", "3", n=5), "seed=0 (folder) vs 3")
     _error_line(_render(rendered, n=6), "n=5 (folder) vs 6")
     _error_line(_render(rendered, "--domain", "target", n=5), "domain=")

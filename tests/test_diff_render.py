@@ -61,8 +61,9 @@ def _check_state_gradient(env, r):
         (r(s[None], seed=seed) * w).sum().backward()
         grads.append(float(s.grad @ d))
         with torch.no_grad():
-            plus = (r((s0 + eps * d)[None], seed=seed) * w).sum().double()
-            minus = (r((s0 - eps * d)[None], seed=seed) * w).sum().double()
+            # the images are float32 (Mitsuba's single-precision variant); the weighted sums are float64
+            plus = (r((s0 + eps * d)[None], seed=seed).double() * w.double()).sum()
+            minus = (r((s0 - eps * d)[None], seed=seed).double() * w.double()).sum()
         fds.append(float((plus - minus) / (2 * eps)))
     g, fd = np.mean(grads), np.mean(fds)
     tol = 0.25 * max(abs(fd), abs(g)) + 3 * np.std(fds) / np.sqrt(len(fds))

@@ -10,7 +10,10 @@ from risp_data.errors import RispError
 
 @pytest.fixture
 def no_preset(monkeypatch):
-    monkeypatch.delenv("DRJIT_LIBLLVM_PATH", raising=False)
+    # setenv first so that monkeypatch records the variable even when it was unset: ensure_llvm() writes it, and
+    # without a record the test's bogus path would outlive the test (and break the next Mitsuba start-up)
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", "unset-by-test")
+    monkeypatch.delenv("DRJIT_LIBLLVM_PATH")
 
 
 @pytest.mark.parametrize("name, major", [

@@ -1,11 +1,9 @@
 """The simulator interface (risp_tasks/sims/base.py), checked generically for every registered environment.
 
-An environment whose simulator module does not exist yet is skipped.
+Every environment of risp_data has a simulator: a missing module or default state fails here, it is not skipped.
 """
 
 from __future__ import annotations
-
-import importlib
 
 import pytest
 import torch
@@ -19,18 +17,11 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")  # tests/conftest.py
 
 
 def _sim(env, effects=()):
-    try:
-        importlib.import_module(f"risp_tasks.sims.{env}")
-    except ModuleNotFoundError:
-        pytest.skip(f"no simulator module for {env} yet")
     return get_simulator(env, effects)
 
 
 def _inputs(sim, batch=2, steps=3, dtype=torch.float64):
-    try:
-        s0 = sim.default_state(batch, dtype)
-    except NotImplementedError:
-        s0 = torch.zeros(batch, len(sim.state_names), dtype=dtype)
+    s0 = sim.default_state(batch, dtype)
     params = sim.default_params(batch, dtype)
     gen = torch.Generator().manual_seed(0)
     actions = None

@@ -113,7 +113,7 @@ def test_model_for_another_environment(quad, tmp_path):
 def test_corrupt_model_file(quad, tmp_path):
     (tmp_path / "model.pt").write_bytes(b"\x00garbage")
     line = _invoke(["imitate", quad[1], "--model", str(tmp_path / "model.pt")], tmp_path)
-    assert "model.pt" in line
+    assert "corrupt or unreadable checkpoint" in line and "model.pt" in line
 
 
 def test_model_given_as_its_run_folder(quad, tmp_path):
@@ -182,11 +182,20 @@ def test_a_most_recent_model_for_another_system_is_named(quad, tmp_path_factory,
     shutil.copy(shared_model(tmp_path_factory, "cube"), tmp_path / "runs" / "cube-run" / "model.pt")
     monkeypatch.chdir(tmp_path)
     stem = os.path.splitext(video)[0]
+    # make-video's own file names its system in its comment tag: the mismatch is said at once
     line = _invoke(["imitate", video], tmp_path)
+    assert "a quadrotor video (make-video's tag in the file), but the model is a cube model" in line
+    assert "is a cube model: give --model" in line
+    # footage without the tag (the same frames, written again): the actions or the truth file tell
+    from risp_tasks.video import read_video, write_video
+
+    plain = str(tmp_path / "plain.mp4")
+    write_video(plain, read_video(video).frames, fps=10)
+    line = _invoke(["imitate", plain], tmp_path)
     assert "the cube has no actions to imitate" in line and "is a cube model: give --model" in line
-    line = _invoke(["sysid", video, "--actions", stem + ".actions.csv"], tmp_path)
+    line = _invoke(["sysid", plain, "--actions", stem + ".actions.csv"], tmp_path)
     assert "the cube has no actions" in line and "is a cube model: give --model" in line
-    line = _invoke(["estimate", video, "--truth", stem + ".truth.json"], tmp_path)
+    line = _invoke(["estimate", plain, "--truth", stem + ".truth.json"], tmp_path)
     assert "ground truth of a quadrotor video, but the model is a cube model" in line
 
 
@@ -196,9 +205,21 @@ def test_existing_result_folder_is_not_overwritten(quad, tmp_path):
     (tmp_path / "res" / "keep.txt").write_text("mine")
     from risp_tasks.cli import cli
 
-    res = CliRunner().invoke(cli, ["estimate", video, "--model", model, "--out", str(tmp_path / "res"), "--quiet"])
-    assert res.exit_code != 0 and "exists" in res.output
+    base = ["estimate", video, "--model", model, "--out", str(tmp_path / "res"), "--quiet", "--no-plots"]
+    res = CliRunner().invoke(cli, base)
+    assert res.exit_code != 0 and "exists" in res.output and "--overwrite" in res.output
     assert (tmp_path / "res" / "keep.txt").read_text() == "mine"
+    # --overwrite replaces only a task's result folder (one with result.json), not a folder of the user's
+    res = CliRunner().invoke(cli, base + ["--overwrite"])
+    assert res.exit_code != 0 and "is not a task's result folder" in res.output, res.output
+    assert (tmp_path / "res" / "keep.txt").read_text() == "mine"
+    (tmp_path / "res" / "keep.txt").unlink()
+    (tmp_path / "res").rmdir()
+    assert CliRunner().invoke(cli, base + ["--seed", "1"]).exit_code == 0
+    res = CliRunner().invoke(cli, base + ["--seed", "2", "--overwrite"])
+    assert res.exit_code == 0, res.output
+    assert json.load(open(tmp_path / "res" / "result.json"))["seed"] == 2
+    assert sorted(os.listdir(tmp_path)) == ["res"]  # the old folder went, no temporaries stayed
 
 
 def test_failure_mid_run_leaves_no_result_folder(quad, tmp_path, monkeypatch):
@@ -347,7 +368,53 @@ def test_make_video_does_not_replace_a_video_unasked(tmp_path):
     assert "v.truth.json: exists" in _error_line(CliRunner().invoke(cli, args + ["--seed", "2"]))
     res = CliRunner().invoke(cli, args + ["--seed", "2", "--overwrite"])
     assert res.exit_code == 0, res.output
-    assert json.load(open(tmp_path / "v.truth.json"))["seed"] == 2
+    truth = json.load(open(tmp_path / "v.truth.json"))
+    from risp_tasks.video import sha256_file
+
+    assert truth["seed"] == 2 and truth["video_sha256"] == sha256_file(out) and truth["versions"]["torch"]
+    # a cube video (no actions) over the quadrotor's: the quadrotor's actions file does not stay beside it
+    cube = ["make-video", "--env", "cube", "--out", str(out), "--frames", "2", "--resolution", "8", "--quiet"]
+    assert CliRunner().invoke(cli, cube + ["--overwrite"]).exit_code == 0
+    assert json.load(open(tmp_path / "v.truth.json"))["env"] == "cube" and not (tmp_path / "v.actions.csv").exists()
+
+
+def test_make_video_refuses_a_suffix_it_cannot_write(tmp_path):
+    """--out v.gif is one line before any rendering, not a folder of PNGs named v.gif."""
+    from risp_tasks.cli import cli
+
+    args = ["make-video", "--env", "quadrotor", "--out", str(tmp_path / "v.gif"), "--frames", "2", "--quiet"]
+    line = _error_line(CliRunner().invoke(cli, args))
+    assert "v.gif: cannot write .gif videos" in line and ".mp4" in line
+    assert not os.listdir(tmp_path)
+
+
+def test_png_folder_is_replaced_only_with_overwrite_and_only_if_all_png(tmp_path):
+    from risp_data.errors import RispError
+    from risp_tasks.video import read_video, write_video
+
+    folder = tmp_path / "frames"
+    write_video(folder, np.full((3, 8, 8, 3), 0.2, np.float32), fps=10)
+    with pytest.raises(RispError, match="folder exists and is not empty"):
+        write_video(folder, np.full((2, 8, 8, 3), 0.7, np.float32), fps=10)
+    write_video(folder, np.full((2, 8, 8, 3), 0.7, np.float32), fps=10, overwrite=True)
+    video = read_video(folder, source_fps=10)
+    assert len(video.frames) == 2 and np.allclose(video.frames, 0.7, atol=0.01)
+    assert sorted(os.listdir(tmp_path)) == ["frames"]  # no temporaries left
+    (folder / "notes.txt").write_text("mine")
+    with pytest.raises(RispError, match="holds files other than PNG frames"):
+        write_video(folder, np.full((2, 8, 8, 3), 0.1, np.float32), fps=10, overwrite=True)
+    assert (folder / "notes.txt").read_text() == "mine" and len(os.listdir(folder)) == 3
+
+
+def test_truth_of_another_video_is_refused(quad, tmp_path):
+    """make-video's truth names its video by checksum: a truth beside another video is one line, not errors measured
+    against the wrong motion."""
+    model, video = quad
+    truth = json.load(open(os.path.splitext(video)[0] + ".truth.json"))
+    truth["video_sha256"] = "0" * 64
+    (tmp_path / "other.truth.json").write_text(json.dumps(truth))
+    line = _invoke(["estimate", video, "--model", model, "--truth", str(tmp_path / "other.truth.json")], tmp_path)
+    assert "other.truth.json: the ground truth of another video" in line
 
 
 def test_make_video_params_with_a_huge_integer(tmp_path):
@@ -368,7 +435,11 @@ def test_sysid_prints_the_parameter_error_and_a_kept_start(quad, tmp_path):
             os.path.splitext(video)[0] + ".truth.json", "--quiet", "--no-plots", "--iterations", "3"]
     res = CliRunner().invoke(cli, base + ["--out", str(tmp_path / "a")])
     assert res.exit_code == 0, res.output
-    saved = json.load(open(tmp_path / "a" / "result.json"))["errors"]["parameter_error_final"]["mass"]
+    result = json.load(open(tmp_path / "a" / "result.json"))
+    saved = result["errors"]["parameter_error_final"]["mass"]
+    from risp_tasks.video import sha256_file
+
+    assert result["inputs"]["actions"]["sha256"] == sha256_file(_actions(video)) and set(result["inputs"]) == {"actions", "truth"}
     assert f"mass error = {saved:.4g}" in res.output, res.output
     res = CliRunner().invoke(cli, base + ["--out", str(tmp_path / "b"), "--lr", "100", "--optimizer", "sgd"])
     kept = json.load(open(tmp_path / "b" / "result.json"))["best_iteration"] == 0
@@ -484,3 +555,70 @@ def test_a_frame_rate_off_the_hands_fixed_step_lists_the_ones_that_fit():
     for fps in (7.0, 9.8, 11.0, 14.0, 24.9):  # 0.4-2 % off the nearest fitting rate: the simulated time would drift
         with pytest.raises(RispError, match=f"{fps:g} frames per second do not fit.*with --source-fps"):
             timeline("hand", fps)
+
+
+@pytest.mark.parametrize("states, problem", [
+    ([[1.0, 2.0], [3.0]], "not a table of numbers"),
+    ([[0.0] * 3] * 6, "must have 6 columns per row, got shape (6, 3)"),  # the quadrotor's: position, attitude
+    ([], "non-empty list of state rows"),
+    ([[float("nan")] * 6] * 6, "NaN"),  # json.dumps writes NaN; read_json refuses it or the table check does
+])
+def test_bad_ground_truth_is_refused_before_any_work(quad, tmp_path, states, problem):
+    """A damaged --truth file (ragged rows, another width, empty, NaN) is one line before the optimisation runs,
+    for every task that reads one (control reads its last row)."""
+    model, video = quad
+    path = tmp_path / "truth.json"
+    path.write_text(json.dumps({"env": "quadrotor", "env_states": states}))
+    for task in ("sysid", "control"):
+        args = [task, video, "--model", model, "--truth", str(path)]
+        if task == "control":
+            from PIL import Image
+
+            Image.new("RGB", (64, 64)).save(tmp_path / "goal.png")
+            args[1] = str(tmp_path / "goal.png")
+        line = _invoke(args, tmp_path)
+        assert "truth.json" in line and problem in line, line
+
+
+@pytest.mark.parametrize("settings, words", [
+    (dict(iterations=-2), "--iterations must be >= 0, got -2"),
+    (dict(lr=0.0), "--lr must be a finite number > 0, got 0"),
+    (dict(momentum=-0.5), "--momentum must be a finite number >= 0, got -0.5"),
+    (dict(momentum=float("nan")), "--momentum must be a finite number >= 0, got nan"),
+    (dict(fps=0.0), "--fps must be a finite number > 0, got 0"),
+    (dict(spp=0), "--spp must be >= 1, got 0"),
+    (dict(init="track"), "--init track is imitate's"),
+    (dict(task="control", init="track"), "--init track is imitate's"),
+    (dict(task="imitate", actions="a.csv"), "--actions: imitate finds the actions itself"),
+])
+def test_task_settings_name_the_one_bad_option(settings, words):
+    """Each bad setting is refused before anything is loaded, by a line that names that option (not a list of
+    every rule), including those torch would otherwise refuse with a traceback mid-run (--momentum)."""
+    from risp_data.errors import RispError
+    from risp_tasks.tasks.config import TaskConfig
+
+    with pytest.raises(RispError) as info:
+        TaskConfig(**{"task": "sysid", "video": "v.mp4", **settings})
+    assert words in str(info.value) and str(info.value).count("must") <= 1
+
+
+def test_actions_t_column_must_follow_the_video_timeline(tmp_path):
+    """The t column (optional) steps by 1/fps: a file at another rate, or with a row missing, is refused instead of its
+    commands being applied at the wrong frames; a t that starts elsewhere (a log's clock) is fine."""
+    from risp_data.errors import RispError
+    from risp_tasks.tasks.inputs import read_actions
+
+    def write(name, times):
+        path = tmp_path / name
+        path.write_text("t,f0,f1,f2,f3\n" + "".join(f"{t},1,2,3,4\n" for t in times))
+        return str(path)
+
+    assert read_actions(write("ok.csv", [0.0, 0.1, 0.2, 0.3]), "quadrotor", 4, 10.0).tolist() == [[1, 2, 3, 4]] * 4
+    assert read_actions(write("clock.csv", [12.5, 12.6, 12.7, 12.8]), "quadrotor", 4, 10.0).shape == (4, 4)
+    with pytest.raises(RispError, match=r"slow.csv: t = 0.3 s at line 3, but frame 1 of the video's 10 fps timeline is at 0.1 s"):
+        read_actions(write("slow.csv", [0.0, 0.3, 0.6, 0.9]), "quadrotor", 4, 10.0)
+    with pytest.raises(RispError, match=r"gap.csv: t = 0.3 s at line 4"):
+        read_actions(write("gap.csv", [0.0, 0.1, 0.3, 0.4]), "quadrotor", 4, 10.0)
+    no_t = tmp_path / "no_t.csv"
+    no_t.write_text("f0,f1,f2,f3\n" + "1,2,3,4\n" * 4)
+    assert read_actions(str(no_t), "quadrotor", 4, 10.0).shape == (4, 4)

@@ -41,6 +41,8 @@ def _video_to_report(tmp_path, model, effect, resolution, seed=7):
 def test_pipeline_runs(tmp_path_factory, tmp_path):
     report = _video_to_report(tmp_path, shared_model(tmp_path_factory, "quadrotor"), "wind:3,0,0", 16)
     assert isinstance(report["cause"], str) and report["reason"]
+    # diagnose read estimate's trajectory: one sample per frame of the 10 s, 30 fps video
+    assert report["data"]["samples"] == 300, report["data"]
     if report["cause"] == "unexplained":  # on a network's estimates the verdict names their noise
         assert "estimate noise" in report["reason"], report["reason"]
     assert os.path.isfile(tmp_path / "report" / "report.json")

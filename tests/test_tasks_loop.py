@@ -291,3 +291,38 @@ def test_the_summary_line_compares_full_horizon_losses():
     assert _loss_change(grown) == "loss 2 (iteration 2, the first over all frames) -> 1.2"
     assert _loss_change({"loss": [3.0, 2.0], "final_loss": 1.5}) == "loss 3 -> 1.5"
     assert _loss_change({"loss": [], "final_loss": 1.5}) == "loss 1.5 -> 1.5"
+    # a curriculum longer than the run: its last iterations still compare 5 of 10 frames, so none is "all frames"
+    short = {"loss": [0.1, 0.3, 0.4], "frames_compared": [2, 3, 5], "frames_in_loss": 10, "final_loss": 0.9}
+    assert _loss_change(short) == "loss 0.9 over all frames"
+
+
+def test_the_no_improvement_note_under_a_curriculum(tmp_path, monkeypatch):
+    """The CLI's note that no step improved names the first full-horizon iterate under --grow-horizon (best_iteration
+    is never 0 there), and the start otherwise."""
+    import risp_tasks.tasks.run as run_mod
+    from click.testing import CliRunner
+    from risp_tasks.cli import cli
+
+    result = {"loss": [0.1, 0.5, 2.0, 2.5], "frames_compared": [2, 4, 6, 6], "frames_in_loss": 6, "final_loss": 2.0,
+              "best_iteration": 2, "env": "hand", "out": "r", "estimates": {}, "config": {"warm_start": 0}}
+    monkeypatch.setattr(run_mod, "run_task", lambda cfg, echo: result)
+    out = CliRunner().invoke(cli, ["sysid", "v.mp4", "--quiet"]).output
+    assert "note: no step improved on iteration 2, the first over all frames (loss 2)" in out, out
+    result.update(best_iteration=3)
+    assert "note:" not in CliRunner().invoke(cli, ["sysid", "v.mp4", "--quiet"]).output
+    plain = {**result, "loss": [3.0, 4.0], "best_iteration": 0}
+    del plain["frames_compared"], plain["frames_in_loss"]
+    monkeypatch.setattr(run_mod, "run_task", lambda cfg, echo: plain)
+    assert "note: no step improved on the start (loss 3)" in CliRunner().invoke(cli, ["sysid", "v.mp4", "--quiet"]).output
+
+
+def test_estimate_csv_holds_the_mean_command_of_each_kept_interval():
+    """With --every k, the trajectory CSV's command at a kept frame is the mean of the k per-frame commands it stands
+    for (diagnose holds it until the next row), not the one row at that frame."""
+    import numpy as np
+
+    from risp_tasks.tasks.run import held_commands
+
+    actions = np.arange(14, dtype=np.float64).reshape(7, 2)  # rows [0,1], [2,3], … [12,13]
+    assert held_commands(actions, [0, 3, 6]).tolist() == [[2.0, 3.0], [8.0, 9.0], [12.0, 13.0]]
+    assert held_commands(actions, list(range(7))).tolist() == actions.tolist()  # every frame kept: the rows

@@ -30,12 +30,17 @@ def test_explicit_gamma_wins_and_none_regularizer_has_no_weight():
     assert resolved_gamma(make_config("s", "o", preset="paper", reg="none"), "cube") == 0.0
 
 
-@pytest.mark.parametrize("kw", [dict(preset="huge"), dict(reg="l2"), dict(gamma=-1.0), dict(lr=0.0), dict(gamma_start=1.0),
-                                dict(gamma_start=-0.1), dict(gamma_ramp=1.5), dict(stem="resnet"),
-                                dict(seed=-1)])
-def test_bad_configuration_is_a_clear_error(kw):
-    with pytest.raises(RispError):
+@pytest.mark.parametrize("kw, words", [(dict(preset="huge"), "unknown --preset 'huge'"), (dict(reg="l2"), "unknown --reg 'l2'"),
+                                       (dict(gamma=-1.0), "--gamma must be >= 0"), (dict(lr=0.0), "--lr must be"),
+                                       (dict(gamma_start=1.0), "--gamma-start must be in [0, 1), got 1.0"),
+                                       (dict(gamma_start=-0.1), "--gamma-start must be in [0, 1), got -0.1"),
+                                       (dict(gamma_ramp=1.5), "--gamma-ramp must be in [0, 1]"),
+                                       (dict(stem="resnet"), "unknown stem 'resnet'"), (dict(seed=-1), "--seed must be >= 0")])
+def test_bad_configuration_is_a_clear_error(kw, words):
+    """Each bad setting is refused by a line that names it (not some other rule's error)."""
+    with pytest.raises(RispError) as info:
         make_config("s", "o", **kw)
+    assert words in str(info.value), str(info.value)
 
 
 def test_the_ramp_start_is_per_environment_unless_given():

@@ -48,6 +48,23 @@ def test_srgb_curves_are_inverse():
     assert sample_indices(10, 10.0, None, 4) == [0, 4, 8]
 
 
+def test_resampling_keeps_the_last_frame_and_even_spacing():
+    """Resampled frame k is the source frame at k / fps, up to the last frame's time: 21 frames at 10 fps end at
+    2.0 s, which 5 fps keeps (frame 20); a rate that does not divide the source's is refused (uneven spacing);
+    29.97 fps to 10 is a whole ratio within tolerance."""
+    from risp_data.errors import RispError
+
+    assert sample_indices(21, 10.0, 5.0, 1) == list(range(0, 21, 2))
+    assert sample_indices(20, 10.0, 5.0, 1) == list(range(0, 20, 2))
+    assert sample_indices(31, 30.0, 10.0, 1) == list(range(0, 31, 3))
+    assert sample_indices(7, 10.0, 10.0, 1) == list(range(7))
+    assert sample_indices(31, 30.0, 10.0, 2) == [0, 6, 12, 18, 24, 30]
+    with pytest.raises(RispError, match=r"--fps 20 does not divide the video's 30 frames per second \(ratio 1.5\)"):
+        sample_indices(30, 30.0, 20.0, 1)
+    ntsc = sample_indices(300, 29.97, 10.0, 1)
+    assert len(ntsc) == 100 and np.all(np.abs(np.diff(ntsc) - 3) <= 1)
+
+
 def _make(path, data):
     path.write_bytes(data)
     return path

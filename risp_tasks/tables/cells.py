@@ -129,7 +129,7 @@ def _task_run(cfg, art: Artifacts, task: str, env_name: str, method: str, repeat
     with tempfile.TemporaryDirectory(prefix=".tmp-cell-", dir=art.root) as tmp:
         tcfg = TaskConfig(task=task, video=video or ref["video"], out=os.path.join(tmp, "result"), model=model,
                           loss=loss, init=init, iterations=iterations, seed=cfg.seed + repeat,
-                          actions=None if task == "control" else ref["actions"], truth=truth or ref["truth"],
+                          actions=ref["actions"] if task == "sysid" else None, truth=truth or ref["truth"],
                           perceptual_weights=cfg.perceptual_weights if m.loss == "perceptual" else None,
                           spp=cfg.spp, residual=residual, plots=False, progress=False, **task_kw)
         return run_task(tcfg, echo=lambda *_: None)

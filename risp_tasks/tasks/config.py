@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 
 from risp_data.errors import RispError
@@ -64,7 +65,7 @@ class TaskConfig:
     every: int = 1
     fps: float | None = None  # resample the video to this rate
     source_fps: float | None = None  # frame rate of a PNG folder (files carry their own)
-    actions: str | None = None  # actions CSV (sysid, estimate; imitate's known part)
+    actions: str | None = None  # actions CSV (sysid, estimate)
     truth: str | None = None  # ground-truth JSON (oracle loss and error reports only)
     camera: str | None = None  # camera JSON (intrinsics/extrinsics) replacing the environment's camera
     mesh: str | None = None  # vehicle mesh file (quadrotor) replacing the built-in one
@@ -79,6 +80,7 @@ class TaskConfig:
     threads: int = 1
     progress: bool = True
     plots: bool = True
+    overwrite: bool = False  # replace an existing result folder at --out (only a task's: it holds result.json)
 
     def __post_init__(self):
         if self.loss not in LOSSES:
@@ -94,8 +96,26 @@ class TaskConfig:
                             f"network readings); --loss {self.loss} compares images and stays squared")
         if self.optimizer not in ("rmsprop", "adam", "sgd"):
             raise RispError(f"unknown optimizer {self.optimizer!r}; choose one of: rmsprop, adam, sgd")
-        if self.iterations < 0 or not self.lr > 0 or self.every < 1 or self.horizon < 1 or self.spp < 1:
-            raise RispError("iterations must be >= 0, lr > 0, every >= 1, horizon >= 1 and spp >= 1")
+        for option, value, ok, rule in (
+                ("--iterations", self.iterations, self.iterations >= 0, ">= 0"),
+                ("--lr", self.lr, math.isfinite(self.lr) and self.lr > 0, "a finite number > 0"),
+                ("--momentum", self.momentum, math.isfinite(self.momentum) and self.momentum >= 0, "a finite number >= 0"),
+                ("--every", self.every, self.every >= 1, ">= 1"),
+                ("--horizon", self.horizon, self.horizon >= 1, ">= 1"),
+                ("--spp", self.spp, self.spp >= 1, ">= 1"),
+                ("--fps", self.fps, self.fps is None or (math.isfinite(self.fps) and self.fps > 0),
+                 "a finite number > 0"),
+                ("--source-fps", self.source_fps,
+                 self.source_fps is None or (math.isfinite(self.source_fps) and self.source_fps > 0),
+                 "a finite number > 0")):
+            if not ok:
+                raise RispError(f"{option} must be {rule}, got {value:g}")
+        if self.init == "track" and self.task != "imitate":
+            raise RispError(f"--init track is imitate's (a tracking controller along the video's estimated path), "
+                            f"not {self.task}'s; choose default or random")
+        if self.actions and self.task == "imitate":
+            raise RispError("--actions: imitate finds the actions itself (give known commands to sysid or estimate; "
+                            "known physical parameters to imitate with --params)")
         if self.seed < 0:
             raise RispError(f"--seed must be >= 0, got {self.seed}")
         if self.grow_horizon < 0:

@@ -85,8 +85,10 @@ def action_columns(env: str) -> tuple[str, ...]:
     return {"quadrotor": ("f0", "f1", "f2", "f3"), "hand": tuple(f"u{i}" for i in range(5)), "rod": ("u0",)}.get(env, ())
 
 
-def read_actions(path: str, env: str, n_frames: int) -> np.ndarray:
-    """(n_frames, A) actions in the CSV's units, one row per source video frame."""
+def read_actions(path: str, env: str, n_frames: int, fps: float | None = None) -> np.ndarray:
+    """(n_frames, A) actions in the CSV's units, one row per frame of the video's timeline.  With ``fps``, a ``t``
+    column (optional) must step by 1/fps from its first value, to a quarter frame: a file of another rate or with
+    rows missing is refused rather than its commands applied at the wrong times."""
     cols = action_columns(env)
     if not cols:
         raise RispError(f"{path}: the {env} has no actions")
@@ -108,8 +110,9 @@ def read_actions(path: str, env: str, n_frames: int) -> np.ndarray:
     if extra:  # e.g. a fifth motor: the file is for another system, or a column is misnamed
         raise RispError(f"{path}: unexpected column(s) {','.join(extra)}; the {env}'s actions file has columns "
                         f"t,{','.join(cols)}")
-    idx = [header.index(c) for c in cols]
-    data = []
+    names = (["t"] if "t" in header else []) + list(cols)
+    idx = [header.index(c) for c in names]
+    data, lines = [], []
     for i, row in enumerate(rows[1:], start=2):
         if not row:  # a blank line (a trailing newline too many): no row
             continue
@@ -118,15 +121,24 @@ def read_actions(path: str, env: str, n_frames: int) -> np.ndarray:
         try:
             data.append([float(row[j]) for j in idx])
         except ValueError:
-            raise RispError(f"{path}: line {i} has a non-numeric action") from None
-    a = np.asarray(data, np.float64).reshape(-1, len(cols))
-    bad = ~np.isfinite(a)
+            raise RispError(f"{path}: line {i} has a non-numeric value") from None
+        lines.append(i)
+    table = np.asarray(data, np.float64).reshape(-1, len(names))
+    bad = ~np.isfinite(table)
     if bad.any():
         r, c = np.argwhere(bad)[0]
-        raise RispError(f"{path}: column {cols[c]} has NaN/inf at data row {r + 1}")
-    if len(a) != n_frames:
-        raise RispError(f"{path}: {len(a)} action rows but the video has {n_frames} frames (one row per frame)")
-    return a
+        raise RispError(f"{path}: column {names[c]} has NaN/inf at line {lines[r]}")
+    if len(table) != n_frames:
+        raise RispError(f"{path}: {len(table)} action rows but the video has {n_frames} frames (one row per frame)")
+    if "t" in header and fps is not None and len(table):
+        t = table[:, 0]
+        expected = t[0] + np.arange(len(t)) / fps
+        off = np.flatnonzero(np.abs(t - expected) > 0.25 / fps)
+        if off.size:
+            k = int(off[0])
+            raise RispError(f"{path}: t = {t[k]:g} s at line {lines[k]}, but frame {k} of the video's {fps:g} fps "
+                            f"timeline is at {expected[k]:g} s (one row per frame, in order, 1/{fps:g} s apart)")
+    return table[:, len(names) - len(cols):]
 
 
 def write_actions(path: str, env: str, actions: np.ndarray, fps: float) -> None:
@@ -218,8 +230,25 @@ def render_environment(env: str, mesh: str | None):
     return make_environment(mesh)
 
 
-def read_truth(path: str) -> dict:
+def read_truth(path: str, env: str | None = None, width: int | None = None, hint: str = "") -> dict:
+    """make-video's ground truth (docs/tasks.md §Reference videos), checked before any work is done: of ``env``'s
+    video (when it names one), with ``env_states`` a non-empty table of finite numbers with ``width`` columns (the
+    environment's state size).  ``hint`` ends the wrong-environment line."""
     data = read_json(path, "ground-truth")
-    if "env_states" not in data:
+    if not isinstance(data, dict) or "env_states" not in data:
         raise RispError(f"{path}: ground-truth JSON is missing the key 'env_states'")
+    if env is not None and data.get("env") not in (None, env):
+        raise RispError(f"{path}: ground truth of a {data['env']} video, but the model is a {env} model{hint}")
+    rows = data["env_states"]
+    if not isinstance(rows, list) or not rows:
+        raise RispError(f"{path}: 'env_states' must be a non-empty list of state rows")
+    try:
+        table = np.asarray(rows, np.float64)
+    except (TypeError, ValueError):
+        raise RispError(f"{path}: 'env_states' is not a table of numbers (rows of different lengths?)") from None
+    if table.ndim != 2 or (width is not None and table.shape[1] != width):
+        raise RispError(f"{path}: 'env_states' must have {width if width is not None else 'the same number of'} "
+                        f"columns per row, got shape {table.shape}")
+    if not np.all(np.isfinite(table)):
+        raise RispError(f"{path}: 'env_states' holds NaN or inf")
     return data

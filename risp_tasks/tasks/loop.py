@@ -162,7 +162,7 @@ def optimize(problem: Problem, loss: Callable, *, optimizer: str, lr: float, mom
 
     ``grow`` > 0 (with ``frames``, the number of compared frames T): the horizon curriculum — iteration i compares
     the first :func:`horizon` (i, grow, T) frames; only full-horizon iterates compete for the best, and
-    ``frames_compared`` records n(i) per iteration.
+    ``frames_compared`` records n(i) per iteration, ``frames_in_loss`` T.
     """
     from tqdm import tqdm
 
@@ -210,5 +210,5 @@ def optimize(problem: Problem, loss: Callable, *, optimizer: str, lr: float, mom
     out = {"loss": history, "final_loss": final, "last_loss": last, "best_iteration": best_iteration,
            "seconds_per_iteration": seconds, "optimizer": opt}
     if grow:
-        out["frames_compared"] = compared
+        out["frames_compared"], out["frames_in_loss"] = compared, frames
     return out

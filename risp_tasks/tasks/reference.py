@@ -244,8 +244,9 @@ def make_reference(cfg: ReferenceConfig) -> dict:
     from risp_data.psi import sample_rendering
     from risp_data.render import Renderer
 
-    from ..video import sha256_file, write_video
+    from ..video import check_video_path, made_by, sha256_file, write_video
     from .inputs import read_camera, render_environment, write_actions
+    from .results import versions
     from .simulate import timeline
 
     for bad, rule, value in ((cfg.frames < 2, "--frames must be >= 2", cfg.frames),
@@ -256,6 +257,7 @@ def make_reference(cfg: ReferenceConfig) -> dict:
         if bad:
             raise RispError(f"{rule}, got {value}")
     check_video_size(cfg)
+    check_video_path(cfg.out)  # before the render: a .gif would otherwise fail after it
     if not cfg.overwrite:  # a video's ground truth and actions belong to it: never replace them unasked
         held = [p for p in (cfg.out, truth_path(cfg.out), actions_path(cfg.out)) if os.path.exists(p)]
         if held:
@@ -277,8 +279,14 @@ def make_reference(cfg: ReferenceConfig) -> dict:
     frame_seeds = rng.integers(0, 2**31 - 1, cfg.frames)
     images = np.stack([renderer.render_reference(s, look, int(sd)) for s, sd in
                        tqdm(list(zip(env_states, frame_seeds)), desc="rendering", disable=not cfg.progress, leave=False)])
-    write_video(cfg.out, images, cfg.fps)
+    write_video(cfg.out, images, cfg.fps, overwrite=cfg.overwrite, comment=made_by(cfg.env, cfg.seed))
+    # the video's files are a set: the truth names its video by checksum (tasks refuse a truth of another video),
+    # and a replaced video's old truth and actions go before the new ones are written (a cube video has no actions)
+    for stale in (truth_path(cfg.out), actions_path(cfg.out)):
+        if os.path.exists(stale):
+            os.remove(stale)
     truth = {"format": "risp-reference-truth", "format_version": 1, "env": cfg.env, "seed": cfg.seed,
+             "video_sha256": sha256_file(cfg.out), "versions": versions(),
              "config": asdict(cfg), "fps": cfg.fps, "frames": cfg.frames, "sim_steps_per_frame": k, "dt": sim.dt,
              "params": dict(zip(sim.param_names, params[0].tolist())), "effects": list(sim.effects),
              "env_state_names": list(get_env_state_names(cfg.env)), "env_states": env_states.tolist(),

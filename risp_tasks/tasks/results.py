@@ -18,9 +18,19 @@ from risp_data.errors import RispError
 from ..strict_json import strict_json
 
 
-def check_free(out: str) -> None:
-    if os.path.exists(out):
-        raise RispError(f"{out}: result folder exists; choose another --out or remove it")
+RESULT_FILE = "result.json"
+
+
+def check_free(out: str, overwrite: bool = False) -> None:
+    """``out`` may be written: it does not exist, or (``overwrite``) it is a task's result folder (it holds a
+    result.json) — never an arbitrary folder or a file, which --overwrite does not delete."""
+    if not os.path.exists(out):
+        return
+    if not overwrite:
+        raise RispError(f"{out}: result folder exists; choose another --out, remove it, or give --overwrite")
+    if not (os.path.isdir(out) and os.path.isfile(os.path.join(out, RESULT_FILE))):
+        raise RispError(f"{out}: exists and is not a task's result folder (no {RESULT_FILE}); --overwrite replaces "
+                        f"only those: choose another --out")
 
 
 def versions() -> dict:
@@ -43,11 +53,11 @@ def versions() -> dict:
 class ResultFolder:
     """Write files into a temporary sibling folder; ``commit()`` renames it to ``out``."""
 
-    def __init__(self, out: str):
-        check_free(out)
+    def __init__(self, out: str, overwrite: bool = False):
+        check_free(out, overwrite)
         parent = os.path.dirname(os.path.abspath(out))
         os.makedirs(parent, exist_ok=True)
-        self.out = out
+        self.out, self.overwrite = out, overwrite
         self.tmp = temp_folder(parent)
 
     def path(self, name: str) -> str:
@@ -60,15 +70,33 @@ class ResultFolder:
             json.dump(strict_json(data), f, indent=1, allow_nan=False)
 
     def commit(self) -> str:
-        check_free(self.out)
-        os.rename(self.tmp, self.out)
+        """Put the finished folder in place; with ``overwrite`` the old result folder is moved aside first and
+        deleted after, so a failure leaves either the old folder or the new one, never a mix."""
+        check_free(self.out, self.overwrite)
+        old = None
+        if os.path.exists(self.out):
+            old = temp_folder(os.path.dirname(os.path.abspath(self.out)))
+            os.rmdir(old)
+            os.rename(self.out, old)
+        try:
+            os.rename(self.tmp, self.out)
+        except BaseException:
+            if old is not None:
+                os.rename(old, self.out)
+            raise
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
         return self.out
 
     def discard(self) -> None:
         shutil.rmtree(self.tmp, ignore_errors=True)
 
 
-def plot_loss(path: str, history: list[float], title: str) -> None:
+def plot_loss(path: str, history: list[float], title: str, last: float | None = None,
+              best: int | None = None) -> None:
+    """Loss per iteration (at the variables before that iteration's step), then ``last``: the loss after the last
+    step, which the history does not hold; ``best``: the returned iterate's index, marked.  Without iterations the
+    figure says so instead of showing empty axes."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -76,7 +104,17 @@ def plot_loss(path: str, history: list[float], title: str) -> None:
 
     fig, ax = plt.subplots(figsize=(5, 3.2))
     if history:
-        ax.semilogy(np.arange(1, len(history) + 1), np.maximum(history, 1e-12))
+        x = np.arange(1, len(history) + 1)
+        ax.semilogy(x, np.maximum(history, 1e-12), marker="o" if len(history) <= 20 else None, ms=3, label="loss")
+        if last is not None and np.isfinite(last):
+            ax.semilogy([len(history), len(history) + 1], np.maximum([history[-1], last], 1e-12), "--", color="C0",
+                        lw=0.8, label="after the last step")
+        if best is not None and best < len(history):
+            ax.semilogy([best + 1], [max(history[best], 1e-12)], "*", color="C3", ms=10, label="returned (best)")
+        ax.legend(fontsize=7)
+    else:
+        ax.text(0.5, 0.5, "no iterations (--iterations 0):\nthe result is the start", ha="center", va="center",
+                transform=ax.transAxes)
     ax.set_xlabel("iteration")
     ax.set_ylabel("loss")
     ax.set_title(title, fontsize=9)

@@ -58,7 +58,7 @@ def _reference(cfg: TaskConfig, resolution: int):
         except Exception as e:  # noqa: BLE001 - PIL raises several types
             raise RispError(f"{path}: cannot read the target image ({type(e).__name__})") from None
         frames = resize(srgb_to_linear(img)[None], resolution)
-        return frames, [0], 1, float(cfg.fps or 10.0), sha256_file(path), None
+        return frames, [0], 1, float(cfg.fps if cfg.fps is not None else 10.0), sha256_file(path), None
     from ..video import sample_indices
 
     ref = read_reference(cfg.video, resolution, cfg.every, cfg.fps, cfg.source_fps)
@@ -73,7 +73,7 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
     if cfg.task not in TASKS:
         raise RispError(f"unknown task {cfg.task!r}; choose one of: {', '.join(TASKS)}")
     out = cfg.out or default_out(cfg)
-    check_free(out)
+    check_free(out, cfg.overwrite)
     set_torch_threads(cfg.threads)  # one shared rule (risp_data.threads): 0 = the machine's CPUs
     started = time.perf_counter()
     model_path, model_line = resolve_model(cfg)
@@ -86,7 +86,7 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
     from risp_data.envs import get_environment
 
     from ..sims import get_simulator
-    from ..video import sha256_file
+    from ..video import made_for, sha256_file
     from .simulate import timeline
 
     env = get_environment(env_name)
@@ -108,16 +108,20 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
     file_actions = None
     chosen = "" if cfg.model is not None else (f" (the most recent model under {cfg.runs}/, {model_path}, is a "
                                                f"{env_name} model: give --model of a run for the video's system)")
+    made = made_for(ref.video.comment) if ref is not None else None
+    if made is not None and made != env_name:  # a make-video file names its system; real footage names none
+        raise RispError(f"{cfg.video}: a {made} video (make-video's tag in the file), but the model is a {env_name} "
+                        f"model{chosen}")
     if sim.action_dim == 0 and (cfg.actions is not None or cfg.task in ("imitate", "control")):
         what = f"{cfg.actions}: the {env_name} has no actions" if cfg.actions is not None else \
             f"the {env_name} has no actions to {cfg.task}; {cfg.task} works for: quadrotor, hand, rod"
         raise RispError(what + chosen)
     if cfg.actions is not None:
-        file_actions = read_actions(cfg.actions, env_name, n_source)
-    truth = read_truth(cfg.truth) if cfg.truth else None
-    if truth is not None and truth.get("env") not in (None, env_name):
-        raise RispError(f"{cfg.truth}: ground truth of a {truth['env']} video, but the model is a {env_name} "
-                        f"model{chosen}")
+        file_actions = read_actions(cfg.actions, env_name, n_source, fps)
+    truth = read_truth(cfg.truth, env_name, len(env.state_names), chosen) if cfg.truth else None
+    if truth is not None and cfg.task != "control" and truth.get("video_sha256") not in (None, video_sha):
+        raise RispError(f"{cfg.truth}: the ground truth of another video (its video_sha256 is not {cfg.video}'s); "
+                        f"give the truth make-video wrote beside this video")
     camera = read_camera(cfg.camera) if cfg.camera else None
     ctx = Context(cfg=cfg, env=env, sim=sim, predictor=predictor, frames=frames_t, keep=keep, n_source=n_source,
                   fps=fps, k=k, predicted=predicted.double(), predicted_targets=predicted_targets.double(),
@@ -180,12 +184,17 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
         "timings": {"total_s": time.perf_counter() - started,
                     "seconds_per_iteration": history["seconds_per_iteration"], "sections_s": timer.seconds},
         "versions": versions(), "info": problem.info,
+        # the other inputs' checksums, as the model's and the video's: a result names every file it read
+        "inputs": {name: {"path": path, "sha256": sha256_file(path)} for name, path in
+                   (("actions", cfg.actions), ("truth", cfg.truth), ("camera", cfg.camera), ("params", cfg.params),
+                    ("initial_state", cfg.initial_state), ("mesh", cfg.mesh),
+                    ("perceptual_weights", cfg.perceptual_weights)) if path and os.path.isfile(path)},
     }
     if cfg.task == "control":  # the state reached at the horizon (what the goal image pictures, if all went well)
         result["estimates"]["reached_env_state"] = final_states[-1].tolist()
         result["initial"]["reached_env_state"] = initial_states[-1].tolist()
     if "frames_compared" in history:
-        result["frames_compared"] = history["frames_compared"]
+        result["frames_compared"], result["frames_in_loss"] = history["frames_compared"], history["frames_in_loss"]
     if warm is not None:
         result["warm_start"] = {"iterations": cfg.warm_start, "loss": warm["loss"], "final_loss": warm["final_loss"],
                                 "seconds_per_iteration": warm["seconds_per_iteration"]}
@@ -197,7 +206,7 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
     if cfg.loss in IMAGE_LOSSES:
         result["view"], warning = _view(cfg, renderer, loss_frames, initial_states, final_states)
     result["warnings"] = warnings + ([warning] if warning else [])
-    folder = ResultFolder(out)
+    folder = ResultFolder(out, cfg.overwrite)
     try:
         folder.write_json("result.json", result)
         if cfg.task == "estimate":
@@ -270,6 +279,15 @@ def _errors(cfg, env, sim, truth, truth_rows, loss_frames, initial_states, final
     return out
 
 
+def held_commands(actions: np.ndarray, keep: list[int]) -> np.ndarray:
+    """(len(keep), A): the command held from kept frame j to the next, the mean of the per-frame rows keep[j] …
+    keep[j+1] − 1 (the last kept frame: to the end of the file).  diagnose holds a row's command until the next row
+    (docs/measured-data.md), so with --every k one frame's command alone would stand for k frames of others."""
+    keep = list(keep)
+    ends = keep[1:] + [len(actions)]
+    return np.stack([actions[a:max(b, a + 1)].mean(0) for a, b in zip(keep, ends)])
+
+
 def _write_estimate_csv(path: str, ctx: Context, states: torch.Tensor, provenance: dict) -> None:
     """docs/measured-data.md columns for the quadrotor, cube and hand (the rod: t, z0 … z9).  The sidecar's
     ``estimated_by`` records that these are a network's readings of a video (which network, which video), so
@@ -281,6 +299,7 @@ def _write_estimate_csv(path: str, ctx: Context, states: torch.Tensor, provenanc
     s = states.detach().numpy()
     t = np.asarray(ctx.keep, np.float64) / ctx.fps
     cols: dict[str, np.ndarray] = {"t": t}
+    held = held_commands(ctx.file_actions, ctx.keep) if ctx.file_actions is not None else None
     sim, env = ctx.sim, ctx.env
     sidecar = {"env": env.name, "estimated_by": provenance}
     if env.name in ("quadrotor", "cube"):
@@ -291,7 +310,7 @@ def _write_estimate_csv(path: str, ctx: Context, states: torch.Tensor, provenanc
         if env.name == "quadrotor":
             sidecar.update({"mass": float(sim.default_params()[0, sim.param_index("mass")]), "gravity": 9.81})
             if ctx.file_actions is not None:
-                cols.update({f"f{i}": ctx.file_actions[ctx.keep, i] for i in range(4)})
+                cols.update({f"f{i}": held[:, i] for i in range(4)})
         else:
             sidecar.update({"side": sim.side, "mass": sim.mass, "gravity": 9.81})
     elif env.name == "hand":
@@ -300,7 +319,7 @@ def _write_estimate_csv(path: str, ctx: Context, states: torch.Tensor, provenanc
         cols.update({n: s[:, i] for i, n in enumerate(names[:s.shape[1]])})
         cols.update({n: rates[:, i] for i, n in enumerate(names[s.shape[1]:])})
         if ctx.file_actions is not None:
-            cols.update({f"u{i}": ctx.file_actions[ctx.keep, i] for i in range(ctx.file_actions.shape[1])})
+            cols.update({f"u{i}": held[:, i] for i in range(held.shape[1])})
     else:
         cols.update({n: s[:, i] for i, n in enumerate(env.state_names)})
     write_trajectory_csv(path, cols, sidecar)
@@ -308,7 +327,8 @@ def _write_estimate_csv(path: str, ctx: Context, states: torch.Tensor, provenanc
 
 def _plots(folder, cfg, env, ctx, loss_frames, initial_states, final_states, truth, history, renderer, *,
            truth_fps: float) -> None:
-    plot_loss(folder.path("loss.png"), history["loss"], f"{cfg.task} ({env.name}), loss {cfg.loss}")
+    plot_loss(folder.path("loss.png"), history["loss"], f"{cfg.task} ({env.name}), loss {cfg.loss}",
+              last=history["last_loss"], best=history["best_iteration"])
     t_keep = np.asarray(ctx.keep, np.float64) / ctx.fps
     if cfg.task == "control":
         t_sim = np.arange(len(final_states)) / ctx.fps

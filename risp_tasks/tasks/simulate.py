@@ -240,7 +240,7 @@ def frame_states(sim, params: torch.Tensor, s0: torch.Tensor, actions: torch.Ten
 
 
 def wrap_angles(delta: torch.Tensor, angular: list[bool]) -> torch.Tensor:
-    """Δ with the angular components wrapped to (−π, π]."""
+    """Δ with the angular components wrapped to [−π, π) (|Δ| is what the errors use: ±π alike)."""
     mask = torch.tensor(angular, dtype=torch.bool)
     wrapped = torch.remainder(delta + math.pi, 2 * math.pi) - math.pi
     return torch.where(mask, wrapped, delta)
