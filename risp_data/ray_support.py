@@ -8,6 +8,7 @@ project's rule is one line per error.
 
 from __future__ import annotations
 
+import re
 import sys
 from contextlib import contextmanager
 
@@ -23,14 +24,23 @@ def require_ray():
     return ray
 
 
+_RAISED = re.compile(r"^[A-Za-z_][\w.]*(Error|Exception|Interrupt|Exit): \S")
+
+
 def first_line(error: BaseException) -> str:
     """The message of a failed Ray task on one line: its cause's (the exception the task raised, which
-    ``RayTaskError.cause`` holds) when it has one, else its own; the first non-empty line of that."""
+    ``RayTaskError.cause`` holds) when it has one.  Without a cause (an actor whose constructor raised,
+    ``ActorDiedError``) the text embeds the creation task's traceback: its last ``SomeError: message`` line is the
+    error itself.  Otherwise the first non-empty line."""
     cause = getattr(error, "cause", None)
-    source = cause if isinstance(cause, BaseException) else error
-    text = str(source)
-    line = next((part.strip() for part in text.splitlines() if part.strip()), "")
-    return line or type(source).__name__
+    if isinstance(cause, BaseException):
+        error = cause
+    lines = [part.strip() for part in str(error).splitlines() if part.strip()]
+    if not isinstance(cause, BaseException):
+        raised = [line for line in lines if _RAISED.match(line)]
+        if raised:
+            return raised[-1]
+    return lines[0] if lines else type(error).__name__
 
 
 @contextmanager

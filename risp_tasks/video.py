@@ -273,18 +273,18 @@ def made_for(comment: str) -> str | None:
 def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float, crf: int = 12,
                 overwrite: bool = False, comment: str | None = None) -> None:
     """Write linear-RGB frames (T, H, W, 3) as a video (by suffix: H.264 in .mp4/.mkv/.mov, MPEG-4 Part 2
-    in .avi) or, for a path without a suffix, a folder of PNGs ``frame_00000.png`` …; atomically.  Another suffix
-    (``.gif``) is an error, not a folder of that name.  A video file is replaced; a PNG folder only with
+    in .avi) or, for any other path, a folder of PNGs ``frame_00000.png`` …; atomically.  Another media suffix
+    (``.gif``: :data:`OTHER_MEDIA_SUFFIXES`) is an error, not a folder of that name.  A video file is replaced; a PNG folder only with
     ``overwrite`` and only when it holds nothing but PNG frames.  ``comment``: the file's comment tag (files only)."""
     frames = np.asarray(frames)
     p = Path(path)
-    check_video_path(p)
+    check_video_path(p, overwrite)
     if frames.ndim != 4 or frames.shape[-1] != 3 or len(frames) == 0:
         raise RispError(f"frames must have shape (T>0, H, W, 3), got {frames.shape}")
     if not np.isfinite(frames).all():
         raise RispError("frames contain NaN or inf")
     data = to_uint8(frames)
-    if not p.suffix:
+    if p.suffix.lower() not in VIDEO_SUFFIXES:
         _write_pngs(p, data, overwrite)
         return
     av = _av()
@@ -309,12 +309,29 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float, crf: in
                 out.mux(packet)
 
 
-def check_video_path(path: str | os.PathLike) -> None:
-    """A path ``write_video`` can write: a video suffix, or none (a folder of PNG frames)."""
+#: suffixes of video and image files write_video cannot write: such a path is an error, not a PNG folder of that
+#: name (any other path without a video suffix, e.g. "clip-1.5" or "run.v2", is a folder of PNG frames)
+OTHER_MEDIA_SUFFIXES = (".gif", ".webm", ".m4v", ".mpg", ".mpeg", ".wmv", ".flv", ".ogv", ".3gp", ".ts", ".mts",
+                        ".apng", ".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp", ".exr")
+
+
+def check_video_path(path: str | os.PathLike, overwrite: bool = False) -> None:
+    """A path ``write_video`` can write, checked before any rendering: a video suffix, or a folder of PNG frames
+    (new, empty, or — with ``overwrite`` — holding nothing but PNG files); a file of another media type is an
+    error."""
     p = Path(path)
-    if p.suffix and p.suffix.lower() not in VIDEO_SUFFIXES:
+    if p.suffix.lower() in OTHER_MEDIA_SUFFIXES:
         raise RispError(f"{p}: cannot write {p.suffix} videos; give a path ending in "
-                        f"{', '.join(VIDEO_SUFFIXES)}, or one without a suffix for a folder of PNG frames")
+                        f"{', '.join(VIDEO_SUFFIXES)}, or a folder name for PNG frames")
+    if p.suffix.lower() in VIDEO_SUFFIXES or not p.exists():
+        return
+    if not p.is_dir():
+        raise RispError(f"{p}: exists and is not a folder of PNG frames")
+    held = list(p.iterdir())
+    if held and not overwrite:
+        raise RispError(f"{p}: folder exists and is not empty (--overwrite replaces a folder of PNG frames)")
+    if any(not (f.is_file() and f.suffix.lower() == ".png") for f in held):  # never delete what is not ours
+        raise RispError(f"{p}: holds files other than PNG frames; give another --out")
 
 
 def _write_pngs(folder: Path, data: np.ndarray, overwrite: bool = False) -> None:
@@ -324,13 +341,7 @@ def _write_pngs(folder: Path, data: np.ndarray, overwrite: bool = False) -> None
 
     from risp_data.atomic import temp_folder
 
-    if folder.exists() and not folder.is_dir():
-        raise RispError(f"{folder}: exists and is not a folder of PNG frames")
-    held = list(folder.iterdir()) if folder.exists() else []
-    if held and not overwrite:
-        raise RispError(f"{folder}: folder exists and is not empty (--overwrite replaces a folder of PNG frames)")
-    if any(not (f.is_file() and f.suffix.lower() == ".png") for f in held):  # never delete what is not ours
-        raise RispError(f"{folder}: holds files other than PNG frames; give another --out")
+    check_video_path(folder, overwrite)
     folder.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(temp_folder(folder.parent))
     old = None

@@ -164,6 +164,9 @@ def eval_cmd(model, shards, metric, seed, batch_size, limit, fmt, out, threads, 
                               limit=limit, format=fmt, out=out), progress=not quiet)
     click.echo(markdown_table(res))
     click.echo(f"written: {', '.join(res['files'])}")
+    if res.get("manifest_hash") and res["manifest_hash"] == res.get("train_manifest_hash"):
+        click.echo(f"note: {shards} is the data the model was trained on: these figures are training error, not what "
+                   "it does on images it never saw (evaluate on a --domain target folder for that)", err=True)
     from .data import open_shards, sample_counts
 
     counts = sample_counts(open_shards(shards, fmt))

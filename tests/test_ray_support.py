@@ -34,6 +34,14 @@ def test_first_line_is_the_task_s_own_message():
     assert first_line(error) == "shard 3: no usable libLLVM"
 
 
+def test_an_actor_that_died_in_its_constructor_gives_its_error():
+    """ActorDiedError has no cause: its text embeds the creation task's traceback, whose last line is the error."""
+    text = ("The actor died because of an error raised in its creation task, ray::ShardActor.__init__() (pid=9, "
+            "ip=10.0.0.2)\n  File \"generate.py\", line 12, in __init__\n    self.renderer = make_renderer(job)\n"
+            "risp_data.errors.RispError: no usable libLLVM (>= 16) found")
+    assert first_line(RayError(text)) == "risp_data.errors.RispError: no usable libLLVM (>= 16) found"
+
+
 def test_first_line_without_a_cause_skips_blank_lines():
     assert first_line(RayError("\n\n  the raylet died  \nmore")) == "the raylet died"
     assert first_line(RayError("")) == "RayError"

@@ -386,6 +386,27 @@ def test_make_video_refuses_a_suffix_it_cannot_write(tmp_path):
     line = _error_line(CliRunner().invoke(cli, args))
     assert "v.gif: cannot write .gif videos" in line and ".mp4" in line
     assert not os.listdir(tmp_path)
+    # a folder of the user's files is refused before rendering too, even with --overwrite
+    (tmp_path / "frames").mkdir()
+    (tmp_path / "frames" / "notes.txt").write_text("mine")
+    args = ["make-video", "--env", "quadrotor", "--out", str(tmp_path / "frames"), "--frames", "2", "--quiet",
+            "--overwrite"]
+    import risp_data.render as render_mod
+
+    def no_render(*a, **k):
+        raise AssertionError("rendered before the output was checked")
+
+    orig, render_mod.Renderer = render_mod.Renderer, no_render
+    try:
+        line = _error_line(CliRunner().invoke(cli, args))
+    finally:
+        render_mod.Renderer = orig
+    assert "frames: holds files other than PNG frames" in line
+    # a folder name with a dot (not a media suffix) is a PNG folder, as before
+    args = ["make-video", "--env", "quadrotor", "--out", str(tmp_path / "clip-1.5"), "--frames", "2", "--res", "8",
+            "--quiet"]
+    assert CliRunner().invoke(cli, args).exit_code == 0
+    assert sorted(os.listdir(tmp_path / "clip-1.5")) == ["frame_00000.png", "frame_00001.png"]
 
 
 def test_png_folder_is_replaced_only_with_overwrite_and_only_if_all_png(tmp_path):
@@ -604,7 +625,8 @@ def test_task_settings_name_the_one_bad_option(settings, words):
 
 def test_actions_t_column_must_follow_the_video_timeline(tmp_path):
     """The t column (optional) steps by 1/fps: a file at another rate, or with a row missing, is refused instead of its
-    commands being applied at the wrong frames; a t that starts elsewhere (a log's clock) is fine."""
+    commands being applied at the wrong frames; a t that starts elsewhere (a log's clock), a 29.97 fps log under a
+    30 fps video, or clock-time strings (not numbers) are fine."""
     from risp_data.errors import RispError
     from risp_tasks.tasks.inputs import read_actions
 
@@ -615,10 +637,15 @@ def test_actions_t_column_must_follow_the_video_timeline(tmp_path):
 
     assert read_actions(write("ok.csv", [0.0, 0.1, 0.2, 0.3]), "quadrotor", 4, 10.0).tolist() == [[1, 2, 3, 4]] * 4
     assert read_actions(write("clock.csv", [12.5, 12.6, 12.7, 12.8]), "quadrotor", 4, 10.0).shape == (4, 4)
-    with pytest.raises(RispError, match=r"slow.csv: t = 0.3 s at line 3, but frame 1 of the video's 10 fps timeline is at 0.1 s"):
+    ntsc = [k / 29.97 for k in range(400)]
+    assert read_actions(write("ntsc.csv", ntsc), "quadrotor", 400, 30.0).shape == (400, 4)
+    assert read_actions(write("hms.csv", ["00:00:00.0", "00:00:00.1"]), "quadrotor", 2, 10.0).shape == (2, 4)
+    with pytest.raises(RispError, match=r"slow.csv: t steps from 0 to 0.3 s at line 3 \(3 frames of the video's 10 fps"):
         read_actions(write("slow.csv", [0.0, 0.3, 0.6, 0.9]), "quadrotor", 4, 10.0)
-    with pytest.raises(RispError, match=r"gap.csv: t = 0.3 s at line 4"):
+    with pytest.raises(RispError, match=r"gap.csv: t steps from 0.1 to 0.3 s at line 4"):
         read_actions(write("gap.csv", [0.0, 0.1, 0.3, 0.4]), "quadrotor", 4, 10.0)
+    with pytest.raises(RispError, match=r"rate.csv: t advances at 11 rows per second, the video at 10 frames"):
+        read_actions(write("rate.csv", [k / 11 for k in range(40)]), "quadrotor", 40, 10.0)
     no_t = tmp_path / "no_t.csv"
     no_t.write_text("f0,f1,f2,f3\n" + "1,2,3,4\n" * 4)
     assert read_actions(str(no_t), "quadrotor", 4, 10.0).shape == (4, 4)

@@ -80,6 +80,9 @@ def test_fit_lowers_held_out_error_and_writes_outputs(shards, tmp_path):
     # eval: model, average and random baselines; JSON + markdown
     r = CliRunner().invoke(cli, ["eval", path, shards["held_out"], "--quiet", "--out", str(tmp_path / "ev")])
     assert r.exit_code == 0, r.output
+    assert "training error" not in r.output  # held-out images: no note
+    r = CliRunner().invoke(cli, ["eval", path, shards["train"], "--quiet", "--limit", "4", "--out", str(tmp_path / "tr")])
+    assert r.exit_code == 0 and "is the data the model was trained on: these figures are training error" in r.output
     res = json.load(open(tmp_path / "ev.json"))
     assert set(res["results"]) == {"model", "average", "random"} and res["n"] == 32
     for v in res["results"].values():

@@ -86,9 +86,11 @@ def action_columns(env: str) -> tuple[str, ...]:
 
 
 def read_actions(path: str, env: str, n_frames: int, fps: float | None = None) -> np.ndarray:
-    """(n_frames, A) actions in the CSV's units, one row per frame of the video's timeline.  With ``fps``, a ``t``
-    column (optional) must step by 1/fps from its first value, to a quarter frame: a file of another rate or with
-    rows missing is refused rather than its commands applied at the wrong times."""
+    """(n_frames, A) actions in the CSV's units, one row per frame of the video's timeline.  With ``fps``, a numeric
+    ``t`` column (optional; make-video writes k/fps) must follow that timeline: its steps within [0.5, 1.5]/fps (a
+    row missing is a double step) and its mean step within 1 % of 1/fps (a file written at another rate) —
+    otherwise the commands would be applied at the wrong frames.  A ``t`` that is not numbers (clock times) is not
+    checked."""
     cols = action_columns(env)
     if not cols:
         raise RispError(f"{path}: the {env} has no actions")
@@ -110,9 +112,8 @@ def read_actions(path: str, env: str, n_frames: int, fps: float | None = None) -
     if extra:  # e.g. a fifth motor: the file is for another system, or a column is misnamed
         raise RispError(f"{path}: unexpected column(s) {','.join(extra)}; the {env}'s actions file has columns "
                         f"t,{','.join(cols)}")
-    names = (["t"] if "t" in header else []) + list(cols)
-    idx = [header.index(c) for c in names]
-    data, lines = [], []
+    idx = [header.index(c) for c in cols]
+    data, times, lines = [], [], []
     for i, row in enumerate(rows[1:], start=2):
         if not row:  # a blank line (a trailing newline too many): no row
             continue
@@ -121,24 +122,39 @@ def read_actions(path: str, env: str, n_frames: int, fps: float | None = None) -
         try:
             data.append([float(row[j]) for j in idx])
         except ValueError:
-            raise RispError(f"{path}: line {i} has a non-numeric value") from None
+            raise RispError(f"{path}: line {i} has a non-numeric action") from None
+        times.append(row[header.index("t")] if "t" in header else "")
         lines.append(i)
-    table = np.asarray(data, np.float64).reshape(-1, len(names))
-    bad = ~np.isfinite(table)
+    a = np.asarray(data, np.float64).reshape(-1, len(cols))
+    bad = ~np.isfinite(a)
     if bad.any():
         r, c = np.argwhere(bad)[0]
-        raise RispError(f"{path}: column {names[c]} has NaN/inf at line {lines[r]}")
-    if len(table) != n_frames:
-        raise RispError(f"{path}: {len(table)} action rows but the video has {n_frames} frames (one row per frame)")
-    if "t" in header and fps is not None and len(table):
-        t = table[:, 0]
-        expected = t[0] + np.arange(len(t)) / fps
-        off = np.flatnonzero(np.abs(t - expected) > 0.25 / fps)
-        if off.size:
-            k = int(off[0])
-            raise RispError(f"{path}: t = {t[k]:g} s at line {lines[k]}, but frame {k} of the video's {fps:g} fps "
-                            f"timeline is at {expected[k]:g} s (one row per frame, in order, 1/{fps:g} s apart)")
-    return table[:, len(names) - len(cols):]
+        raise RispError(f"{path}: column {cols[c]} has NaN/inf at line {lines[r]}")
+    if len(a) != n_frames:
+        raise RispError(f"{path}: {len(a)} action rows but the video has {n_frames} frames (one row per frame)")
+    if "t" in header and fps is not None and len(a) > 1:
+        _check_times(path, times, lines, fps)
+    return a
+
+
+def _check_times(path: str, times: list[str], lines: list[int], fps: float) -> None:
+    """The t column against a timeline of 1/fps steps (read_actions); not checked when t is not all numbers."""
+    try:
+        t = np.asarray([float(v) for v in times], np.float64)
+    except ValueError:
+        return
+    if not np.all(np.isfinite(t)):
+        return
+    steps = np.diff(t) * fps  # in frames: 1 on the video's timeline
+    off = np.flatnonzero((steps < 0.5) | (steps > 1.5))
+    if off.size:
+        k = int(off[0]) + 1
+        raise RispError(f"{path}: t steps from {t[k - 1]:g} to {t[k]:g} s at line {lines[k]} ({steps[k - 1]:.3g} frames "
+                        f"of the video's {fps:g} fps; one row per frame, in order)")
+    rate = (len(t) - 1) / (t[-1] - t[0])
+    if abs(rate / fps - 1) > 0.01:
+        raise RispError(f"{path}: t advances at {rate:.4g} rows per second, the video at {fps:g} frames per second "
+                        f"(one row per frame of the video's timeline)")
 
 
 def write_actions(path: str, env: str, actions: np.ndarray, fps: float) -> None:

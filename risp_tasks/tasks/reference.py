@@ -257,7 +257,7 @@ def make_reference(cfg: ReferenceConfig) -> dict:
         if bad:
             raise RispError(f"{rule}, got {value}")
     check_video_size(cfg)
-    check_video_path(cfg.out)  # before the render: a .gif would otherwise fail after it
+    check_video_path(cfg.out, cfg.overwrite)  # before the render: a .gif or a folder of other files fail here
     if not cfg.overwrite:  # a video's ground truth and actions belong to it: never replace them unasked
         held = [p for p in (cfg.out, truth_path(cfg.out), actions_path(cfg.out)) if os.path.exists(p)]
         if held:

@@ -111,6 +111,8 @@ def plot_loss(path: str, history: list[float], title: str, last: float | None = 
                         lw=0.8, label="after the last step")
         if best is not None and best < len(history):
             ax.semilogy([best + 1], [max(history[best], 1e-12)], "*", color="C3", ms=10, label="returned (best)")
+        elif best is not None and last is not None and np.isfinite(last):  # the last iterate is the one returned
+            ax.semilogy([len(history) + 1], [max(last, 1e-12)], "*", color="C3", ms=10, label="returned (best)")
         ax.legend(fontsize=7)
     else:
         ax.text(0.5, 0.5, "no iterations (--iterations 0):\nthe result is the start", ha="center", va="center",

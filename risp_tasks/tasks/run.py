@@ -97,6 +97,12 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
 
         features = feature_extractor(cfg.perceptual_weights)
     frames, keep, n_source, fps, video_sha, ref = _reference(cfg, predictor.resolution)
+    chosen = "" if cfg.model is not None else (f" (the most recent model under {cfg.runs}/, {model_path}, is a "
+                                               f"{env_name} model: give --model of a run for the video's system)")
+    made = made_for(ref.video.comment) if ref is not None else None
+    if made is not None and made != env_name:  # a make-video file names its system; real footage names none
+        raise RispError(f"{cfg.video}: a {made} video (make-video's tag in the file), but the model is a {env_name} "
+                        f"model{chosen}")
     if cfg.task in ("sysid", "imitate") and len(frames) < 2:  # nothing moves in one frame: the start would be the result
         raise RispError(f"{cfg.video}: {cfg.task} needs at least 2 frames (the initial state and its velocity are read "
                         f"from the first two), got {len(frames)} after --every {cfg.every}"
@@ -106,12 +112,6 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
     with torch.no_grad():
         predicted, predicted_targets = predictor.predict(frames_t)
     file_actions = None
-    chosen = "" if cfg.model is not None else (f" (the most recent model under {cfg.runs}/, {model_path}, is a "
-                                               f"{env_name} model: give --model of a run for the video's system)")
-    made = made_for(ref.video.comment) if ref is not None else None
-    if made is not None and made != env_name:  # a make-video file names its system; real footage names none
-        raise RispError(f"{cfg.video}: a {made} video (make-video's tag in the file), but the model is a {env_name} "
-                        f"model{chosen}")
     if sim.action_dim == 0 and (cfg.actions is not None or cfg.task in ("imitate", "control")):
         what = f"{cfg.actions}: the {env_name} has no actions" if cfg.actions is not None else \
             f"the {env_name} has no actions to {cfg.task}; {cfg.task} works for: quadrotor, hand, rod"
