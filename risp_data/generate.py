@@ -138,7 +138,8 @@ def available_memory() -> int | None:
         pass
     for path in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
         try:
-            text = open(path).read().strip()
+            with open(path) as f:
+                text = f.read().strip()
         except OSError:
             continue
         if text.isdigit() and int(text) < 2**60:
@@ -567,7 +568,11 @@ def _run_ray(job, todo, on_record, bar):
     if not ray.is_initialized():
         ray.init()
 
-    threads = max(1, (os.cpu_count() or 1) // job.workers)
+    # as the local pool: the CPUs this process may use, shared by the actors that start (not os.cpu_count(), which
+    # ignores taskset and oversubscribed Dr.Jit); never more than the cluster has, or no actor could be scheduled
+    actors_n = max(1, min(job.workers, len(todo)))
+    threads = max(1, available_cpus() // actors_n)
+    threads = max(1, min(threads, int(ray.cluster_resources().get("CPU", threads))))
 
     @ray.remote
     class ShardActor:  # one Renderer per actor, reused for all its shards
@@ -578,9 +583,7 @@ def _run_ray(job, todo, on_record, bar):
         def run(self, shard_index):
             return render_shard(self.job, shard_index, self.renderer)
 
-    actors = [
-        ShardActor.options(num_cpus=threads).remote(job, threads) for _ in range(min(job.workers, len(todo)))
-    ]
+    actors = [ShardActor.options(num_cpus=threads).remote(job, threads) for _ in range(actors_n)]
     pool = ActorPool(actors)
     with ray_errors("rendering a shard"):
         for rec in pool.map_unordered(lambda a, i: a.run.remote(i), list(todo)):

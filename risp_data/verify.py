@@ -147,8 +147,12 @@ def verify_folder(cfg: VerifyConfig) -> VerifyReport:
             failures.append(f"sample {i}: stored state/psi differ from the ones its seed gives")
             continue
         image, _ = renderer.render(inp.state, inp.config, inp.render_seed, jacobian=False)
+        if not (np.all(np.isfinite(s["image"])) and np.all(np.isfinite(s["jacobian"]))):
+            failures.append(f"sample {i}: the stored image or Jacobian holds NaN or inf")
+            continue
         scale = max(float(np.abs(s["image"]).max()), 1e-12)
-        image_err = max(image_err, float(np.abs(np.asarray(image) - s["image"]).max()) / scale)
+        err = float(np.abs(np.asarray(image) - s["image"]).max()) / scale
+        image_err = err if not err <= image_err else image_err  # NaN-safe max: a NaN re-render is kept, not dropped
         for j in range(k):
             imgs = []
             for sign in (1.0, -1.0):
@@ -162,9 +166,13 @@ def verify_folder(cfg: VerifyConfig) -> VerifyReport:
             norm = float(np.sum(fd**2))
             num[j] += diff
             den[j] += norm
-            worst[j] = max(worst[j], np.sqrt(diff / max(norm, 1e-30)))
+            err_j = float(np.sqrt(diff / max(norm, 1e-30)))
+            worst[j] = err_j if not err_j <= worst[j] else worst[j]  # NaN-safe max
     rel = np.sqrt(num / np.maximum(den, 1e-30))
     names = list(m["psi"]["names"])
-    bad = [f"{names[j]} rel. error {rel[j]:.3g} > {cfg.tol:g}" for j in range(k) if rel[j] > cfg.tol]
+    # "not <=": a NaN (a re-render or finite difference gone non-finite) fails instead of passing every comparison
+    bad = [f"{names[j]} rel. error {rel[j]:.3g} > {cfg.tol:g}" for j in range(k) if not rel[j] <= cfg.tol]
     failures.extend(bad)
+    if not np.isfinite(image_err):
+        failures.append("a re-rendered image holds NaN or inf")
     return VerifyReport(cfg.folder, chosen, names, rel.tolist(), worst.tolist(), image_err, files, cfg.tol, failures)

@@ -167,8 +167,10 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
         "groups": {k: summarize_groups(shards.env, v, true) for k, v in estimates.items()},
         "config": asdict(cfg),
     }
-    prefix = cfg.out or os.path.join(os.path.dirname(os.path.abspath(cfg.model)),
-                                     "eval-" + os.path.basename(os.path.normpath(cfg.shards)))
+    name = "eval-" + os.path.basename(os.path.normpath(cfg.shards))
+    prefix = cfg.out or os.path.join(os.path.dirname(os.path.abspath(cfg.model)), name)
+    if cfg.out and (cfg.out.endswith(("/", os.sep)) or os.path.isdir(cfg.out)):  # a folder: the default name in it
+        prefix = os.path.join(cfg.out, name)
     os.makedirs(os.path.dirname(os.path.abspath(prefix)), exist_ok=True)
     _atomic_text(prefix + ".json", json.dumps(result, indent=1, sort_keys=True) + "\n")
     _atomic_text(prefix + ".md", markdown_table(result) + "\n")

@@ -305,6 +305,17 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
     state = None
     if resuming:
         state = ckpt_io.load_checkpoint(last_path)
+        missing = [k for k in ("config", "model_config", "optimizer", "scheduler", "progress", "normalization")
+                   if k not in state]
+        if missing:  # e.g. a final model.pt copied to last.pt: weights, but nothing to continue the run from
+            raise RispError(f"cannot resume {last_path}: not a resumable checkpoint (no {', '.join(missing)}); a "
+                            "final model.pt holds the weights only — start a new run (--overwrite)")
+        # the data first: another environment or other shards is the error to report, before option differences
+        ckpt_io.check_compatible(state, last_path, env=shards.env, state_names=env.state_names,
+                                 resolution=shards.resolution)
+        if state.get("manifest_hash") != mhash:
+            raise RispError(f"cannot resume {last_path}: it was trained on other shards than {cfg.shards} "
+                            "(manifest hash differs)")
         stored_cache = state.get("cache", "stream")  # checkpoints from before the cache streamed
         if cfg.cache == "auto":
             cache = stored_cache
@@ -341,21 +352,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
     if cache == "memory":  # decoded once (checksums and all) before anything is written; the epochs only index it
         mset = load_memory_set(shards, need_jacobian=need_j, workers=cfg.workers, state_dim=env.state_dim,
                                progress=progress and rank == 0)
-    if rank == 0:  # one process deletes: another rank's cleanup could remove rank 0's config.json temporary
-        check_run_folder(cfg.out, resume, overwrite)
-        os.makedirs(cfg.out, exist_ok=True)
-        remove_temporaries(cfg.out)  # half-written checkpoints/logs of a killed run (never under their names)
-    if world > 1:
-        import torch.distributed as dist
-
-        dist.barrier()  # the folder is ready before any rank goes on
     csv_path = os.path.join(cfg.out, "losses.csv")
-    if state is not None:
-        ckpt_io.check_compatible(state, last_path, env=shards.env, state_names=env.state_names,
-                                 resolution=shards.resolution)
-        if state.get("manifest_hash") != mhash:
-            raise RispError(f"cannot resume {last_path}: it was trained on other shards than {cfg.shards} "
-                            "(manifest hash differs)")
 
     if state is not None:  # a resumed run continues its checkpoint's network, also one of an older automatic stem
         model_cfg = ModelConfig.from_dict(state["model_config"])
@@ -373,15 +370,25 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
         epoch0, batch0, step = (int(state["progress"][k]) for k in ("epoch", "batch", "global_step"))
         history = list(state.get("history", []))
         partial_sums = state.get("epoch_sums")  # the interrupted epoch's loss sums before the checkpoint
-        if rank == 0:
-            _csv_keep_until(csv_path, step)
     else:
         norm = compute_normalization(shards, env, cfg.stats_samples)
         epoch0, batch0, step, history, partial_sums = 0, 0, 0, [], None
-        if rank == 0 and os.path.exists(csv_path):  # rows of a run killed before its first checkpoint
-            os.unlink(csv_path)
         if val is not None:  # the untrained network's held-out error, the baseline of the curve
             history.append({"epoch": -1, "step": 0, "val_error": held_out_error(net, val, norm, env, cfg.val_samples)})
+    # Only now, with the data read and checked (normalisation statistics, the held-out baseline), is anything in the
+    # run folder deleted or written: --overwrite on bad data loses nothing (docs/cli-train.md)
+    if rank == 0:  # one process deletes: another rank's cleanup could remove rank 0's config.json temporary
+        check_run_folder(cfg.out, resume, overwrite)
+        os.makedirs(cfg.out, exist_ok=True)
+        remove_temporaries(cfg.out)  # half-written checkpoints/logs of a killed run (never under their names)
+        if state is not None:
+            _csv_keep_until(csv_path, step)
+        elif os.path.exists(csv_path):  # rows of a run killed before its first checkpoint
+            os.unlink(csv_path)
+    if world > 1:
+        import torch.distributed as dist
+
+        dist.barrier()  # the folder is ready before any rank goes on
     net.train()
     params = list(net.parameters())
 

@@ -142,6 +142,12 @@ def test_verify_passes_then_fails_on_tampered_jacobian(tmp_path):
     last = r.output.strip().splitlines()[-1]
     assert last.startswith("Error: verify failed") and "light_intensity rel. error" in last
     assert "object_r rel. error" not in last
+    # a stored NaN fails too (a NaN compares False with every tolerance: it used to pass)
+    rel = scale_stored_jacobian(str(out), [0], "light_intensity", float("nan"))
+    rec["files"] = {r_: file_record(str(out), r_) for r_ in rec["files"]}
+    save_manifest(str(out), m)
+    r = CliRunner().invoke(cli, ["verify", str(out), "--samples", "2"])
+    assert r.exit_code == 1 and "sample 0: the stored image or Jacobian holds NaN or inf" in r.output, r.output
 
 
 @pytest.mark.parametrize("fmt", ["wds", "zarr"])

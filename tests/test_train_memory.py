@@ -185,6 +185,46 @@ def test_damaged_shard_is_one_error_before_training(shards, tmp_path):
     assert (out / "model.pt").read_bytes() == b"an earlier model"
 
 
+@pytest.mark.parametrize("where", ["val", "stream"])
+def test_overwrite_keeps_the_old_run_when_the_data_is_bad(shards, tmp_path, where):
+    """--overwrite deletes the old run only after the data has been read: a damaged --val folder (read for the
+    untrained network's held-out error) or a damaged first shard read for the normalisation statistics while
+    streaming is one error line, and the old model.pt and last.pt stay."""
+    folder = tmp_path / "damaged"
+    shutil.copytree(shards["train"], folder)
+    tar = sorted((folder / "wds").glob("*.tar"))[0]
+    import tarfile
+
+    with tarfile.open(tar) as t:
+        member = next(m for m in t.getmembers() if m.name.endswith("image.exr"))
+    data = bytearray(tar.read_bytes())
+    data[member.offset_data + 100:member.offset_data + 164] = bytes(64)
+    tar.write_bytes(bytes(data))
+    out = tmp_path / "run"
+    out.mkdir()
+    for name in ("model.pt", "last.pt"):
+        (out / name).write_bytes(b"an earlier run")
+    train, extra = (shards["train"], dict(val=str(folder), cache="memory")) if where == "val" else \
+        (str(folder), dict(cache="stream"))
+    with pytest.raises(RispError) as e:
+        fit(make_config(train, str(out), preset="cpu", epochs=1, batch_size=8, width=4, workers=0, format="wds",
+                        stats_samples=8, **extra), progress=False, overwrite=True)
+    assert "\n" not in str(e.value) and "sha256" in str(e.value), e.value
+    assert sorted(p.name for p in out.iterdir()) == ["last.pt", "model.pt"]
+    assert all((out / n).read_bytes() == b"an earlier run" for n in ("model.pt", "last.pt"))
+
+
+def test_resuming_from_a_final_model_is_one_error_line(shards, tmp_path):
+    """A model.pt copied to last.pt holds weights but no optimiser state: --resume says so instead of a KeyError."""
+    out = tmp_path / "run"
+    cfg = make_config(shards["train"], str(out), preset="cpu", epochs=1, batch_size=8, width=4, workers=0,
+                      format="wds", cache="memory", stats_samples=8)
+    fit(cfg, progress=False)
+    shutil.copy(out / "model.pt", out / "last.pt")
+    with pytest.raises(RispError, match=r"last.pt: not a resumable checkpoint \(no optimizer, scheduler"):
+        fit(cfg, resume=True, progress=False)
+
+
 def test_cli_unknown_cache_is_one_error_line(shards, tmp_path):
     from click.testing import CliRunner
 

@@ -83,6 +83,10 @@ def test_fit_lowers_held_out_error_and_writes_outputs(shards, tmp_path):
     assert "training error" not in r.output  # held-out images: no note
     r = CliRunner().invoke(cli, ["eval", path, shards["train"], "--quiet", "--limit", "4", "--out", str(tmp_path / "tr")])
     assert r.exit_code == 0 and "is the data the model was trained on: these figures are training error" in r.output
+    r = CliRunner().invoke(cli, ["eval", path, shards["held_out"], "--quiet", "--limit", "4", "--out", str(tmp_path / "evdir") + "/"])
+    name = "eval-" + os.path.basename(os.path.normpath(shards["held_out"]))
+    assert r.exit_code == 0 and sorted(os.listdir(tmp_path / "evdir")) == sorted(
+        f"{name}{ext}" for ext in (".json", ".md", "_scatter.png")), os.listdir(tmp_path / "evdir")
     res = json.load(open(tmp_path / "ev.json"))
     assert set(res["results"]) == {"model", "average", "random"} and res["n"] == 32
     for v in res["results"].values():
