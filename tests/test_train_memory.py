@@ -163,17 +163,23 @@ def test_memory_fit_keeps_the_thread_default_and_honours_threads(shards, tmp_pat
     assert json.load(open(tmp_path / "t" / "config.json"))["threads"] == 2
 
 
-def test_damaged_shard_is_one_error_before_training(shards, tmp_path):
-    folder = tmp_path / "damaged"
-    shutil.copytree(shards["train"], folder)
-    tar = sorted((folder / "wds").glob("*.tar"))[1]
+def _damaged_copy(shards, tmp_path, shard: int):
+    """A copy of the training shards whose shard ``shard`` has 64 zeroed bytes inside an image (its sha256 fails)."""
     import tarfile
 
+    folder = tmp_path / "damaged"
+    shutil.copytree(shards["train"], folder)
+    tar = sorted((folder / "wds").glob("*.tar"))[shard]
     with tarfile.open(tar) as t:
         member = next(m for m in t.getmembers() if m.name.endswith("image.exr"))
     data = bytearray(tar.read_bytes())
-    data[member.offset_data + 100:member.offset_data + 164] = bytes(64)  # inside an image: its sha256 fails
+    data[member.offset_data + 100:member.offset_data + 164] = bytes(64)
     tar.write_bytes(bytes(data))
+    return folder
+
+
+def test_damaged_shard_is_one_error_before_training(shards, tmp_path):
+    folder = _damaged_copy(shards, tmp_path, 1)
     out = tmp_path / "run"
     out.mkdir()
     (out / "model.pt").write_bytes(b"an earlier model")  # --overwrite must not remove it before the data is read
@@ -190,16 +196,7 @@ def test_overwrite_keeps_the_old_run_when_the_data_is_bad(shards, tmp_path, wher
     """--overwrite deletes the old run only after the data has been read: a damaged --val folder (read for the
     untrained network's held-out error) or a damaged first shard read for the normalisation statistics while
     streaming is one error line, and the old model.pt and last.pt stay."""
-    folder = tmp_path / "damaged"
-    shutil.copytree(shards["train"], folder)
-    tar = sorted((folder / "wds").glob("*.tar"))[0]
-    import tarfile
-
-    with tarfile.open(tar) as t:
-        member = next(m for m in t.getmembers() if m.name.endswith("image.exr"))
-    data = bytearray(tar.read_bytes())
-    data[member.offset_data + 100:member.offset_data + 164] = bytes(64)
-    tar.write_bytes(bytes(data))
+    folder = _damaged_copy(shards, tmp_path, 0)
     out = tmp_path / "run"
     out.mkdir()
     for name in ("model.pt", "last.pt"):
