@@ -47,6 +47,28 @@ def temp_folder(parent: "str | os.PathLike") -> str:
     return tmp
 
 
+def replace_folder(tmp: "str | os.PathLike", dest: "str | os.PathLike") -> None:
+    """Rename the finished folder ``tmp`` (a :func:`temp_folder` beside ``dest``) to ``dest``.  An existing ``dest`` is
+    first moved aside to a temporary name and deleted only once the new folder is in place; if the rename fails
+    it is put back, so readers find the old folder or the new one, never a mix or nothing."""
+    import shutil
+
+    dest = os.fspath(dest)
+    old = None
+    if os.path.exists(dest):
+        old = temp_folder(os.path.dirname(os.path.abspath(dest)))
+        os.rmdir(old)
+        os.replace(dest, old)
+    try:
+        os.replace(tmp, dest)
+    except BaseException:
+        if old is not None and not os.path.exists(dest):
+            os.replace(old, dest)
+        raise
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
 def remove_temporaries(folder: "str | os.PathLike") -> None:
     """Delete the temporaries (``.tmp-*``) a killed :func:`atomic_write` left in ``folder``: never visible
     to readers under their final names, safe to drop before a job resumes."""

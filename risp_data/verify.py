@@ -97,6 +97,11 @@ def repair_folder(folder: str, progress: bool = True, log=print) -> int:
     return int(stats.get("rendered_samples", 0))
 
 
+def _nan_max(a: float, b: float) -> float:
+    """max(a, b) that keeps a NaN (Python's max drops it when it comes second): a non-finite error must fail."""
+    return b if not b <= a else a
+
+
 def verify_folder(cfg: VerifyConfig) -> VerifyReport:
     from tqdm import tqdm
 
@@ -152,7 +157,7 @@ def verify_folder(cfg: VerifyConfig) -> VerifyReport:
             continue
         scale = max(float(np.abs(s["image"]).max()), 1e-12)
         err = float(np.abs(np.asarray(image) - s["image"]).max()) / scale
-        image_err = err if not err <= image_err else image_err  # NaN-safe max: a NaN re-render is kept, not dropped
+        image_err = _nan_max(image_err, err)
         for j in range(k):
             imgs = []
             for sign in (1.0, -1.0):
@@ -167,7 +172,7 @@ def verify_folder(cfg: VerifyConfig) -> VerifyReport:
             num[j] += diff
             den[j] += norm
             err_j = float(np.sqrt(diff / max(norm, 1e-30)))
-            worst[j] = err_j if not err_j <= worst[j] else worst[j]  # NaN-safe max
+            worst[j] = _nan_max(worst[j], err_j)
     rel = np.sqrt(num / np.maximum(den, 1e-30))
     names = list(m["psi"]["names"])
     # "not <=": a NaN (a re-render or finite difference gone non-finite) fails instead of passing every comparison

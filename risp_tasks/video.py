@@ -285,7 +285,7 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float, crf: in
         raise RispError("frames contain NaN or inf")
     data = to_uint8(frames)
     if p.suffix.lower() not in VIDEO_SUFFIXES:
-        _write_pngs(p, data, overwrite)
+        _write_pngs(p, data)
         return
     av = _av()
     H, W = data.shape[1:3]
@@ -334,32 +334,22 @@ def check_video_path(path: str | os.PathLike, overwrite: bool = False) -> None:
         raise RispError(f"{p}: holds files other than PNG frames; give another --out")
 
 
-def _write_pngs(folder: Path, data: np.ndarray, overwrite: bool = False) -> None:
+def _write_pngs(folder: Path, data: np.ndarray) -> None:
     import shutil
 
     from PIL import Image
 
-    from risp_data.atomic import temp_folder
+    from risp_data.atomic import replace_folder, temp_folder
 
-    check_video_path(folder, overwrite)
-    folder.parent.mkdir(parents=True, exist_ok=True)
+    folder.parent.mkdir(parents=True, exist_ok=True)  # (write_video checked the path: check_video_path)
     tmp = Path(temp_folder(folder.parent))
-    old = None
     try:
         for i, img in enumerate(data):
             Image.fromarray(img).save(tmp / f"frame_{i:05d}.png")
-        if folder.exists():  # move the old frames aside, put the new ones in place, then delete the old
-            old = Path(temp_folder(folder.parent))
-            os.rmdir(old)
-            os.replace(folder, old)
-        os.replace(tmp, folder)
+        replace_folder(tmp, folder)  # an old folder of frames (--overwrite) goes only once the new one is in place
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
-        if old is not None and old.exists() and not folder.exists():
-            os.replace(old, folder)  # the old frames back where they were
         raise
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
 
 
 __all__ = ["Video", "check_video_path", "read_video", "read_rgb8", "png_frames", "write_video", "resize", "sample_indices", "srgb_to_linear", "linear_to_srgb",

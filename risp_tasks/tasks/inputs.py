@@ -113,6 +113,7 @@ def read_actions(path: str, env: str, n_frames: int, fps: float | None = None) -
         raise RispError(f"{path}: unexpected column(s) {','.join(extra)}; the {env}'s actions file has columns "
                         f"t,{','.join(cols)}")
     idx = [header.index(c) for c in cols]
+    t_col = header.index("t") if "t" in header else None
     data, times, lines = [], [], []
     for i, row in enumerate(rows[1:], start=2):
         if not row:  # a blank line (a trailing newline too many): no row
@@ -123,7 +124,7 @@ def read_actions(path: str, env: str, n_frames: int, fps: float | None = None) -
             data.append([float(row[j]) for j in idx])
         except ValueError:
             raise RispError(f"{path}: line {i} has a non-numeric action") from None
-        times.append(row[header.index("t")] if "t" in header else "")
+        times.append(row[t_col] if t_col is not None else "")
         lines.append(i)
     a = np.asarray(data, np.float64).reshape(-1, len(cols))
     bad = ~np.isfinite(a)
@@ -132,7 +133,7 @@ def read_actions(path: str, env: str, n_frames: int, fps: float | None = None) -
         raise RispError(f"{path}: column {cols[c]} has NaN/inf at line {lines[r]}")
     if len(a) != n_frames:
         raise RispError(f"{path}: {len(a)} action rows but the video has {n_frames} frames (one row per frame)")
-    if "t" in header and fps is not None and len(a) > 1:
+    if t_col is not None and fps is not None and len(a) > 1:
         _check_times(path, times, lines, fps)
     return a
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from risp_data.atomic import temp_folder
+from risp_data.atomic import replace_folder, temp_folder
 from risp_data.errors import RispError
 
 from ..strict_json import strict_json
@@ -73,19 +73,7 @@ class ResultFolder:
         """Put the finished folder in place; with ``overwrite`` the old result folder is moved aside first and
         deleted after, so a failure leaves either the old folder or the new one, never a mix."""
         check_free(self.out, self.overwrite)
-        old = None
-        if os.path.exists(self.out):
-            old = temp_folder(os.path.dirname(os.path.abspath(self.out)))
-            os.rmdir(old)
-            os.rename(self.out, old)
-        try:
-            os.rename(self.tmp, self.out)
-        except BaseException:
-            if old is not None:
-                os.rename(old, self.out)
-            raise
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+        replace_folder(self.tmp, self.out)
         return self.out
 
     def discard(self) -> None:
