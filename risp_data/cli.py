@@ -29,7 +29,7 @@ def cli():
 @click.option("--spp", default=16, show_default=True, type=int, help="Samples per pixel.")
 @click.option("--domain", default="train", show_default=True, help="train or target.")
 @click.option("--seed", default=0, show_default=True, type=int, help="Run seed (>= 0); sample i uses SeedSequence(seed, spawn_key=(i,)).")
-@click.option("--workers", default=None, type=int, help="Parallel workers (default: number of CPU cores).")
+@click.option("--workers", default=None, type=int, help="Parallel workers (default: the CPUs this process may use, its affinity mask).")
 @click.option("--shard-size", default=256, show_default=True, type=int, help="Samples per shard (= per task).")
 @click.option("--executor", default="local", show_default=True, help="local (process pool) or ray (needs risp[ray]).")
 @click.option("--no-jacobian", is_flag=True, help="Store images only (evaluation shards).")

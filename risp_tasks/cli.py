@@ -71,8 +71,19 @@ def diagnose(data, env, out, seed, held_out, horizon, rollout_horizon, max_segme
     click.echo(f"held-out normalised RSS gain: {report['gain']['normalized_rss']:+.1%}; report: {out}/report.md")
 
 
-def _task_options(f):
-    """Options shared by every task (docs/cli-task.md); defaults are the paper's (RMSProp, lr 3e-3, momentum 0.5)."""
+# The options of _task_options that only some tasks use, and those tasks.  The others still accept them (hidden
+# from their --help), so that TaskConfig can say in one line why the option is not theirs.
+ONLY_FOR = {"--grow-horizon": ("sysid", "imitate"), "--action-knots": ("imitate", "control"),
+            "--params": ("imitate", "control"), "--actions": ("sysid", "estimate"),
+            "--every": ("estimate", "sysid", "imitate"), "--source-fps": ("estimate", "sysid", "imitate")}
+
+
+def _task_options(task: str):
+    """Options shared by the tasks (docs/cli-task.md); defaults are the paper's (RMSProp, lr 3e-3, momentum 0.5).
+    ``task``'s --help lists those it uses (:data:`ONLY_FOR`)."""
+    def shown(name: str) -> dict:
+        return {"hidden": task not in ONLY_FOR.get(name, (task,))}
+
     opts = [
         click.option("--model", default=None, help="risp-train checkpoint (default: the most recent runs/*/model.pt)"),
         click.option("--runs", default="runs", show_default=True, help="where to look for the most recent model"),
@@ -89,28 +100,29 @@ def _task_options(f):
         click.option("--perceptual-weights", default=None, help="local torchvision vgg16 state dict for --loss "
                      "perceptual (default: the built-in filter bank)"),
         click.option("--init", type=click.Choice(("default", "random", "track")), default="default", show_default=True,
-                     help="initial guess (track: tracking controller along the estimated path, quadrotor imitate)"),
+                     help="initial guess" + (" (track: a tracking controller along the estimated path)"
+                                             if task == "imitate" else "; track is imitate's")),
         click.option("--optimizer", type=click.Choice(("rmsprop", "adam", "sgd")), default="rmsprop", show_default=True),
         click.option("--lr", type=float, default=3e-3, show_default=True),
         click.option("--momentum", type=float, default=0.5, show_default=True),
         click.option("--iterations", type=int, default=None, help="optimisation iterations [default: 100; estimate: 0]"),
         click.option("--warm-start", type=int, default=0, show_default=True,
                      help="--loss render: run this many state-loss iterations first (docs/tasks.md §Warm start)"),
-        click.option("--grow-horizon", type=int, default=0, show_default=True,
+        click.option("--grow-horizon", type=int, default=0, show_default=True, **shown("--grow-horizon"),
                      help="sysid, imitate: over this many iterations the loss compares the first 2, 3, … frames, "
                           "then all (docs/tasks.md §Horizon curriculum)"),
-        click.option("--action-knots", type=int, default=0, show_default=True,
+        click.option("--action-knots", type=int, default=0, show_default=True, **shown("--action-knots"),
                      help="imitate, control: K >= 2 knots of a piecewise-linear command per action instead of one "
                           "row per frame (docs/tasks.md §Smooth commands)"),
-        click.option("--params", default=None,
+        click.option("--params", default=None, **shown("--params"),
                      help="imitate, control: known physical parameters — a JSON object, a JSON file, or a sysid "
                           "result.json (default: the simulator's nominal ones)"),
         click.option("--seed", type=int, default=0, show_default=True),
-        click.option("--every", type=int, default=1, show_default=True, help="keep every k-th frame (not control)"),
+        click.option("--every", type=int, default=1, show_default=True, **shown("--every"), help="keep every k-th frame (not control)"),
         click.option("--fps", type=float, default=None, help="resample the video to this frame rate (a divisor of the "
                      "video's own); control: the simulation's frame rate [default 10]"),
-        click.option("--source-fps", type=float, default=None, help="frame rate of a PNG folder (not control)"),
-        click.option("--actions", default=None, help="sysid, estimate: actions CSV (t + f0..f3 [N] / u0.. ; one row "
+        click.option("--source-fps", type=float, default=None, **shown("--source-fps"), help="frame rate of a PNG folder (not control)"),
+        click.option("--actions", default=None, **shown("--actions"), help="sysid, estimate: actions CSV (t + f0..f3 [N] / u0.. ; one row "
                      "per frame)"),
         click.option("--truth", default=None, help="ground-truth JSON (oracle loss, error report)"),
         click.option("--camera", default=None, help="camera JSON (intrinsics, extrinsics) replacing the environment's"),
@@ -123,9 +135,11 @@ def _task_options(f):
         click.option("--no-plots", is_flag=True, help="skip the PNG plots"),
         click.option("--quiet", is_flag=True, help="no progress bar"),
     ]
-    for opt in reversed(opts):
-        f = opt(f)
-    return f
+    def decorate(f):
+        for opt in reversed(opts):
+            f = opt(f)
+        return f
+    return decorate
 
 
 def _first_full(result: dict) -> int | None:
@@ -182,7 +196,7 @@ def _run(task, video, **kw):
 
 @cli.command()
 @click.argument("video", type=click.Path())
-@_task_options
+@_task_options("estimate")
 def estimate(video, **kw):
     """Per-frame states of VIDEO as a measured-data CSV (docs/measured-data.md) that `diagnose` reads."""
     _run("estimate", video, **kw)
@@ -196,7 +210,7 @@ _fit_initial = click.option(
 
 @cli.command()
 @click.argument("video", type=click.Path())
-@_task_options
+@_task_options("sysid")
 @_fit_initial
 def sysid(video, **kw):
     """The physical parameter(s) that reproduce VIDEO (quadrotor mass, cube log10 k_n, hand stiffness, rod log10 E)."""
@@ -205,7 +219,7 @@ def sysid(video, **kw):
 
 @cli.command()
 @click.argument("video", type=click.Path())
-@_task_options
+@_task_options("imitate")
 @_fit_initial
 @click.option("--fit-params/--no-fit-params", default=None,
               help="identify the physical parameters sysid would (quadrotor mass, hand stiffnesses, rod log10 E) "
@@ -219,11 +233,11 @@ def imitate(video, **kw):
 
 @cli.command()
 @click.argument("target", type=click.Path())
-@_task_options
+@_task_options("control")
 @click.option("--initial-state", default=None, help="JSON {'state': [...]} or {'env_state': [...]} (default: the simulator's)")
 @click.option("--horizon", type=int, default=10, show_default=True, help="frames to reach the pictured state")
 def control(target, **kw):
-    """Actions that drive the system from its initial state to the state pictured in TARGET (a PNG)."""
+    """Actions that drive the system from its initial state to the state pictured in TARGET (a PNG or JPEG image)."""
     _run("control", target, **kw)
 
 

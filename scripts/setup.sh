@@ -46,9 +46,13 @@ if ! "$VPY" -c 'import torch' >/dev/null 2>&1; then
     echo "[setup] installing torch (CUDA build)"
     "$VPY" -m pip install -q "torch>=2.4"
   else
-    # The CPU build avoids ~3 GB of CUDA wheels; fall back to the default build where no +cpu wheel is offered.
+    # The CPU build avoids ~3 GB of CUDA wheels. PyPI has no +cpu versions: try the configured indexes (a local
+    # wheel folder may hold the tested one), then PyTorch's own CPU index, then (saying so) the default build.
     echo "[setup] installing torch (CPU build)"
-    "$VPY" -m pip install -q "torch==2.13.0+cpu" 2>/dev/null || "$VPY" -m pip install -q "torch>=2.4"
+    "$VPY" -m pip install -q "torch==2.13.0+cpu" 2>/dev/null \
+      || "$VPY" -m pip install -q --timeout 20 --retries 1 --index-url https://download.pytorch.org/whl/cpu "torch>=2.4" 2>/dev/null \
+      || { echo "[setup] no CPU build of torch reachable: installing the default build (with CUDA libraries)"
+           "$VPY" -m pip install -q "torch>=2.4"; }
   fi
 fi
 echo "[setup] installing risp and its dependencies"

@@ -39,6 +39,35 @@ def test_converging_descent_ends_at_the_last_iterate():
     assert float(x.detach()) == pytest.approx(0.8 ** 5)
 
 
+def _blows_up_beyond(limit: float):
+    """c·x² inside |x| < limit, NaN outside: a step into a region the model cannot evaluate."""
+    def loss(s):
+        return torch.where(s.abs().max() < limit, (s ** 2).sum(), torch.full((), float("nan"), dtype=s.dtype))
+    return loss
+
+
+def test_a_nan_loss_mid_run_stops_there_and_keeps_the_best_iterate():
+    """SGD with lr 3 on x² sends x from 1 to −5 to 25: the third loss is NaN.  The descent stops there (no step is
+    taken from NaN), the best iterate (the start) is restored, and the stop is on record; the optimiser, whose state
+    came from the bad step, is not handed on."""
+    x, problem, _ = _quadratic(1.0, 1.0)
+    h = optimize(problem, _blows_up_beyond(10.0), optimizer="sgd", lr=3.0, momentum=0.0, iterations=6, timer=Timer(),
+                 progress=False)
+    assert h["loss"] == pytest.approx([1.0, 25.0]) and len(h["seconds_per_iteration"]) == 2
+    assert "iteration 2" in h["stopped"] and "best iterate (0" in h["stopped"]
+    assert h["best_iteration"] == 0 and h["final_loss"] == pytest.approx(1.0) and h["last_loss"] != h["last_loss"]
+    assert float(x.detach()) == pytest.approx(1.0) and h["optimizer"] is None
+
+
+def test_a_nan_loss_at_the_start_is_a_clear_error():
+    from risp_data.errors import RispError
+
+    x, problem, _ = _quadratic(20.0, 1.0)
+    with pytest.raises(RispError, match="NaN/inf at iteration 0, before any iterate could be kept"):
+        optimize(problem, _blows_up_beyond(10.0), optimizer="sgd", lr=0.1, momentum=0.0, iterations=3, timer=Timer(),
+                 progress=False)
+
+
 def test_a_continued_optimiser_is_one_descent():
     """``opt=`` continues an optimiser: 40 + 60 RMSProp iterations through one optimiser are bitwise the 100 of one
     call (a converging descent: no best-iterate restore).  A fresh RMSProp instead moves every coordinate by
@@ -326,3 +355,24 @@ def test_estimate_csv_holds_the_mean_command_of_each_kept_interval():
     actions = np.arange(14, dtype=np.float64).reshape(7, 2)  # rows [0,1], [2,3], … [12,13]
     assert held_commands(actions, [0, 3, 6]).tolist() == [[2.0, 3.0], [8.0, 9.0], [12.0, 13.0]]
     assert held_commands(actions, list(range(7))).tolist() == actions.tolist()  # every frame kept: the rows
+
+
+@pytest.mark.parametrize("task, shown, hidden", [
+    ("estimate", ["--actions", "--every", "--source-fps"], ["--grow-horizon", "--action-knots", "--params"]),
+    ("sysid", ["--actions", "--every", "--grow-horizon"], ["--action-knots", "--params"]),
+    ("imitate", ["--action-knots", "--params", "--grow-horizon", "--every"], ["--actions"]),
+    ("control", ["--action-knots", "--params", "--horizon"], ["--actions", "--every", "--source-fps", "--grow-horizon"]),
+])
+def test_each_tasks_help_lists_the_options_it_uses(task, shown, hidden):
+    """A task's --help lists only the shared options it uses; the others stay accepted (hidden), so that the task
+    can refuse them with a line saying whose they are (test_control_refuses_the_options_of_a_video)."""
+    import re
+
+    from click.testing import CliRunner
+    from risp_tasks.cli import cli
+
+    text = CliRunner().invoke(cli, [task, "--help"], terminal_width=200).output
+    listed = set(re.findall(r"^\s+(--[a-z-]+)", text, flags=re.M))
+    assert set(shown) <= listed and not set(hidden) & listed, sorted(listed)
+    assert ("track" in text.split("--init")[1].split("\n")[0]) and ((task == "imitate") ==
+                                                                     ("tracking controller" in text)), text

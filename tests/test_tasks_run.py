@@ -113,6 +113,32 @@ def test_render_losses_differentiate_through_renderer_and_network(quad, tmp_path
         assert r["info"]["perceptual_extractor"] == "filterbank"
 
 
+def test_a_nan_loss_mid_run_is_a_warning_not_a_lost_run(quad, tmp_path, monkeypatch):
+    """A loss that turns NaN at the third iteration (as a step into an unstable simulation would) ends the descent
+    with the best iterate kept: the result folder is written, result.json and the warnings say where it stopped."""
+    import risp_tasks.tasks.run as run_mod
+
+    real = run_mod.make_loss
+
+    def failing_later(*args, **kwargs):
+        loss, calls = real(*args, **kwargs), [0]
+
+        def wrapped(s, n=None):
+            calls[0] += 1
+            value = loss(s) if n is None else loss(s, n)
+            return value * float("nan") if calls[0] == 3 else value
+        return wrapped
+
+    monkeypatch.setattr(run_mod, "make_loss", failing_later)
+    model, video = quad
+    r = _run("sysid", video, tmp_path / "nan", model=model, actions=_stem(video) + ".actions.csv", init="random",
+             seed=1, lr=3e-2, iterations=6, plots=False)
+    assert len(r["loss"]) == 2 and r["final_loss"] == min(r["loss"]), r["loss"]
+    assert "iteration 2" in r["stopped"] and any(w.startswith("optimisation: the loss became NaN") for w in r["warnings"])
+    saved = json.load(open(tmp_path / "nan" / "result.json"))
+    assert saved["stopped"] == r["stopped"] and saved["last_loss"] is None
+
+
 def test_warm_start_runs_the_state_loss_before_the_render_loss(quad, tmp_path):
     """--warm-start N: N state-loss iterations (their history recorded apart), then the render loss from where they
     ended; the state loss falls during the warm start and the render descent starts from its end point."""

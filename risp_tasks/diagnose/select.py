@@ -1,4 +1,4 @@
-"""Scoring candidate models on held-out data and naming the cause (docs/diagnose.md §Selection).
+"""Scoring candidate models on held-out data and naming the cause (docs/diagnose.md §6 Scores and the decision).
 
 Score (held-out BIC).  With e the robust normalised held-out multiple-shooting residuals of a fitted
 model (:func:`fit.robust`), RSS = Σe², n = S·H·C residuals, n_eff = S·C (segments × channels: errors along one segment's horizon are

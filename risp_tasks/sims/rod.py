@@ -35,7 +35,7 @@ from . import _fem
 from ._smooth import smooth_clamp
 from .base import Effect, Simulator, SimulatorSpec
 
-# -- model constants (docs/models/rod.md, "Constants") ----------------------------------------------
+# -- model constants (docs/models/rod.md §Geometry and discretisation) ------------------------------
 DT = 0.01  # s
 NODES = (12, 3, 2)  # along x, y, z
 POISSON = 0.3

@@ -135,17 +135,18 @@ def _task_run(cfg, art: Artifacts, task: str, env_name: str, method: str, repeat
         return run_task(tcfg, echo=lambda *_: None)
 
 
-def _extractor(result: dict) -> dict:
-    """{"extractor": F's name} for a perceptual run (report.py names the extractor a table used), else {}."""
+def _extras(result: dict) -> dict:
+    """What a cell file keeps beside its value: F's name for a perceptual run (report.py names the extractor a table
+    used), and where a descent stopped at a non-finite loss (risp_tasks.tasks.loop.optimize)."""
     name = result.get("info", {}).get("perceptual_extractor")
-    return {"extractor": name} if name else {}
+    return {**({"extractor": name} if name else {}), **({"stopped": result["stopped"]} if "stopped" in result else {})}
 
 
 def sysid(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> dict:
     result = _task_run(cfg, art, "sysid", env_name, method, repeat)
     errors = result["errors"]["parameter_error_final"]
     return {"value": float(np.mean(list(errors.values()))), "errors": errors, "metric": "abs parameter error",
-            "estimates": result["estimates"]["parameters"], "final_loss": result["final_loss"], **_extractor(result)}
+            "estimates": result["estimates"]["parameters"], "final_loss": result["final_loss"], **_extras(result)}
 
 
 def imitation(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> dict:
@@ -156,7 +157,7 @@ def imitation(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> d
     result = _task_run(cfg, art, "imitate", env_name, method, repeat, fit_params=False)
     return {"value": float(result["errors"]["state_rmse_final"]), "metric": "state RMSE",
             "initial": result["errors"].get("state_rmse_initial"), "final_loss": result["final_loss"],
-            **_extractor(result)}
+            **_extras(result)}
 
 
 def control(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> dict:
@@ -202,7 +203,7 @@ def control(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> dic
         reached = frame_states(sim, params, s0, actions, horizon + 1, steps_per_frame(sim, truth["fps"]))[-1]
     diff = state_differences(reached.numpy()[None], goal[None], sim_env_names(env_name))
     return {"value": float(np.abs(diff).mean()), "metric": "l1", "reached": reached.tolist(), "goal": goal.tolist(),
-            "final_loss": result["final_loss"], **_extractor(result)}
+            "final_loss": result["final_loss"], **_extras(result)}
 
 
 def sim_env_names(env_name: str) -> tuple[str, ...]:

@@ -160,6 +160,10 @@ def optimize(problem: Problem, loss: Callable, *, optimizer: str, lr: float, mom
     left them: the warm start, docs/tasks.md §Warm start); by default a fresh one from ``optimizer``, ``lr`` and
     ``momentum``.  The history's ``optimizer`` is the one used (None without variables or iterations), to continue.
 
+    A non-finite loss (a step into NaN) stops the descent there: the best iterate so far is kept, ``stopped``
+    says where, ``last_loss`` is NaN and ``optimizer`` None; a non-finite loss before any iterate could be kept is
+    an error.
+
     ``grow`` > 0 (with ``frames``, the number of compared frames T): the horizon curriculum — iteration i compares
     the first :func:`horizon` (i, grow, T) frames; only full-horizon iterates compete for the best, and
     ``frames_compared`` records n(i) per iteration, ``frames_in_loss`` T.
@@ -171,6 +175,7 @@ def optimize(problem: Problem, loss: Callable, *, optimizer: str, lr: float, mom
         opt = make_optimizer(optimizer, leaves, lr, momentum)
     history, seconds = [], []
     best_value, best_iteration, best_leaves = float("inf"), iterations, None
+    stopped = None
     if grow and frames is None:
         raise RispError("a horizon curriculum needs the number of compared frames")
     compared = []
@@ -183,7 +188,13 @@ def optimize(problem: Problem, loss: Callable, *, optimizer: str, lr: float, mom
         n = horizon(it, grow, frames) if grow else None
         value = loss(states) if n is None else loss(states, n)
         if not torch.isfinite(value):
-            raise RispError("the loss became NaN/inf (try a smaller --lr)")
+            if best_leaves is None:  # nothing comparable to keep yet: the start itself is non-finite
+                raise RispError(f"the loss became NaN/inf at iteration {it}, before any iterate could be kept "
+                                "(try a smaller --lr)")
+            # a long run should not be thrown away by one bad step: stop here, keep the best iterate so far
+            stopped = (f"the loss became NaN/inf at iteration {it}; the optimisation stopped there and kept its "
+                       f"best iterate ({best_iteration}; try a smaller --lr)")
+            break
         history.append(float(value.detach()))
         compared.append(n)
         # only full-horizon losses compete; keep the variables that gave this loss, before the step moves them
@@ -198,7 +209,7 @@ def optimize(problem: Problem, loss: Callable, *, optimizer: str, lr: float, mom
         seconds.append(time.perf_counter() - start)
         bar.set_postfix(loss=f"{history[-1]:.4g}")
     with torch.no_grad():
-        last = float(loss(problem.states()))
+        last = float("nan") if stopped else float(loss(problem.states()))
     final = last
     if best_leaves is not None and not last <= best_value:  # NaN-safe: a non-finite last loss is never kept
         with torch.no_grad():
@@ -208,7 +219,9 @@ def optimize(problem: Problem, loss: Callable, *, optimizer: str, lr: float, mom
     else:
         best_iteration = iterations
     out = {"loss": history, "final_loss": final, "last_loss": last, "best_iteration": best_iteration,
-           "seconds_per_iteration": seconds, "optimizer": opt}
+           "seconds_per_iteration": seconds, "optimizer": None if stopped else opt}
+    if stopped:  # its optimiser state may hold the non-finite step: not handed on (a warm start's next phase)
+        out["stopped"] = stopped
     if grow:
         out["frames_compared"], out["frames_in_loss"] = compared, frames
     return out

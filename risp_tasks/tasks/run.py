@@ -180,7 +180,7 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
                      if ref is not None else {})},
         "estimates": problem.estimates(), "initial": initial_estimates,
         "loss": history["loss"], "final_loss": history["final_loss"], "last_loss": history["last_loss"],
-        "best_iteration": history["best_iteration"],
+        "best_iteration": history["best_iteration"], **({"stopped": history["stopped"]} if "stopped" in history else {}),
         "timings": {"total_s": time.perf_counter() - started,
                     "seconds_per_iteration": history["seconds_per_iteration"], "sections_s": timer.seconds},
         "versions": versions(), "info": problem.info,
@@ -197,7 +197,8 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
         result["frames_compared"], result["frames_in_loss"] = history["frames_compared"], history["frames_in_loss"]
     if warm is not None:
         result["warm_start"] = {"iterations": cfg.warm_start, "loss": warm["loss"], "final_loss": warm["final_loss"],
-                                "seconds_per_iteration": warm["seconds_per_iteration"]}
+                                "seconds_per_iteration": warm["seconds_per_iteration"],
+                                **({"stopped": warm["stopped"]} if "stopped" in warm else {})}
     if features is not None:
         result["info"] = {**problem.info, "perceptual_extractor": features.name}
     result["errors"] = _errors(cfg, env, sim, truth, truth_rows, loss_frames, initial_states, final_states, predicted,
@@ -205,7 +206,9 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
     warning = None
     if cfg.loss in IMAGE_LOSSES:
         result["view"], warning = _view(cfg, renderer, loss_frames, initial_states, final_states)
-    result["warnings"] = warnings + ([warning] if warning else [])
+    stops = [f"{phase}: {h['stopped']}" for phase, h in (("warm start", warm), ("optimisation", history))
+             if h is not None and h.get("stopped")]
+    result["warnings"] = warnings + stops + ([warning] if warning else [])
     folder = ResultFolder(out, cfg.overwrite)
     try:
         folder.write_json("result.json", result)
