@@ -504,8 +504,10 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
         p = payload(cfg.epochs, 0, True)
         for k in ("optimizer", "scheduler"):
             p.pop(k)
-        ckpt_io.save_checkpoint(final, p)
+        # history.json first: model.pt is what marks a run finished (risp-task table reuses a run folder that has
+        # it), so a run killed between the two must not look finished without its history
         _write_json(os.path.join(cfg.out, "history.json"), history)
+        ckpt_io.save_checkpoint(final, p)
     return final
 
 

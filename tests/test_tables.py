@@ -430,6 +430,78 @@ def test_failed_cell_is_stored_and_retried(cache, tmp_path, monkeypatch):
     assert math.isfinite(report["cells"]["cube"]["average"]["mean"])
 
 
+def test_a_damaged_cell_file_is_computed_again(cache, tmp_path):
+    """A cell file that is not a JSON object (cut short, or replaced by something else) used to stop every later run
+    of the table with a traceback; it is computed again and replaced."""
+    cfg = make_config("estimation", quick=True, out=str(tmp_path), envs=("cube",), methods=("average",), **TINY)
+    first = run_table(cfg, cache=cache, echo=lambda *_: None)["cells"]["cube"]["average"]["mean"]
+    path = cell_path(run_folder(cfg), Cell("cube", "average", 0))
+    for damage in (open(path).read()[:100], "[]"):
+        with open(path, "w") as f:
+            f.write(damage)
+        lines = []
+        report = run_table(cfg, cache=cache, echo=lines.append)
+        assert "0 of 1 cells done, 1 to run" in lines[0], lines
+        assert report["cells"]["cube"]["average"]["mean"] == first
+        assert json.load(open(path))["value"] == first
+
+
+def test_a_damaged_cached_network_ends_the_run_with_one_line(cache, tmp_path):
+    """A cached network that cannot be loaded made every cell reading it fail, on every run, with exit 0."""
+    import shutil
+
+    from risp_tasks.tables.artifacts import Artifacts
+
+    cfg = make_config("estimation", quick=True, out=str(tmp_path), envs=("cube",), methods=("ours",), **TINY)
+    model = Artifacts(cfg, cache).network("cube", "reg")
+    copy = str(tmp_path / "cache")
+    shutil.copytree(cache, copy, ignore=shutil.ignore_patterns("estimation-*"))  # the module's cache stays whole
+    damaged = model.replace(cache, copy)
+    with open(damaged, "r+b") as f:
+        f.truncate(os.path.getsize(damaged) // 2)
+    with pytest.raises(RispError, match=rf"delete {os.path.dirname(damaged)} to train it again"):
+        run_table(cfg, cache=copy, echo=lambda *_: None)
+    assert not os.path.exists(cell_path(run_folder(cfg), Cell("cube", "ours", 0)))
+
+
+def test_two_seeds_share_no_repeat_and_seed_0_keeps_its_data():
+    """Repeat k is seeded seed·1000 + k: with `seed + k` the repeats of --seed 1 were --seed 0's shifted by one (the
+    same videos, test images and guesses); --seed 0's repeats keep the seeds (and cached files) they had."""
+    from risp_tasks.tables.artifacts import TEST_SEED, Artifacts
+    from risp_tasks.tables.config import repeat_seed
+
+    seeds = {s: {repeat_seed(s, k) for k in range(4)} for s in (0, 1, 2)}
+    assert seeds[0] == {0, 1, 2, 3} and not seeds[0] & seeds[1] and not seeds[1] & seeds[2]
+    videos = {s: [Artifacts(make_config("sysid", out="x", seed=s), None).video_config("cube", k) for k in range(4)]
+              for s in (0, 1)}
+    assert [ref.seed for ref, _ in videos[0]] == [TEST_SEED + k for k in range(4)]
+    assert not {p for _, p in videos[0]} & {p for _, p in videos[1]}
+
+
+def test_the_key_holds_only_what_a_table_reads_and_the_task_defaults():
+    """--n-test is not read by the task tables, --iterations not by `regularizers`: neither moves those tables to a
+    new folder; both move `estimation`.  The task tables' keys hold the TaskConfig defaults their cells rely on."""
+    from risp_tasks.tables import grid
+
+    def moved(table, **kw):
+        return run_folder(make_config(table, out="x")) != run_folder(make_config(table, out="x", **kw))
+
+    assert moved("estimation", n_test=32) and moved("estimation", iterations=10)
+    assert not moved("sysid", n_test=32) and moved("sysid", iterations=10)
+    assert not moved("regularizers", iterations=10) and moved("regularizers", n_test=32)
+    assert not moved("sampling", n_test=32) and not moved("regularizers", reg="surrogate")
+    keyed = []
+    real = grid.checksum
+    try:
+        grid.checksum = lambda d: keyed.append(d) or real(d)
+        run_folder(make_config("sysid", out="x"))
+        run_folder(make_config("estimation", out="x"))
+    finally:
+        grid.checksum = real
+    assert keyed[0]["task_defaults"]["lr"] == 3e-3 and keyed[0]["task_defaults"]["fit_initial_state"] is None
+    assert set(keyed[0]["task_defaults"]) == set(grid.TASK_DEFAULTS) and "task_defaults" not in keyed[1]
+
+
 @pytest.mark.parametrize("args, message", [
     (["--table", "lighting"], "Error: unknown table 'lighting'; choose one of: estimation, sysid, imitation, control"),
     (["--table", "estimation", "--methods", "average,magic"], "Error: unknown method 'magic'"),
@@ -441,6 +513,9 @@ def test_failed_cell_is_stored_and_retried(cache, tmp_path, monkeypatch):
     (["--table", "control", "--envs", ""], "Error: --envs is empty: name at least one"),
     (["--table", "control", "--envs", "hand,hand"], "Error: --envs names an entry twice: hand,hand"),
     (["--table", "sysid", "--methods", "ours,ours"], "Error: --methods names an entry twice: ours,ours"),
+    (["--table", "sysid", "--repeats", "1001"], "Error: --repeats must be <= 1000"),
+    (["--table", "estimation", "--perceptual-weights", "/nonexistent/vgg.pth"],
+     "Error: /nonexistent/vgg.pth: perceptual weights file not found"),
 ])
 def test_bad_input_is_one_error_line(tmp_path, args, message):
     from risp_tasks.cli import cli

@@ -20,9 +20,11 @@ import json
 import os
 from dataclasses import asdict, replace
 
-from .config import TableConfig
+from risp_data.errors import RispError
 
-#: Seeds of the test sets and reference videos: repeat k uses TEST_SEED + k, never the training seed.
+from .config import TableConfig, repeat_seed
+
+#: Seeds of the test sets and reference videos: repeat k uses TEST_SEED + repeat_seed(seed, k), never the training seed.
 TEST_SEED = 1000
 
 
@@ -78,7 +80,7 @@ class Artifacts:
         return self._render(env, "train", self.cfg.n_train, "train", self.cfg.seed, True)
 
     def test_shards(self, env: str, repeat: int) -> str:
-        return self._render(env, f"test-r{repeat}", self.cfg.n_test, "target", TEST_SEED + self.cfg.seed + repeat, False)
+        return self._render(env, f"test-r{repeat}", self.cfg.n_test, "target", TEST_SEED + repeat_seed(self.cfg.seed, repeat), False)
 
     # ------------------------------------------------------------------ networks
 
@@ -105,7 +107,7 @@ class Artifacts:
 
         cfg = self.cfg
         ref = ReferenceConfig(env=env, out="", frames=frames or cfg.frames, fps=10.0, resolution=cfg.resolution, spp=cfg.spp,
-                              domain="target", seed=TEST_SEED + cfg.seed + repeat, progress=False)
+                              domain="target", seed=TEST_SEED + repeat_seed(cfg.seed, repeat), progress=False)
         key = look_key(ref, env, skip=("out", "progress", "overwrite"))
         if env in MOTION_REVISIONS:  # a revised motion is a new video (unrevised motions keep their keys)
             key = checksum({"video": key, "motion": MOTION_REVISIONS[env]})
@@ -171,7 +173,7 @@ def prepare(cfg: TableConfig, env: str, cache: str | None = None) -> None:
         for r in range(cfg.repeats):
             art.test_shards(env, r)
             for reg in cfg.methods:
-                art.network(env, reg, seed=cfg.seed + r)
+                _loadable(art.network(env, reg, seed=repeat_seed(cfg.seed, r)))
         return
     networks = {get_method(m).network for m in cfg.methods} - {None}
     if cfg.table == "estimation":
@@ -187,4 +189,15 @@ def prepare(cfg: TableConfig, env: str, cache: str | None = None) -> None:
         for r in range(cfg.repeats):
             art.video(env, r)
     for which in sorted(networks):
-        art.network(env, which)
+        _loadable(art.network(env, which))
+
+
+def _loadable(model: str) -> None:
+    """A cached network that cannot be loaded (a damaged file) ends the run here with one line, rather than failing
+    every cell that reads it, on every run."""
+    from risp_train.predictor import load
+
+    try:
+        load(model)
+    except RispError as e:
+        raise RispError(f"{e} (a cached network of the table: delete {os.path.dirname(model)} to train it again)") from None

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from .artifacts import Artifacts
+from .config import repeat_seed
 from ..tasks.features import feature_extractor
 from .methods import get_method
 
@@ -128,7 +129,7 @@ def _task_run(cfg, art: Artifacts, task: str, env_name: str, method: str, repeat
     residual = cfg.residual if loss in NETWORK_LOSSES else "l2"
     with tempfile.TemporaryDirectory(prefix=".tmp-cell-", dir=art.root) as tmp:
         tcfg = TaskConfig(task=task, video=video or ref["video"], out=os.path.join(tmp, "result"), model=model,
-                          loss=loss, init=init, iterations=iterations, seed=cfg.seed + repeat,
+                          loss=loss, init=init, iterations=iterations, seed=repeat_seed(cfg.seed, repeat),
                           actions=ref["actions"] if task == "sysid" else None, truth=truth or ref["truth"],
                           perceptual_weights=cfg.perceptual_weights if m.loss == "perceptual" else None,
                           spp=cfg.spp, residual=residual, plots=False, progress=False, **task_kw)
@@ -234,7 +235,7 @@ def regularized_epoch_seconds(history: list[dict], run_config: dict) -> list[flo
 
 def regularizers(cfg, art: Artifacts, env_name: str, reg: str, repeat: int) -> dict:
     """The regularizer comparison (the paper's future work): a network trained with ``reg`` on the same training
-    set with the same budget (epochs, batch, γ preset) and training seed ``seed + repeat``; its estimation error
+    set with the same budget (epochs, batch, γ preset) and training seed ``repeat_seed(seed, repeat)``; its estimation error
     on repeat k's target-domain images and its median wall time per epoch with the regularizer on."""
     import json
 
@@ -242,7 +243,7 @@ def regularizers(cfg, art: Artifacts, env_name: str, reg: str, repeat: int) -> d
     from risp_train.predictor import load
 
     env = get_environment(env_name)
-    path = art.network(env_name, reg, seed=cfg.seed + repeat)
+    path = art.network(env_name, reg, seed=repeat_seed(cfg.seed, repeat))
     images, true = load_images(art.test_shards(env_name, repeat))
     with torch.no_grad():
         pred = load(path)(images).to(torch.float64)

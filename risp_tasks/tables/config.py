@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import asdict, dataclass, field, replace
 
 from risp_data.envs import ENV_NAMES
@@ -23,6 +24,15 @@ PRESETS: dict[str, dict] = {
 #: method's row shows what its loss adds to the same start) or ``random`` (the seeded draw, as the other tasks).
 CONTROL_STARTS: tuple[str, ...] = ("neutral", "random")
 QUICK: dict = dict(n_train=32, n_test=4, spp=4, frames=3, iterations=3, epochs=1, width=8)
+#: Repeat k under ``--seed s`` is seeded s·REPEAT_STRIDE + k (its test images and video: TEST_SEED + that; its
+#: random guess; the regularizer table's training seed), so that two seeds never share a repeat's data or guess
+#: (with ``s + k`` the repeats of --seed 1 were those of --seed 0 shifted by one); --seed 0 keeps k.
+REPEAT_STRIDE = 1000
+
+
+def repeat_seed(seed: int, repeat: int) -> int:
+    """The seed of repeat ``repeat`` of a table run with ``--seed seed`` (REPEAT_STRIDE)."""
+    return seed * REPEAT_STRIDE + repeat
 
 
 @dataclass(frozen=True)
@@ -51,7 +61,7 @@ class TableConfig:
     perceptual_weights: str | None = None  # local feature-extractor weights (methods.FeatureExtractor)
     workers: int = 1  # data workers of training
     executor: str = "local"  # local | ray
-    jobs: int = 1  # local executor: cells computed at once, one process each (0: one per available CPU)
+    jobs: int = 1  # local executor: cells computed at once, one process each (0: one per available CPU; the CLI's default)
     quick: bool = False
     progress: bool = True
 
@@ -119,8 +129,15 @@ def validate(cfg: TableConfig) -> None:
     for name in ("repeats", "n_train", "n_test", "resolution", "spp", "frames"):
         if getattr(cfg, name) < 1:
             raise RispError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(cfg, name)}")
-    if cfg.iterations < 0 or not cfg.lr > 0:
-        raise RispError("--iterations must be >= 0 and --lr > 0")
+    if cfg.repeats > REPEAT_STRIDE:
+        raise RispError(f"--repeats must be <= {REPEAT_STRIDE} (each seed's repeats have their own seeds), "
+                        f"got {cfg.repeats}")
+    if cfg.iterations < 0:
+        raise RispError(f"--iterations must be >= 0, got {cfg.iterations}")
+    if not cfg.lr > 0:
+        raise RispError(f"the table's lr must be > 0, got {cfg.lr}")
+    if cfg.perceptual_weights and not os.path.isfile(cfg.perceptual_weights):  # before any cell is computed
+        raise RispError(f"{cfg.perceptual_weights}: perceptual weights file not found")
     from risp_tasks.tasks.config import RESIDUALS
 
     if cfg.residual not in RESIDUALS:

@@ -27,10 +27,25 @@ from risp_data.shards.manifest import sha256_file
 from risp_data.threads import available_cpus
 
 from .artifacts import Artifacts, checksum, prepare
-from .config import TableConfig
+from .config import TableConfig, repeat_seed
 
 #: settings that do not change a cell's number
 NOT_IN_KEY = ("out", "repeats", "envs", "methods", "progress", "executor", "workers", "jobs")
+#: settings a table never reads (risp_tasks/tables/cells.py, sampling.py): out of its key too, so that changing one
+#: does not move the table's finished cells to a new folder
+UNUSED_BY = {
+    "estimation": ("frames", "control_start", "residual"),
+    "sysid": ("n_test", "lr", "control_start"),
+    "imitation": ("n_test", "lr", "control_start"),
+    "control": ("n_test", "lr"),
+    "regularizers": ("frames", "iterations", "lr", "reg", "perceptual_weights", "control_start", "residual"),
+    "sampling": ("n_test", "frames", "iterations", "lr", "perceptual_weights", "control_start", "residual"),
+}
+#: the risp-task options the task tables leave at TaskConfig's defaults (cells._task_run): their values are part of
+#: those tables' keys, so that a changed default (as --fit-initial-state's once was) starts a new folder instead of
+#: mixing cells made before and after it
+TASK_DEFAULTS = ("optimizer", "lr", "momentum", "warm_start", "grow_horizon", "action_knots", "fit_initial_state",
+                 "every", "gradient")
 
 
 @dataclass(frozen=True)
@@ -50,12 +65,16 @@ def grid(cfg: TableConfig) -> list[Cell]:
 
 
 def run_folder(cfg: TableConfig) -> str:
-    # control_start changes only the control table's numbers, and the residual norm only the task tables' (its
-    # default l2 stays out of the key): the keys of the tables made before either option stay as they were
-    skip = NOT_IN_KEY + (() if cfg.table == "control" else ("control_start",))
-    if cfg.residual == "l2" or cfg.table not in ("sysid", "imitation", "control"):
+    skip = NOT_IN_KEY + UNUSED_BY[cfg.table]
+    if cfg.residual == "l2":  # the tables made before --residual existed (l2) keep their key
         skip += ("residual",)
     settings = {k: v for k, v in cfg.to_dict().items() if k not in skip}
+    if cfg.table in ("sysid", "imitation", "control"):
+        from dataclasses import fields
+
+        from risp_tasks.tasks.config import TaskConfig
+
+        settings["task_defaults"] = {f.name: f.default for f in fields(TaskConfig) if f.name in TASK_DEFAULTS}
     if cfg.perceptual_weights and os.path.isfile(cfg.perceptual_weights):  # the file's contents, not its name:
         settings["perceptual_weights"] = sha256_file(cfg.perceptual_weights)  # a replaced file is another F
     key = checksum(settings)
@@ -70,11 +89,11 @@ def read_cell(path: str, look: str | None = None, networks: dict | None = None) 
     """A finished cell's result, or None when absent, failed, made with another ``look`` of its environment
     (risp_data.envs.look; cells from before looks were recorded count as another look) or with other
     ``networks`` than the table's settings make today (cell_networks; cells from before networks were recorded
-    count as other networks): to be (re)computed."""
-    if not os.path.exists(path):
+    count as other networks): to be (re)computed.  A damaged file (not a JSON object: written by something else, as
+    the runner writes atomically) is computed again too, and replaced."""
+    result = _load_cell(path)
+    if result is None or result.get("unreadable"):
         return None
-    with open(path) as f:
-        result = json.load(f)
     if result.get("failed") or (look is not None and result.get("look") != look):
         return None
     if networks and result.get("networks") != networks:
@@ -92,7 +111,7 @@ def cell_networks(cfg: TableConfig, cell: Cell) -> dict:
     if cfg.table == "sampling":
         return {"reg": network_identity(cfg, "rod", "reg")} if cell.env == "rod" else {}
     if cfg.table == "regularizers":
-        return {cell.method: network_identity(cfg, cell.env, cell.method, seed=cfg.seed + cell.repeat)}
+        return {cell.method: network_identity(cfg, cell.env, cell.method, seed=repeat_seed(cfg.seed, cell.repeat))}
     which = get_method(cell.method).network
     if cfg.table == "estimation":
         return {which: network_identity(cfg, cell.env, which)} if which else {}
@@ -143,7 +162,8 @@ def compute_cell(cfg: TableConfig, cell: Cell, folder: str, cache: str | None) -
                   "traceback": traceback.format_exc(limit=8)}
     result.update({"table": cfg.table, "env": cell.env, "look": cell_look(cell, cfg.table),
                    "networks": cell_networks(cfg, cell), "method": cell.method,
-                   "repeat": cell.repeat, "seed": cfg.seed, "seconds": time.perf_counter() - started,
+                   "repeat": cell.repeat, "seed": cfg.seed,
+                   "repeat_seed": repeat_seed(cfg.seed, cell.repeat), "seconds": time.perf_counter() - started,
                    "loadavg": list(os.getloadavg()), "pid": os.getpid()})
     write_text_atomic(cell_path(folder, cell), json.dumps(result, indent=1, sort_keys=True) + "\n")
     return result
@@ -157,6 +177,8 @@ def run_table(cfg: TableConfig, cache: str | None = None, on_cell: Callable[[Cel
     from .report import write_report
 
     folder = run_folder(cfg)
+    if cfg.executor == "ray":  # before anything is written: without the extra the run cannot start
+        require_ray()
     os.makedirs(folder, exist_ok=True)
     write_text_atomic(os.path.join(folder, "config.json"), json.dumps(cfg.to_dict(), indent=1, sort_keys=True) + "\n")
     cells = grid(cfg)
@@ -219,9 +241,25 @@ def widened(cfg: TableConfig, folder: str) -> tuple[TableConfig, list[dict]]:
     return replace(cfg, envs=tuple(envs), methods=tuple(methods)), extra
 
 
+def _load_cell(path: str) -> dict | None:
+    """A cell file's JSON object; None when absent; ``{"na": …, "unreadable": True}`` when damaged."""
+    if not os.path.exists(path):
+        return None
+    try:
+        with open(path) as f:
+            result = json.load(f)
+    except (OSError, ValueError) as e:
+        return {"na": f"unreadable cell file {path}: {str(e).splitlines()[0] if str(e) else type(e).__name__}",
+                "unreadable": True}
+    if not isinstance(result, dict):
+        return {"na": f"unreadable cell file {path}: not a JSON object", "unreadable": True}
+    return result
+
+
 def _failed(folder: str, cell: Cell) -> dict:
-    with open(cell_path(folder, cell)) as f:
-        return json.load(f)
+    """What the report shows of a cell that did not finish: its stored failure (or the damage of its file)."""
+    path = cell_path(folder, cell)
+    return _load_cell(path) or {"na": f"missing cell file {path}"}
 
 
 def _single_threaded() -> None:
