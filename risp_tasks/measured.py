@@ -48,6 +48,8 @@ SIDECAR_RANGES: dict[str, dict[str, tuple[float, float]]] = {
     "hand": {"gravity": (0.0, 30.0)},
     "rod": {"gravity": (0.0, 30.0)},
 }
+#: sidecar keys whose value is a list, and its length ([Ixx, Iyy, Izz]); every other key of SIDECAR_RANGES is a number
+LIST_KEYS = {"inertia": 3}
 REQUIRED_SIDECAR_KEYS = {"cube": ("side", "mass"), "quadrotor": ("mass",), "hand": (), "rod": ()}
 
 #: Conventions of real logs, declared in the sidecar (docs/measured-data.md §Conventions): allowed values.
@@ -146,7 +148,7 @@ def expand_paths(paths: list[str] | tuple[str, ...]) -> list[Path]:
     files: list[Path] = []
     for p in map(Path, paths):
         if p.is_dir():
-            found = sorted(p.glob("*.csv"))
+            found = sorted(f for f in p.iterdir() if f.suffix.lower() == ".csv" and f.is_file())  # RUN1.CSV too
             if not found:
                 raise RispError(f"{p}: folder contains no .csv files")
             files += found
@@ -183,7 +185,7 @@ def find_sidecar(csv_path: Path, env: str, overrides: dict | None = None) -> Sid
     for cand in (csv_path.with_suffix(".json"), csv_path.parent / "sidecar.json"):
         if cand.is_file():
             try:
-                values = json.loads(cand.read_text())
+                values = json.loads(cand.read_text(encoding="utf-8-sig"))  # a BOM, as the CSVs may carry
             except (OSError, json.JSONDecodeError) as e:
                 raise RispError(f"{cand}: sidecar is not valid JSON ({e})") from None
             if not isinstance(values, dict):
@@ -246,7 +248,12 @@ def _check_sidecar(values: dict, env: str, source: str) -> None:
         if key not in values:
             continue
         raw = values[key]
-        vals = raw if isinstance(raw, (list, tuple)) else [raw]
+        if key in LIST_KEYS:  # the one list-valued key: the principal inertia
+            if not (isinstance(raw, list) and len(raw) == LIST_KEYS[key]):
+                raise RispError(f"{source}: sidecar key {key!r} must be a list of {LIST_KEYS[key]} numbers, got {raw!r}")
+        elif isinstance(raw, (list, tuple, dict)):
+            raise RispError(f"{source}: sidecar key {key!r} must be a number, got {raw!r}")
+        vals = raw if isinstance(raw, list) else [raw]
         for v in vals:
             if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v):
                 raise RispError(f"{source}: sidecar key {key!r} must be a finite number, got {raw!r}")
@@ -292,7 +299,10 @@ def read_csv_columns(path: Path, progress: bool = False) -> dict[str, np.ndarray
         raise RispError(f"{path}: cannot read ({e.strerror})") from None
     if len(data) < 3:
         raise RispError(f"{path}: needs at least 3 rows of data, found {len(data)}")
-    return {h: np.ascontiguousarray(data[:, j]) for j, h in enumerate(header)}
+    # a column no reader uses is kept only where it is all numbers (an unnamed one never)
+    known = known_columns()
+    return {h: np.ascontiguousarray(data[:, j]) for j, h in enumerate(header)
+            if h in known or (h and np.isfinite(data[:, j]).all())}
 
 
 def _read_header(fh, path: Path) -> list[str]:
@@ -329,8 +339,20 @@ def _fast_rows(fh, ncols: int, path: Path, progress: bool) -> np.ndarray:
     return np.concatenate(chunks) if chunks else np.zeros((0, ncols))
 
 
+def known_columns() -> frozenset[str]:
+    """Every column name some reader of this module uses (rigid bodies, quadrotor actuators, hand and rod)."""
+    names = set(POSE_COLUMNS + VEL_COLUMNS + OMEGA_COLUMNS + NUMBERED_QUAT)
+    names.update(c for cols in ACTUATOR_COLUMNS.values() for c in cols)
+    for env in ("hand", "rod"):
+        states, actions = generic_columns(env)
+        names.update(states + actions)
+    return frozenset(names)
+
+
 def _validated_rows(reader, header: list[str], path: Path) -> np.ndarray:
-    rows = []
+    """Row by row; a non-number in a column no reader uses (a log's flight-mode text, a trailing comma's empty
+    column) makes that column NaN (read_csv_columns then leaves it out), elsewhere it is an error naming the cell."""
+    rows, known = [], known_columns()
     for i, row in enumerate(reader, start=2):
         if not row or all(not c.strip() for c in row):
             continue
@@ -341,7 +363,9 @@ def _validated_rows(reader, header: list[str], path: Path) -> np.ndarray:
             try:
                 vals.append(float(c))
             except ValueError:
-                raise RispError(f"{path}: line {i}, column {col}: not a number ({c!r})") from None
+                if col in known:
+                    raise RispError(f"{path}: line {i}, column {col}: not a number ({c!r})") from None
+                vals.append(float("nan"))
         rows.append(vals)
     return np.asarray(rows, dtype=np.float64).reshape(-1, len(header))
 
@@ -446,6 +470,24 @@ def _check_consistency(env: str, cols: dict, side: Sidecar, path: Path) -> None:
                 )
 
 
+#: given angular rates whose typical size is more than this factor off the quaternion's own rates are in another
+#: unit (deg/s is 57.3×); only checked where the body turns (median quaternion rate above RATE_CHECK_MIN rad/s)
+RATE_UNIT_FACTOR, RATE_CHECK_MIN = 5.0, 0.05
+
+
+def _check_rate_unit(omega: np.ndarray, from_quat: np.ndarray, path: Path) -> None:
+    """wx, wy, wz against the rates the quaternion column implies: degrees per second (or rpm) pass every range
+    check below 300 "rad/s" and turned a clean log `unexplained`."""
+    given, implied = np.median(np.linalg.norm(omega, axis=1)), np.median(np.linalg.norm(from_quat, axis=1))
+    if implied < RATE_CHECK_MIN:
+        return
+    ratio = given / implied
+    if not 1 / RATE_UNIT_FACTOR <= ratio <= RATE_UNIT_FACTOR:
+        raise RispError(f"{path}: columns wx,wy,wz are typically {ratio:.3g}× the rates of the quaternion columns "
+                        f"({given:.3g} against {implied:.3g} rad/s); angular velocity must be in rad/s"
+                        + (" (degrees per second?)" if 30 < ratio < 100 else ""))
+
+
 def generic_columns(env: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
     """(state columns, action columns) of an environment without a rigid-body pose (hand, rod):
     the simulator's state names and ``u0 … u{A-1}``."""
@@ -458,7 +500,7 @@ def generic_columns(env: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
 def _read_generic(path: Path, env: str, sidecar: Sidecar, cols: dict) -> Trajectory:
     states, actions = generic_columns(env)
     _require(cols, ("t",) + states + actions, path)
-    _check_finite(cols, path)
+    _check_finite({k: cols[k] for k in ("t",) + states + actions}, path)
     t = cols["t"]
     _check_time(t, path)
     return Trajectory(name=path.stem, path=str(path), t=t - t[0], pos=None, quat=None, vel=None, omega=None,
@@ -480,7 +522,7 @@ def read_trajectory(path: Path, env: str, overrides: dict | None = None) -> Traj
         if present and len(present) != 3:
             raise RispError(f"{path}: column(s) {', '.join(c for c in group if c not in cols)} missing (give all of {','.join(group)} or none)")
     frame = _omega_frame(env, cols, sidecar, path)
-    _check_finite(cols, path)
+    _check_finite({k: v for k, v in cols.items() if k in known_columns()}, path)
     t = cols["t"]
     _check_time(t, path)
     _check_range(cols, ("x", "y", "z"), MAX_ABS_POSITION, "metres", path)
@@ -497,6 +539,8 @@ def read_trajectory(path: Path, env: str, overrides: dict | None = None) -> Traj
     omega = body_rates_from_quat(t, quat) if om_est else np.stack([cols[c] for c in OMEGA_COLUMNS], 1)
     if frame == "world":  # ω_body = Rᵀ ω_world
         omega = np.einsum("nji,nj->ni", quat_to_matrix_np(quat), omega)
+    if not om_est:
+        _check_rate_unit(omega, body_rates_from_quat(t, quat), path)
     thrust = command = None
     if actuator == "thrust":
         thrust = _delayed(t, np.stack([cols[c] for c in THRUST_COLUMNS], 1), sidecar)
@@ -597,6 +641,7 @@ def load_measured(paths, env: str, overrides: dict | None = None, limit: int | N
             raise RispError(f"--limit must be at least 1, got {limit}")
         files = files[:limit]
     trajs = [read_trajectory(f, env, overrides) for f in files]
+    _check_same_model(trajs, env)
     dts = np.array([tr.dt for tr in trajs])
     if dts.max() > 1.05 * dts.min():
         i, j = int(np.argmin(dts)), int(np.argmax(dts))
@@ -605,6 +650,27 @@ def load_measured(paths, env: str, overrides: dict | None = None, limit: int | N
             f"diagnose one sampling rate at a time"
         )
     return trajs
+
+
+#: sidecar keys that define the model a file is simulated with (besides the simulator's own parameter names): all files
+#: of one diagnosis must agree on them, as one model is fitted to all (per-file keys such as estimated_by may differ)
+MODEL_KEYS = ("rotor_angles_deg", "rotor_spin", "pwm_range", "measurement_noise", "measurement_noise_correlation")
+
+
+def _check_same_model(trajs: list[Trajectory], env: str) -> None:
+    """One model is fitted to every file: files whose sidecars disagree on a physical value or a convention (a mass
+    of 1.5 in one, 3.0 in another) are refused, naming the key and both files, rather than all simulated with the
+    first file's."""
+    from risp_tasks.sims import get_simulator
+
+    keys = set(SIDECAR_RANGES.get(env, {})) | set(CHOICES) | set(MODEL_KEYS) | set(get_simulator(env).param_names)
+    first = trajs[0]
+    for tr in trajs[1:]:
+        for key in sorted(keys):
+            a, b = first.sidecar.values.get(key), tr.sidecar.values.get(key)
+            if a != b:
+                raise RispError(f"{first.sidecar.source} and {tr.sidecar.source} disagree on sidecar key {key!r} "
+                                f"({a!r} vs {b!r}): one model is fitted to all files; diagnose them separately")
 
 
 def write_trajectory_csv(path: str | os.PathLike, traj_cols: dict[str, np.ndarray], sidecar: dict | None = None) -> None:

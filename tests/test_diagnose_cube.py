@@ -39,8 +39,17 @@ def test_real_tosses_small_run(tmp_path):
     report = diagnose(DiagnoseConfig(data=(str(CUBE_TOSSES),), env="cube", out=str(tmp_path / "r"), seed=0,
                                      limit=4, held_out=0.25, effects=("friction",), pairs_top=0,
                                      max_iters=6, progress=False, plots=True))
-    assert report["data"]["floor_calibration"]["applied"]
-    assert -0.005 < report["data"]["floor_calibration"]["floor_offset_m"] < 0.0
+    floor = report["data"]["floor_calibration"]
+    assert floor["applied"] and -0.005 < floor["floor_offset_m"] < 0.0
+    # estimated on the fitting part's resting frames only: the same offset as the three fitting tosses alone give
+    from risp_tasks.diagnose.adapter import calibrate_floor
+    from risp_tasks.measured import load_measured
+
+    fit = [t for t in load_measured([str(CUBE_TOSSES)], "cube", limit=4) if t.name in report["split"]["fit"]]
+    assert len(fit) == 3 and calibrate_floor(fit)[1] == floor
+    # fitted base parameters carry their units (log10_kn, dn were printed bare)
+    units = {n: p["unit"] for ps in report["candidate_parameters"].values() for n, p in ps.items()}
+    assert units.get("dn") == "N s/m" and units.get("log10_kn") == "log10(N/m)", units
     assert report["split"]["mode"] == "trajectories" and len(report["split"]["held_out"]) == 1
     assert report["cause"] != "none"  # a frictionless cube cannot explain real tosses
     friction = next(r for r in report["ranking"] if r["model"] == "friction")

@@ -63,6 +63,44 @@ def test_split_by_trajectories_is_seeded_and_by_time_for_one_file(quad_data):
     assert held[0].t[0] == pytest.approx(fit[0].t[-1] + 0.01)
 
 
+def _drop_rows(src, dst, rows):
+    """Copy a synthetic folder with the given data rows removed from every CSV (dropped samples, as in real logs)."""
+    import shutil
+
+    dst.mkdir()
+    for f in sorted(src.iterdir()):
+        if f.suffix == ".csv":
+            lines = f.read_text().splitlines(keepends=True)
+            (dst / f.name).write_text("".join(l for i, l in enumerate(lines) if i - 1 not in rows))
+        elif f.suffix == ".json":
+            shutil.copy(f, dst / f.name)
+
+
+def test_segments_leave_out_dropped_samples_and_uneven_steps(quad_data, tmp_path):
+    """The simulator steps at one rate: a segment across a dropped sample (a double step) was simulated as one step,
+    and effect-free data came out `unexplained`; such segments are left out, and data without one even segment is
+    a clear error."""
+    from risp_data.errors import RispError
+    from risp_tasks.diagnose.fit import even_starts
+
+    t = np.arange(10) * 0.01
+    assert even_starts(t, 3).tolist() == [True] * 7 + [False] * 3
+    t_gap = np.delete(np.arange(11) * 0.01, 5)  # sample 5 dropped: the step 4 → 5 is 0.02 s
+    assert even_starts(t_gap, 3).tolist() == [True, True, False, False, False, True, True, False, False, False]
+    d, _ = quad_data
+    _drop_rows(d, tmp_path / "gaps", {40, 80})
+    trajs = load_measured([tmp_path / "gaps"], "quadrotor")
+    model, k = cands.build_model("quadrotor", (), trajs[0].sidecar, trajs[0].dt)
+    seg = make_segments(model.sim, trajs, horizon=10, k=k, stride=1, params=model.base)
+    for j, i in zip(seg.traj_index, seg.start):
+        steps = np.diff(trajs[j].t[i:i + 11])
+        assert np.allclose(steps, trajs[j].dt), (j, i, steps)
+    full = make_segments(model.sim, load_measured([d], "quadrotor"), horizon=10, k=k, stride=1, params=model.base)
+    assert full.count - 3 * (2 * 10 + 2) <= seg.count < full.count  # per file at most 10 starts per gap, 2 rows fewer
+    with pytest.raises(RispError, match="no segment of 101 evenly spaced samples"):
+        make_segments(model.sim, trajs, horizon=100, k=k, stride=1, params=model.base)
+
+
 def _score(name, rss, k, rho, n_eff=1000):
     s = Score(name, tuple(name.split("+")) if name != "base" else (), k, rss, 10 * n_eff, n_eff,
               n_eff * np.log(rss / (10 * n_eff)) + k * np.log(n_eff))
@@ -89,6 +127,12 @@ def test_decision_rule():
     assert decide(base, [good, weak], [pair]).cause == "wind+air_drag"
     pair_marginal = _score("wind+air_drag", 9990.0, 4, 1.0)
     assert decide(base, [good, weak], [pair_marginal]).cause == "wind"
+    # the best single *that beats the base* (docs/diagnose.md §6): a one-parameter effect with the lowest BIC that
+    # misses the 5 % RSS margin (−4.5 %) does not hide a three-parameter one that beats the base by both (−5.5 %)
+    floor = _score("base", 20000.0, 0, 1.4)
+    cheap, real = _score("air_drag", 19100.0, 1, 1.3), _score("wind", 18900.0, 3, 1.2)
+    assert cheap.bic < real.bic and cheap.rss_reduction(floor) < 0.05 <= real.rss_reduction(floor)
+    assert decide(floor, [cheap, real], []).cause == "wind"
 
 
 def test_unexplained_estimates_name_the_estimate_noise():

@@ -68,3 +68,43 @@ def test_diagnose_leaves_the_callers_torch_generator_as_it_was(flights, tmp_path
     res = _run(flights, tmp_path / "report", "--seed", "7")
     assert res.exit_code == 0, res.output
     assert torch.equal(torch.rand(3), expected)  # without the fork, diagnose's manual_seed(7) would reseed it
+
+
+def _with_sidecar(src, dst, **changes):
+    """A copy of a synthetic folder whose sidecars get ``changes``."""
+    import json
+    import shutil
+
+    shutil.copytree(src, dst)
+    for side in dst.glob("*.json"):
+        values = json.loads(side.read_text())
+        if "env" in values:
+            side.write_text(json.dumps({**values, **changes}))
+    return dst
+
+
+def test_a_misspelt_noise_group_is_one_line_and_leaves_no_folder(flights, tmp_path):
+    """A declared noise group the model does not have ("positon") was silently estimated instead."""
+    data = _with_sidecar(flights, tmp_path / "d", measurement_noise={"positon": 0.0005, "velocity": 0.01})
+    line = _one_error_line(_run(data, tmp_path / "report"))
+    assert "'positon', not a channel group of this model" in line and "position" in line, line
+    assert not (tmp_path / "report").exists()
+
+
+@pytest.mark.parametrize("extra, words", [(["--effects", "nosuch"], "unknown effect(s) nosuch"),
+                                          (["--held-out", "1.5"], "held-out")])
+def test_bad_options_found_after_reading_leave_no_folder(flights, tmp_path, extra, words):
+    args = ["diagnose", str(flights), "--env", "quadrotor", "--out", str(tmp_path / "report"), "--quiet", *extra]
+    line = _one_error_line(CliRunner().invoke(cli, args))
+    assert words in line, line
+    assert not (tmp_path / "report").exists()
+
+
+def test_cube_gravity_other_than_the_simulators_is_refused(tmp_path):
+    """docs/measured-data.md: diagnose refuses a gravity the simulator cannot represent; the cube's went unchecked."""
+    d = tmp_path / "cube"
+    make_synthetic(SynthConfig(env="cube", seed=1, n_traj=2, samples=60, effect=None), d)
+    data = _with_sidecar(d, tmp_path / "g", gravity=5.0)
+    line = _one_error_line(CliRunner().invoke(cli, ["diagnose", str(data), "--env", "cube", "--out",
+                                                    str(tmp_path / "report"), "--quiet"]))
+    assert "gravity 5.0 differs from the simulator's fixed 9.81" in line, line

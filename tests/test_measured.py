@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -274,3 +275,70 @@ def test_large_file_read_in_chunks_equals_row_by_row(tmp_path, monkeypatch):
         slow = measured._validated_rows(__import__("csv").reader(fh), header, p)
     assert all(np.array_equal(fast[h], slow[:, j]) for j, h in enumerate(header))
     assert len(fast["t"]) == 1003
+
+
+@pytest.mark.parametrize("sidecar, message", [
+    ({"env": "cube", "side": [0.1048], "mass": 0.37}, "sidecar key 'side' must be a number, got [0.1048]"),
+    ({"env": "quadrotor", "mass": [3.0]}, "sidecar key 'mass' must be a number, got [3.0]"),
+    ({"env": "quadrotor", "mass": 3.0, "inertia": 0.5}, "sidecar key 'inertia' must be a list of 3 numbers, got 0.5"),
+    ({"env": "quadrotor", "mass": 3.0, "inertia": [0.5, 0.5]}, "'inertia' must be a list of 3 numbers, got [0.5, 0.5]"),
+])
+def test_sidecar_values_of_the_wrong_shape_are_one_line(tmp_path, sidecar, message):
+    """A list where a number belongs was a TypeError traceback (or, for the inertia, silently the default)."""
+    cols, _ = _quad_cols() if sidecar["env"] == "quadrotor" else _rotation_trajectory()
+    p = _write(tmp_path, cols, sidecar=sidecar)
+    with pytest.raises(RispError, match=re.escape(message)):
+        load_measured([str(p)], sidecar["env"])
+
+
+def test_files_whose_sidecars_disagree_are_refused(tmp_path):
+    """One model is fitted to every file: a file with mass 1.5 among files with 3.0 was simulated with the first's."""
+    cols, _ = _quad_cols()
+    _write(tmp_path, cols, sidecar={"env": "quadrotor", "mass": 3.0, "angular_velocity_frame": "body", "estimated_by": {"video": "a"}}, name="a.csv")
+    _write(tmp_path, cols, sidecar={"env": "quadrotor", "mass": 3.0, "angular_velocity_frame": "body", "estimated_by": {"video": "b"}}, name="b.csv")
+    assert len(load_measured([str(tmp_path)], "quadrotor")) == 2  # per-file provenance may differ
+    _write(tmp_path, cols, sidecar={"env": "quadrotor", "mass": 1.5, "angular_velocity_frame": "body"}, name="c.csv")
+    with pytest.raises(RispError, match=r"a\.json and .*c\.json disagree on sidecar key 'mass' \(3\.0 vs 1\.5\)"):
+        load_measured([str(tmp_path)], "quadrotor")
+
+
+def test_sidecar_with_a_bom_and_upper_case_csv_names(tmp_path):
+    cols, _ = _rotation_trajectory()
+    p = _write(tmp_path, cols, name="RUN1.CSV")
+    side = p.with_suffix(".json")
+    side.write_text("\ufeff" + side.read_text(), encoding="utf-8")
+    trajs = load_measured([str(tmp_path)], "cube")
+    assert len(trajs) == 1 and trajs[0].sidecar.get("mass") == 0.37
+
+
+def test_columns_no_reader_uses_do_not_block_reading(tmp_path):
+    """A log's text column (PX4's flight mode), a NaN in a column diagnose never reads, or a trailing comma's unnamed
+    column stopped the reading; they are left out.  A non-number in a column that is read is still an error."""
+    cols, _ = _rotation_trajectory()
+    p = _write(tmp_path, cols)
+    lines = p.read_text().splitlines()
+    modes = ["POSCTL" if i % 2 else "ALTCTL" for i in range(len(lines) - 1)]
+    battery = ["15.2" if i != 5 else "nan" for i in range(len(lines) - 1)]
+    p.write_text("\n".join([lines[0] + ",mode,battery_V,"] +
+                           [f"{ln},{m},{b}," for ln, m, b in zip(lines[1:], modes, battery)]) + "\n")
+    tr = load_measured([str(p)], "cube")[0]
+    assert set(tr.extra) == set() and tr.n == len(lines) - 1
+    assert np.allclose(tr.pos[:, 0], cols["x"])
+    rows = p.read_text().splitlines()
+    fields = rows[3].split(",")
+    fields[1] = "oops"  # a read column (x) with text
+    rows[3] = ",".join(fields)
+    p.write_text("\n".join(rows) + "\n")
+    with pytest.raises(RispError, match=r"line 4, column x: not a number \('oops'\)"):
+        load_measured([str(p)], "cube")
+
+
+def test_angular_velocity_in_degrees_per_second_is_caught(tmp_path):
+    """Rates in deg/s stay under the 300 rad/s range check and turned a clean log `unexplained`; they are compared
+    with the quaternion's own rates."""
+    cols, _ = _rotation_trajectory()
+    assert len(load_measured([str(_write(tmp_path, cols))], "cube")) == 1
+    for w in ("wx", "wy", "wz"):
+        cols[w] = np.degrees(cols[w])
+    with pytest.raises(RispError, match=r"columns wx,wy,wz are typically 57\.3× the rates .*\(degrees per second\?\)"):
+        load_measured([str(_write(tmp_path, cols))], "cube")

@@ -206,18 +206,21 @@ REST_ANGULAR_SPEED = 0.5  # rad/s
 MIN_REST_FRAMES = 20
 
 
-def calibrate_floor(trajs: list[Trajectory], offset: float | str = "auto") -> tuple[list[Trajectory], dict]:
+def calibrate_floor(trajs: list[Trajectory], offset: float | str = "auto",
+                    estimate_from: list[Trajectory] | None = None) -> tuple[list[Trajectory], dict]:
     """Cube only: shift measured heights so the floor is at z = 0 (docs/measured-data.md §Floor).
 
-    ``auto``: the median lowest-corner height over resting frames (speed < 5 cm/s, |ω| < 0.5 rad/s) is
+    ``auto``: the median lowest-corner height over resting frames (speed < 5 cm/s, |ω| < 0.5 rad/s) of
+    ``estimate_from`` (default ``trajs``; diagnose passes its fitting part, so held-out data decide nothing) is
     the floor's height in the motion-capture frame (the real tosses rest ≈ 0.9 mm low); needs at least
-    20 resting frames, else no shift.  A number: that offset [m].  The shift is reported.
+    20 resting frames, else no shift.  A number: that offset [m].  The shift (of every trajectory in ``trajs``) is
+    reported.
     """
     if trajs[0].sidecar.env != "cube":
         return trajs, {"applied": False}
     if offset == "auto":
         low = []
-        for tr in trajs:
+        for tr in (trajs if estimate_from is None else estimate_from):
             rest = (np.linalg.norm(tr.vel, axis=1) < REST_SPEED) & (np.linalg.norm(tr.omega, axis=1) < REST_ANGULAR_SPEED)
             low.append(lowest_corner_height(tr)[rest])
         low = np.concatenate(low) if low else np.zeros(0)

@@ -88,7 +88,7 @@ def fixed_values(sim, sidecar: Sidecar) -> dict[str, float]:
 
 def check_supported(env: str, sidecar: Sidecar) -> None:
     """Sidecar values the simulator cannot represent (it has them as fixed constants) stop the run."""
-    if env != "quadrotor":
+    if env not in ("quadrotor", "cube"):  # the rigid bodies' gravity is a constant; the hand and rod have none
         return
     from risp_tasks.sims._rigid import GRAVITY
 

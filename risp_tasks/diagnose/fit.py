@@ -72,10 +72,27 @@ class Segments:
         return int(self.s0.shape[0])
 
 
+#: a segment is simulated at a fixed step: one whose sampling steps differ from the trajectory's median by more than
+#: this (a dropped sample is a 100 % step) is not used (docs/diagnose.md §1)
+STEP_TOLERANCE = 0.25
+
+
+def even_starts(t: np.ndarray, horizon: int) -> np.ndarray:
+    """(N,) bool: whether the ``horizon`` steps from sample i on are all within STEP_TOLERANCE of the median step."""
+    d = np.diff(np.asarray(t, np.float64))
+    bad = np.abs(d - np.median(d)) > STEP_TOLERANCE * np.median(d)
+    ends = np.concatenate([[0], np.cumsum(bad)])  # ends[i] = bad steps before sample i
+    out = np.zeros(len(t), bool)
+    i = np.arange(max(len(t) - horizon, 0))
+    out[i] = ends[i + horizon] == ends[i]
+    return out
+
+
 def make_segments(sim, trajs: list[Trajectory], horizon: int, k: int, stride: int | None = None,
                   max_segments: int | None = None, rng: np.random.Generator | None = None,
                   params: torch.Tensor | None = None) -> Segments:
-    """Cut every trajectory into segments of ``horizon`` samples starting every ``stride`` samples.
+    """Cut every trajectory into segments of ``horizon`` samples starting every ``stride`` samples; a segment
+    that crosses a dropped sample or an uneven step (:func:`even_starts`) is left out, as the model steps at one rate.
 
     ``params`` (P,): the model's parameters, used to convert measured thrusts to commands.
 
@@ -88,12 +105,19 @@ def make_segments(sim, trajs: list[Trajectory], horizon: int, k: int, stride: in
     latent = any(e.state_names for e in sim.spec.available_effects.values())
     # choose the segments first (index pairs only), then build just those: a 200 MB log has ~10⁵ segments
     # and materialising all of them before subsampling took gigabytes
-    pairs = []
+    pairs, uneven = [], 0
     for j, tr in enumerate(trajs):
         has_actions = sim.action_dim > 0
         first = WARMUP_SAMPLES if latent and has_actions and tr.n - WARMUP_SAMPLES > 2 * horizon else 0
-        pairs += [(j, i) for i in range(first, tr.n - horizon, stride)]
+        starts = range(first, tr.n - horizon, stride)
+        even = even_starts(tr.t, horizon)
+        pairs += [(j, i) for i in starts if even[i]]
+        uneven += sum(1 for i in starts if not even[i])
     if not pairs:
+        if uneven:
+            raise RispError(f"no segment of {horizon + 1} evenly spaced samples: every one crosses a dropped sample or a "
+                            f"step more than {STEP_TOLERANCE:.0%} off the median (the simulator steps at a fixed "
+                            f"rate); resample the data to a fixed rate or use a smaller --horizon")
         raise RispError(f"no trajectory is longer than the segment horizon ({horizon} samples); use a smaller --horizon")
     idx = np.arange(len(pairs))
     if max_segments is not None and len(idx) > max_segments:
@@ -208,6 +232,10 @@ def noise_model(sim, trajs: list[Trajectory], window: int = 7, declared: dict | 
         var = np.median(r**2) / 0.4549 / var0
         sigma[g] = float(max(np.sqrt(var), NOISE_FLOOR.get(g, 1e-8)))
     phi = {g: 0.0 for g in sigma}
+    unknown = [g for g in (declared or {}) if g not in sigma]
+    if unknown:  # a misspelt group ("positon") was silently estimated instead of taken as declared
+        raise RispError(f"sidecar key 'measurement_noise' names {', '.join(map(repr, unknown))}, not a channel group of "
+                        f"this model; its groups are: {', '.join(sigma)}")
     declared_groups = [g for g in (declared or {}) if g in sigma]
     for g in declared_groups:
         sigma[g] = float(declared[g])

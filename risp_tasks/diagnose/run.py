@@ -199,9 +199,11 @@ def _diagnose(cfg: DiagnoseConfig) -> dict:
     if cfg.horizon < 1:
         raise RispError(f"--horizon must be at least 1, got {cfg.horizon}")
     cands.check_supported(cfg.env, trajs[0].sidecar)
-    check_out(cfg.out)  # after the input checks (a bad input leaves no folder), before the long fits
-    trajs, floor = calibrate_floor(trajs, cfg.floor_offset)
     fit_trajs, held_trajs, split = split_trajectories(trajs, cfg.held_out, cfg.seed)
+    # the floor from the fitting part's resting frames only ("everything is fitted on the fitting part"), applied
+    # to both parts
+    shifted, floor = calibrate_floor(fit_trajs + held_trajs, cfg.floor_offset, estimate_from=fit_trajs)
+    fit_trajs, held_trajs = shifted[:len(fit_trajs)], shifted[len(fit_trajs):]
 
     library = cands.effect_names(cfg.env, trajs[0].sidecar)
     if cfg.effects is not None:
@@ -214,6 +216,7 @@ def _diagnose(cfg: DiagnoseConfig) -> dict:
     sc = fit_trajs[0].sidecar
     noise, phi, noise_info = noise_model(base_model.sim, fit_trajs, declared=sc.get("measurement_noise"),
                                          declared_phi=float(sc.get("measurement_noise_correlation", 0.0)))
+    check_out(cfg.out)  # after the input checks (a bad input leaves no folder), before the long fits
 
     n_total = 1 + len(library) + len(cands.pair_candidates(list(library), cfg.pairs_top))
     bar = tqdm(total=n_total, desc="diagnose: fitting models", disable=not cfg.progress, leave=False)
@@ -251,7 +254,8 @@ def _diagnose(cfg: DiagnoseConfig) -> dict:
 
     def params_of(ev: Evaluated) -> dict:
         sim = ev.fit.model.sim
-        units = {}
+        # the base parameters' units (fitted ones, e.g. k_f of a normalised-command log, print with them too)
+        units = dict(zip(sim.spec.base_param_names, sim.spec.base_param_units or ()))
         for e in ev.fit.model.effects:
             eff = sim.spec.available_effects[e]
             for p, u in zip(eff.param_names, eff.units or ("",) * len(eff.param_names)):
@@ -283,6 +287,7 @@ def _diagnose(cfg: DiagnoseConfig) -> dict:
         "data": {"files": [tr.path for tr in trajs], "samples": int(sum(tr.n for tr in trajs)),
                  "sample_interval_s": float(trajs[0].dt), "sidecar": trajs[0].sidecar.source,
                  "velocities_estimated": bool(any(tr.vel_estimated for tr in trajs if tr.vel is not None)),
+                 "angular_velocities_estimated": bool(any(tr.omega_estimated for tr in trajs)),
                  "floor_calibration": floor},
         "fit": {"horizon_samples": cfg.horizon, "substeps_per_sample": base.k, "sim_dt_s": base.fit.model.sim.dt,
                 "iterations": {n: ev.fit.iterations for n, ev in evaluated.items()}},

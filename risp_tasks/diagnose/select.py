@@ -140,9 +140,12 @@ class Decision:
 def decide(base: Score, singles: list[Score], pairs: list[Score]) -> Decision:
     """Apply the decision rule of the module docstring (scores must carry ρ for base and candidates)."""
     ranked = sorted(singles + pairs, key=lambda s: s.bic)
-    best_single = min(singles, key=lambda s: s.bic) if singles else None
+    # the best single effect *that beats the base*: a one-parameter effect can have the lowest BIC yet miss the 5 %
+    # RSS margin while another single beats the base by both
+    winners = [s for s in singles if beats(s, base)]
+    best_single = min(winners, key=lambda s: s.bic) if winners else None
     chosen = None
-    if best_single is not None and beats(best_single, base):
+    if best_single is not None:
         chosen = best_single
         better_pairs = [p for p in pairs if best_single.name in p.name.split("+") and beats(p, best_single)]
         better_pairs += [p for p in pairs if p not in better_pairs and beats(p, best_single)]
