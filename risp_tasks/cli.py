@@ -65,6 +65,10 @@ def diagnose(data, env, out, seed, held_out, horizon, rollout_horizon, max_segme
     )
     report = run_diagnose(cfg)
     click.echo(f"cause: {report['cause']} — {report['reason']}")
+    floor = report["data"].get("floor_calibration", {})
+    if floor.get("mode") == "auto" and not floor.get("applied"):  # a few short tosses: the fitting part rests briefly
+        click.echo(f"note: the floor was not calibrated: {floor.get('rest_frames', 0)} resting frames in the fitting "
+                   f"part, 20 needed; give --floor-offset (docs/measured-data.md §Floor calibration)")
     for name, p in report["parameters"].items():
         unit = "" if p["unit"] in ("1", "", None) else f" {p['unit']}"  # "1": dimensionless
         click.echo(f"  {name} = {p['value']:.4g} ± {p['std']:.2g}{unit}")

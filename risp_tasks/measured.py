@@ -115,8 +115,8 @@ class Trajectory:
 
     @property
     def dt(self) -> float:
-        """Median sampling interval [s]."""
-        return float(np.median(np.diff(self.t)))
+        """Sampling interval [s] (:func:`sampling_step`)."""
+        return sampling_step(self.t)
 
     def slice(self, start: int, stop: int, suffix: str) -> "Trajectory":
         """Samples [start, stop) as a new trajectory (time kept as measured)."""
@@ -172,6 +172,16 @@ def _is_contactnets_folder(folder: Path) -> bool:
         return readme.is_file() and "ContactNets" in readme.read_text(errors="replace")[:4000]
     except OSError:
         return False
+
+
+def sampling_step(t: np.ndarray, span: int = 10) -> float:
+    """The sampling interval Δ [s]: the median over i of (t[i+m] − t[i]) / m, m = min(span, (N − 1) // 4) (at least
+    1).  The median of single steps would take a 400 Hz log with millisecond timestamps (steps of 2 and 3 ms) for 2
+    or 3 ms, not 2.5; spans of m steps average the rounding out, and dropped samples (in fewer than half the spans)
+    do not move the median."""
+    t = np.asarray(t, np.float64)
+    m = max(1, min(span, (len(t) - 1) // 4))
+    return float(np.median((t[m:] - t[:-m]) / m))
 
 
 def find_sidecar(csv_path: Path, env: str, overrides: dict | None = None) -> Sidecar:
@@ -271,7 +281,7 @@ def _check_sidecar(values: dict, env: str, source: str) -> None:
 CHUNK_ROWS = 200_000
 
 
-def read_csv_columns(path: Path, progress: bool = False) -> dict[str, np.ndarray]:
+def read_csv_columns(path: Path, known: frozenset[str] = frozenset(), progress: bool = False) -> dict[str, np.ndarray]:
     """Header + numeric rows -> {column: float64 array}. Errors name the file, row and column.
 
     Fast path: numpy's C parser in chunks of CHUNK_ROWS rows straight into float64 (a 200 MB log without
@@ -289,7 +299,7 @@ def read_csv_columns(path: Path, progress: bool = False) -> dict[str, np.ndarray
         if data is None:
             with open(path, newline="", encoding="utf-8-sig") as fh:
                 _read_header(fh, path)
-                data = _validated_rows(csv.reader(fh), header, path)
+                data = _validated_rows(csv.reader(fh), header, path, known)
     except UnicodeDecodeError as e:
         raise RispError(f"{path}: not a UTF-8 text CSV (byte {e.object[e.start:e.start + 1]!r} at offset {e.start}); "
                         f"is it a binary file?") from None
@@ -299,8 +309,7 @@ def read_csv_columns(path: Path, progress: bool = False) -> dict[str, np.ndarray
         raise RispError(f"{path}: cannot read ({e.strerror})") from None
     if len(data) < 3:
         raise RispError(f"{path}: needs at least 3 rows of data, found {len(data)}")
-    # a column no reader uses is kept only where it is all numbers (an unnamed one never)
-    known = known_columns()
+    # a column the reader does not use is kept only where it is all numbers (an unnamed one never)
     return {h: np.ascontiguousarray(data[:, j]) for j, h in enumerate(header)
             if h in known or (h and np.isfinite(data[:, j]).all())}
 
@@ -312,8 +321,9 @@ def _read_header(fh, path: Path) -> list[str]:
     if "\x00" in line:
         raise RispError(f"{path}: not a text CSV (NUL bytes in the header); is it a binary file?")
     header = [h.strip() for h in next(csv.reader([line]))]
-    if len(set(header)) != len(header):
-        dup = sorted({h for h in header if header.count(h) > 1})
+    named = [h for h in header if h]  # unnamed columns (trailing commas) are left out later, however many
+    if len(set(named)) != len(named):
+        dup = sorted({h for h in named if named.count(h) > 1})
         raise RispError(f"{path}: duplicate column(s) {', '.join(dup)}")
     return header
 
@@ -339,20 +349,21 @@ def _fast_rows(fh, ncols: int, path: Path, progress: bool) -> np.ndarray:
     return np.concatenate(chunks) if chunks else np.zeros((0, ncols))
 
 
-def known_columns() -> frozenset[str]:
-    """Every column name some reader of this module uses (rigid bodies, quadrotor actuators, hand and rod)."""
-    names = set(POSE_COLUMNS + VEL_COLUMNS + OMEGA_COLUMNS + NUMBERED_QUAT)
-    names.update(c for cols in ACTUATOR_COLUMNS.values() for c in cols)
-    for env in ("hand", "rod"):
+def columns_read(env: str, sidecar: Sidecar) -> frozenset[str]:
+    """The columns the reader of ``env`` uses for a file with this sidecar (its actuator's); the others may hold
+    anything (read_csv_columns leaves out those that are not all numbers)."""
+    if env in ("hand", "rod"):
         states, actions = generic_columns(env)
-        names.update(states + actions)
-    return frozenset(names)
+        return frozenset(("t",) + states + actions)
+    actuator = str(sidecar.get("actuator", "thrust")).lower() if env == "quadrotor" else None
+    return frozenset(POSE_COLUMNS + NUMBERED_QUAT + VEL_COLUMNS + OMEGA_COLUMNS
+                     + (ACTUATOR_COLUMNS.get(actuator, ()) if actuator else ()))
 
 
-def _validated_rows(reader, header: list[str], path: Path) -> np.ndarray:
-    """Row by row; a non-number in a column no reader uses (a log's flight-mode text, a trailing comma's empty
+def _validated_rows(reader, header: list[str], path: Path, known: frozenset[str]) -> np.ndarray:
+    """Row by row; a non-number in a column not in ``known`` (a log's flight-mode text, a trailing comma's empty
     column) makes that column NaN (read_csv_columns then leaves it out), elsewhere it is an error naming the cell."""
-    rows, known = [], known_columns()
+    rows = []
     for i, row in enumerate(reader, start=2):
         if not row or all(not c.strip() for c in row):
             continue
@@ -470,8 +481,8 @@ def _check_consistency(env: str, cols: dict, side: Sidecar, path: Path) -> None:
                 )
 
 
-#: given angular rates whose typical size is more than this factor off the quaternion's own rates are in another
-#: unit (deg/s is 57.3×); only checked where the body turns (median quaternion rate above RATE_CHECK_MIN rad/s)
+#: given angular rates whose typical size is more than this factor above the quaternion's own rates are in another
+#: unit (deg/s is 57.3×); only checked where the quaternion's rates exceed RATE_CHECK_MIN rad/s
 RATE_UNIT_FACTOR, RATE_CHECK_MIN = 5.0, 0.05
 
 
@@ -481,8 +492,10 @@ def _check_rate_unit(omega: np.ndarray, from_quat: np.ndarray, path: Path) -> No
     given, implied = np.median(np.linalg.norm(omega, axis=1)), np.median(np.linalg.norm(from_quat, axis=1))
     if implied < RATE_CHECK_MIN:
         return
+    # only rates too large are flagged (deg/s, rpm): differences of a noisy quaternion inflate the implied rates of a
+    # hovering or resting body far above a gyro's, so a small ratio says nothing about the unit
     ratio = given / implied
-    if not 1 / RATE_UNIT_FACTOR <= ratio <= RATE_UNIT_FACTOR:
+    if ratio > RATE_UNIT_FACTOR:
         raise RispError(f"{path}: columns wx,wy,wz are typically {ratio:.3g}× the rates of the quaternion columns "
                         f"({given:.3g} against {implied:.3g} rad/s); angular velocity must be in rad/s"
                         + (" (degrees per second?)" if 30 < ratio < 100 else ""))
@@ -510,7 +523,8 @@ def _read_generic(path: Path, env: str, sidecar: Sidecar, cols: dict) -> Traject
 def read_trajectory(path: Path, env: str, overrides: dict | None = None) -> Trajectory:
     """Read and validate one CSV (+ sidecar) for environment ``env``."""
     sidecar = find_sidecar(path, env, overrides)
-    cols = read_csv_columns(path)
+    known = columns_read(env, sidecar)
+    cols = read_csv_columns(path, known)
     if env in ("hand", "rod"):
         return _read_generic(path, env, sidecar, cols)
     quat_cols = _quaternion_columns(cols, sidecar, path)
@@ -522,7 +536,7 @@ def read_trajectory(path: Path, env: str, overrides: dict | None = None) -> Traj
         if present and len(present) != 3:
             raise RispError(f"{path}: column(s) {', '.join(c for c in group if c not in cols)} missing (give all of {','.join(group)} or none)")
     frame = _omega_frame(env, cols, sidecar, path)
-    _check_finite({k: v for k, v in cols.items() if k in known_columns()}, path)
+    _check_finite({k: v for k, v in cols.items() if k in known}, path)
     t = cols["t"]
     _check_time(t, path)
     _check_range(cols, ("x", "y", "z"), MAX_ABS_POSITION, "metres", path)
@@ -655,6 +669,9 @@ def load_measured(paths, env: str, overrides: dict | None = None, limit: int | N
 #: sidecar keys that define the model a file is simulated with (besides the simulator's own parameter names): all files
 #: of one diagnosis must agree on them, as one model is fitted to all (per-file keys such as estimated_by may differ)
 MODEL_KEYS = ("rotor_angles_deg", "rotor_spin", "pwm_range", "measurement_noise", "measurement_noise_correlation")
+#: what an absent key means (so that "gravity": 9.81 in one file and no gravity in another agree)
+SIDECAR_DEFAULTS = {"gravity": 9.81, "actuator": "thrust", "rotor_layout": "+", "thrust_map": "linear",
+                    "measurement_noise_correlation": 0.0}
 
 
 def _check_same_model(trajs: list[Trajectory], env: str) -> None:
@@ -664,10 +681,15 @@ def _check_same_model(trajs: list[Trajectory], env: str) -> None:
     from risp_tasks.sims import get_simulator
 
     keys = set(SIDECAR_RANGES.get(env, {})) | set(CHOICES) | set(MODEL_KEYS) | set(get_simulator(env).param_names)
+
+    def value(tr, key):  # as the reader and the model take it: the default when absent, choices in any case
+        v = tr.sidecar.values.get(key, SIDECAR_DEFAULTS.get(key))
+        return str(v).lower() if key in CHOICES and v is not None else v
+
     first = trajs[0]
     for tr in trajs[1:]:
         for key in sorted(keys):
-            a, b = first.sidecar.values.get(key), tr.sidecar.values.get(key)
+            a, b = value(first, key), value(tr, key)
             if a != b:
                 raise RispError(f"{first.sidecar.source} and {tr.sidecar.source} disagree on sidecar key {key!r} "
                                 f"({a!r} vs {b!r}): one model is fitted to all files; diagnose them separately")

@@ -108,3 +108,24 @@ def test_cube_gravity_other_than_the_simulators_is_refused(tmp_path):
     line = _one_error_line(CliRunner().invoke(cli, ["diagnose", str(data), "--env", "cube", "--out",
                                                     str(tmp_path / "report"), "--quiet"]))
     assert "gravity 5.0 differs from the simulator's fixed 9.81" in line, line
+
+
+def test_the_rods_gravity_is_checked_too():
+    from risp_data.errors import RispError
+    from risp_tasks.diagnose.candidates import check_supported
+    from risp_tasks.measured import Sidecar
+
+    check_supported("rod", Sidecar("rod", {"env": "rod", "gravity": 9.81}, "s.json"))
+    with pytest.raises(RispError, match="s.json: gravity 5.0 differs from the simulator's fixed 9.81"):
+        check_supported("rod", Sidecar("rod", {"env": "rod", "gravity": 5.0}, "s.json"))
+
+
+def test_an_uncalibrated_floor_is_said_on_the_terminal(monkeypatch):
+    """With the floor taken from the fitting part alone, a few short tosses may rest too briefly to calibrate it."""
+    import risp_tasks.diagnose.run as run_mod
+
+    report = {"cause": "friction", "reason": "r", "parameters": {}, "gain": {"normalized_rss": 0.1},
+              "data": {"floor_calibration": {"applied": False, "mode": "auto", "rest_frames": 18}}}
+    monkeypatch.setattr(run_mod, "diagnose", lambda cfg: report)
+    out = CliRunner().invoke(cli, ["diagnose", "x.csv", "--env", "cube", "--out", "o", "--quiet"]).output
+    assert "note: the floor was not calibrated: 18 resting frames in the fitting part, 20 needed" in out, out

@@ -272,7 +272,7 @@ def test_large_file_read_in_chunks_equals_row_by_row(tmp_path, monkeypatch):
     fast = measured.read_csv_columns(p)
     with open(p, newline="", encoding="utf-8-sig") as fh:
         header = measured._read_header(fh, p)
-        slow = measured._validated_rows(__import__("csv").reader(fh), header, p)
+        slow = measured._validated_rows(__import__("csv").reader(fh), header, p, frozenset(header))
     assert all(np.array_equal(fast[h], slow[:, j]) for j, h in enumerate(header))
     assert len(fast["t"]) == 1003
 
@@ -342,3 +342,61 @@ def test_angular_velocity_in_degrees_per_second_is_caught(tmp_path):
         cols[w] = np.degrees(cols[w])
     with pytest.raises(RispError, match=r"columns wx,wy,wz are typically 57\.3× the rates .*\(degrees per second\?\)"):
         load_measured([str(_write(tmp_path, cols))], "cube")
+
+
+def test_a_hovering_bodys_gyro_is_not_taken_for_degrees(tmp_path):
+    """A noisy quaternion's differences overstate a hovering body's rates far above its gyro's: only rates too
+    large (deg/s) are refused, not too small."""
+    n = 200
+    rng = np.random.default_rng(0)
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)) + np.c_[np.zeros(n), rng.normal(0, 1e-3, (n, 3))]
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    cols = {"t": np.arange(n) * 0.01, "x": np.zeros(n), "y": np.zeros(n), "z": np.full(n, 1.0),
+            "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3],
+            "wx": rng.normal(0, 0.01, n), "wy": rng.normal(0, 0.01, n), "wz": rng.normal(0, 0.01, n)}
+    for i in range(4):
+        cols[f"f{i}"] = np.full(n, 7.4)
+    p = _write(tmp_path, cols, sidecar={"env": "quadrotor", "mass": 3.0, "angular_velocity_frame": "body"})
+    assert len(load_measured([str(p)], "quadrotor")) == 1
+
+
+def test_columns_of_another_actuator_do_not_block_a_thrust_log(tmp_path):
+    """known columns are the file's reader's: a thrust log's `throttle` (NaN) or `u0` (text) are not read."""
+    cols, _ = _quad_cols()
+    p = _write(tmp_path, cols, sidecar={"env": "quadrotor", "mass": 3.0, "angular_velocity_frame": "body"})
+    lines = p.read_text().splitlines()
+    p.write_text("\n".join([lines[0] + ",throttle,u0,,"] + [ln + ",nan,ARMED,," for ln in lines[1:]]) + "\n")
+    tr = load_measured([str(p)], "quadrotor")[0]
+    assert "throttle" not in tr.extra and "u0" not in tr.extra and tr.thrust.shape == (40, 4)
+
+
+def test_sidecars_that_say_the_same_in_other_words_agree(tmp_path):
+    cols, _ = _quad_cols()
+    base = {"env": "quadrotor", "mass": 3.0, "angular_velocity_frame": "body"}
+    _write(tmp_path, cols, sidecar={**base, "gravity": 9.81, "actuator": "Thrust"}, name="a.csv")
+    _write(tmp_path, cols, sidecar=base, name="b.csv")  # gravity and actuator absent: their defaults
+    assert len(load_measured([str(tmp_path)], "quadrotor")) == 2
+
+
+def test_sampling_step_and_even_segments_with_rounded_timestamps():
+    """A 400 Hz log with millisecond timestamps (steps of 2 and 3 ms) is sampled every 2.5 ms and its segments are
+    even; a sample dropped every 25 leaves no 30-step stretch, and the rollout horizon is cut to the longest one."""
+    from types import SimpleNamespace
+
+    from risp_tasks.diagnose.fit import even_starts, longest_even
+    from risp_tasks.measured import sampling_step
+
+    t = np.round(np.arange(2000) * 2.5) / 1000
+    assert set(np.round(np.diff(t) * 1000)) == {2.0, 3.0}
+    assert sampling_step(t) == pytest.approx(0.0025) and even_starts(t, 30)[:-30].mean() > 0.95
+    dropped = np.delete(np.arange(2000) * 0.01, np.arange(20, 2000, 25))
+    assert sampling_step(dropped) == pytest.approx(0.01)
+    assert longest_even([SimpleNamespace(t=dropped)], 60) == 23
+
+
+def test_two_trailing_commas_are_not_duplicate_columns(tmp_path):
+    cols, _ = _rotation_trajectory()
+    p = _write(tmp_path, cols)
+    lines = p.read_text().splitlines()
+    p.write_text("\n".join([lines[0] + ",,"] + [ln + ",," for ln in lines[1:]]) + "\n")
+    assert load_measured([str(p)], "cube")[0].n == len(lines) - 1

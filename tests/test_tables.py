@@ -107,7 +107,8 @@ def test_every_method_sysid_and_imitation(cache, tmp_path, monkeypatch):
 
 
 def test_the_residual_is_in_the_key_of_the_task_tables_only_when_not_l2(monkeypatch, tmp_path):
-    """Folders made before --residual existed (l2) keep their key; l1 changes sysid/imitation/control's only."""
+    """The default l2 is not in a key (an l2 table's key did not change when --residual came); l1 changes
+    sysid/imitation/control's only."""
     from risp_tasks.tables import grid
 
     keyed, real = [], grid.checksum

@@ -88,9 +88,12 @@ def fixed_values(sim, sidecar: Sidecar) -> dict[str, float]:
 
 def check_supported(env: str, sidecar: Sidecar) -> None:
     """Sidecar values the simulator cannot represent (it has them as fixed constants) stop the run."""
-    if env not in ("quadrotor", "cube"):  # the rigid bodies' gravity is a constant; the hand and rod have none
+    if env == "rod":
+        from risp_tasks.sims.rod import GRAVITY
+    elif env in ("quadrotor", "cube"):
+        from risp_tasks.sims._rigid import GRAVITY
+    else:  # the hand's joints are modelled without gravity
         return
-    from risp_tasks.sims._rigid import GRAVITY
 
     g = sidecar.get("gravity")
     if g is not None and abs(float(g) - GRAVITY) > 0.01:

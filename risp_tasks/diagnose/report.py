@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from .adapter import measured_columns
-from .fit import make_segments, predict
+from .fit import longest_even, make_segments, predict
 from .residuals import one_step, unit_of
 from risp_data.atomic import atomic_write, write_text_atomic
 
@@ -160,7 +160,7 @@ def plot_gain(path: Path, base_ev, ext_ev, held_trajs, horizon: int) -> None:
 
     tr = max(held_trajs, key=lambda t: t.n)
     tr = tr.slice(0, min(tr.n, MAX_OVERLAY_SAMPLES), "")  # a long log: its first part is plenty to look at
-    H = max(1, min(horizon, tr.n - 1))
+    H = max(1, longest_even([tr], min(horizon, tr.n - 1)))
     series = {}
     for label, ev in (("base", base_ev), ("extended", ext_ev)):
         sim = ev.fit.model.sim

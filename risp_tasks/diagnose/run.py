@@ -21,7 +21,7 @@ from risp_data.errors import RispError
 from ..measured import Trajectory, load_measured
 from . import candidates as cands
 from .adapter import Observer, calibrate_floor
-from .fit import FitConfig, FitResult, channel_sigma, fit_model, make_segments, noise_model
+from .fit import FitConfig, FitResult, channel_sigma, fit_model, longest_even, make_segments, noise_model
 from .residuals import accel_rms, group_rms, one_step, rollout_error
 from .dependence import residual_dependence
 from .select import (RHO_MAX, Score, bound_flag, check_dependence, decide, estimate_force_note, estimate_note,
@@ -124,6 +124,7 @@ def errors(ev: Evaluated, held_trajs, cfg: DiagnoseConfig) -> dict:
                    seed=cfg.seed)
     H_r = cfg.rollout_horizon or 3 * cfg.horizon
     H_r = min(H_r, min(tr.n for tr in held_trajs) - 1)
+    H_r = max(1, longest_even(held_trajs, H_r))  # dropped samples: the longest even stretch, not a failure
     sigma = ev.sigma.numpy() if ev.sigma is not None else 1.0
     roll = rollout_error(sim, ev.obs, params, held_trajs, ev.k, H_r, sigma=sigma, max_segments=cfg.max_segments,
                          seed=cfg.seed)

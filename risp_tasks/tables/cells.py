@@ -54,9 +54,10 @@ def prediction_errors(env, pred: torch.Tensor, true: torch.Tensor) -> dict:
             "groups": summarize_groups(env.name, pred.numpy(), true.numpy())}
 
 
-def optimise_states(cfg, env, images: torch.Tensor, init: torch.Tensor, loss_name: str) -> torch.Tensor:
+def optimise_states(cfg, env, images: torch.Tensor, init: torch.Tensor, loss_name: str) -> tuple[torch.Tensor, dict]:
     """Per-image analysis by synthesis: s ← argmin ‖R(s) − I‖² (pixelwise) or ‖F(R(s)) − F(I)‖² (perceptual),
-    R = risp_data.diff_render in the train domain's nominal look, through the tasks' one loop."""
+    R = risp_data.diff_render in the train domain's nominal look, through the tasks' one loop.  Returns the states
+    and the loop's history (its ``stopped`` where a NaN/inf loss ended the descent)."""
     from risp_data.diff_render import StateRenderer
     from risp_tasks.tasks.loop import Problem, Timer, make_loss, optimize
 
@@ -66,9 +67,9 @@ def optimise_states(cfg, env, images: torch.Tensor, init: torch.Tensor, loss_nam
     features = feature_extractor(cfg.perceptual_weights) if loss_name == "perceptual" else None
     loss = make_loss(loss_name, env, frames, None, None, images, renderer=renderer, features=features)
     problem = Problem(variables={"states": states}, states=lambda: states, estimates=dict)
-    optimize(problem, loss, optimizer="rmsprop", lr=cfg.lr, momentum=0.5, iterations=cfg.iterations, timer=Timer(),
-             progress=False)
-    return states.detach().to(torch.float64)
+    history = optimize(problem, loss, optimizer="rmsprop", lr=cfg.lr, momentum=0.5, iterations=cfg.iterations,
+                       timer=Timer(), progress=False)
+    return states.detach().to(torch.float64), history
 
 
 def estimation(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> dict:
@@ -97,7 +98,9 @@ def estimation(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> 
         if m.name == "average":
             pred = avg.expand(n, -1)
         else:
-            pred = optimise_states(cfg, env, images, avg.expand(n, -1), m.loss)
+            pred, history = optimise_states(cfg, env, images, avg.expand(n, -1), m.loss)
+            if "stopped" in history:
+                info["stopped"] = history["stopped"]
             if m.name == "perceptual":
                 info["extractor"] = feature_extractor(cfg.perceptual_weights).name
     return {**prediction_errors(env, pred, true), **info}

@@ -66,7 +66,7 @@ def grid(cfg: TableConfig) -> list[Cell]:
 
 def run_folder(cfg: TableConfig) -> str:
     skip = NOT_IN_KEY + UNUSED_BY[cfg.table]
-    if cfg.residual == "l2":  # the tables made before --residual existed (l2) keep their key
+    if cfg.residual == "l2":  # the default stays out: --residual's arrival did not change an l2 table's key
         skip += ("residual",)
     settings = {k: v for k, v in cfg.to_dict().items() if k not in skip}
     if cfg.table in ("sysid", "imitation", "control"):
