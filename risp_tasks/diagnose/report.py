@@ -260,7 +260,7 @@ def markdown(report: dict) -> str:
     for key, label in (("one_step", "one-step error"), ("one_step_acceleration", "one-step acceleration residual"),
                        ("rollout", f"rollout error after {be['rollout_horizon_samples']} samples ({be['rollout_horizon_s']:.3g} s)")):
         for grp in be[key]:
-            unit = unit_of(grp) if key != "one_step_acceleration" else ("m/s²" if grp == "acceleration" else "rad/s²")
+            unit = unit_of(grp, report.get("env"))
             L.append(f"| {label} | {grp} [{unit}] | {_fmt(be[key][grp])} | {_fmt(ee[key][grp])} | {g[key][grp]:+.1%} |")
     L.append(f"| rollout error / noise σ (RMS over channels) | all | {_fmt(be['rollout_normalized'])} | "
              f"{_fmt(ee['rollout_normalized'])} | {g['rollout_normalized']:+.1%} |")
@@ -294,7 +294,7 @@ def markdown(report: dict) -> str:
     n = report["noise"]
     nm = report.get("noise_model") or {}
     L.append(f"- measurement noise (1σ), {nm.get('source', 'estimated')}: "
-             + ", ".join(f"{k} {_fmt(v, 3)} {unit_of(k)}" for k, v in n.items()))
+             + ", ".join(f"{k} {_fmt(v, 3)} {unit_of(k, report.get('env'))}" for k, v in n.items()))
     if nm.get("time_correlated") and not nm.get("declared_groups"):
         L.append("- **the estimated noise looks time-correlated** (lag-1 AR(1) fit of the smoothing residuals: "
                  + ", ".join(f"{k} {v:.2f}" for k, v in nm["lag1_correlation_estimate"].items())

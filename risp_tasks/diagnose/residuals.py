@@ -140,5 +140,16 @@ def rollout_error(sim, obs: Observer, params: torch.Tensor, trajs: list[Trajecto
     return {"groups": group_rms(obs, err), "normalized": float(np.sqrt(np.mean((err / sigma) ** 2)))}
 
 
-def unit_of(group: str) -> str:
+#: the generalised coordinates' units: the hand's are joint angles, the rod's and the quadrotor's translational
+#: mode's positions
+COORDINATE_UNITS = {"hand": ("rad", "rad/s", "rad/s²")}
+
+
+def unit_of(group: str, env: str | None = None) -> str:
+    """The SI unit of a channel group (or of an acceleration-residual group) of ``env``'s observations."""
+    if group in ("acceleration", "angular acceleration"):
+        return "m/s²" if group == "acceleration" else "rad/s²"
+    if group in ("coordinate", "rate", "rate derivative"):
+        units = COORDINATE_UNITS.get(env, ("m", "m/s", "m/s²"))
+        return units[("coordinate", "rate", "rate derivative").index(group)]
     return GROUP_UNITS.get(group, "")
