@@ -415,6 +415,15 @@ def test_ctrl_c_ends_a_jobs_table_at_once_with_one_line(tmp_path):
                 os.kill(w, signal.SIGKILL)
 
 
+def test_estimation_ours_state_alone_trains_no_network(tmp_path):
+    """In estimation `ours-state` is N/A (it would be `ours` again); asked for alone it used to train `ours` first."""
+    cfg = make_config("estimation", quick=True, out=str(tmp_path), envs=("cube",), methods=("ours-state",), **TINY)
+    report = run_table(cfg, echo=lambda *_: None)
+    assert "is `ours`" in report["cells"]["cube"]["ours-state"]["na"]
+    assert not (tmp_path / "runs").exists()  # no network, and no training set (with Jacobians) for one
+    assert not [d for d in os.listdir(tmp_path / "data") if "-train-" in d]
+
+
 def test_failed_cell_is_stored_and_retried(cache, tmp_path, monkeypatch):
     from risp_tasks.tables import cells as cells_mod
 

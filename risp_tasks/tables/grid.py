@@ -113,8 +113,8 @@ def cell_networks(cfg: TableConfig, cell: Cell) -> dict:
     if cfg.table == "regularizers":
         return {cell.method: network_identity(cfg, cell.env, cell.method, seed=repeat_seed(cfg.seed, cell.repeat))}
     which = get_method(cell.method).network
-    if cfg.table == "estimation":
-        return {which: network_identity(cfg, cell.env, which)} if which else {}
+    if cfg.table == "estimation":  # `ours-state` is N/A there (it would be `ours` again): it reads nothing
+        return {which: network_identity(cfg, cell.env, which)} if which and get_method(cell.method).loss != "state" else {}
     if cfg.table in ("imitation", "control") and cell.env == "cube":  # N/A: no actions, nothing is read
         return {}
     role = which or "reg"  # a task reads its initial state from the row's network; rows without one use `ours`'
