@@ -514,10 +514,10 @@ def generic_columns(env: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
     return tuple(spec.state_names), tuple(f"u{i}" for i in range(spec.action_dim))
 
 
-def _read_generic(path: Path, env: str, sidecar: Sidecar, cols: dict) -> Trajectory:
+def _read_generic(path: Path, env: str, sidecar: Sidecar, cols: dict, known: frozenset[str]) -> Trajectory:
     states, actions = generic_columns(env)
     _require(cols, ("t",) + states + actions, path)
-    _check_finite({k: cols[k] for k in ("t",) + states + actions}, path)
+    _check_finite({k: cols[k] for k in known}, path)
     t = cols["t"]
     _check_time(t, path)
     return Trajectory(name=path.stem, path=str(path), t=t - t[0], pos=None, quat=None, vel=None, omega=None,
@@ -530,7 +530,7 @@ def read_trajectory(path: Path, env: str, overrides: dict | None = None) -> Traj
     known = columns_read(env, sidecar)
     cols = read_csv_columns(path, known)
     if env in ("hand", "rod"):
-        return _read_generic(path, env, sidecar, cols)
+        return _read_generic(path, env, sidecar, cols, known)
     quat_cols = _quaternion_columns(cols, sidecar, path)
     actuator = str(sidecar.get("actuator", "thrust")).lower() if env == "quadrotor" else None
     act_cols = ACTUATOR_COLUMNS[actuator] if actuator else ()

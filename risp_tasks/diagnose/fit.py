@@ -124,16 +124,16 @@ def make_segments(sim, trajs: list[Trajectory], horizon: int, k: int, stride: in
     latent = any(e.state_names for e in sim.spec.available_effects.values())
     # choose the segments first (index pairs only), then build just those: a 200 MB log has ~10⁵ segments
     # and materialising all of them before subsampling took gigabytes
-    pairs, uneven = [], 0
+    pairs, any_start = [], False
     for j, tr in enumerate(trajs):
         has_actions = sim.action_dim > 0
         first = WARMUP_SAMPLES if latent and has_actions and tr.n - WARMUP_SAMPLES > 2 * horizon else 0
         starts = range(first, tr.n - horizon, stride)
         even = even_starts(tr.t, horizon)
         pairs += [(j, i) for i in starts if even[i]]
-        uneven += sum(1 for i in starts if not even[i])
+        any_start = any_start or len(starts) > 0
     if not pairs:
-        if uneven:
+        if any_start:  # there were starts, and none was even
             raise RispError(f"no segment of {horizon + 1} evenly spaced samples: every one crosses a dropped sample or "
                             f"strays more than {STEP_TOLERANCE:.0%} of a step from the fixed-rate grid (the simulator "
                             f"steps at a fixed rate); resample the data to a fixed rate or use a smaller --horizon")

@@ -157,7 +157,7 @@ def network_key(tcfg, env: str, data_hash: str) -> str:
 
 def prepare(cfg: TableConfig, env: str, cache: str | None = None) -> None:
     """Make every artifact the table's cells of ``env`` read, so that concurrent cells (Ray) only read them."""
-    from .methods import get_method
+    from .methods import estimation_network, get_method
 
     art = Artifacts(cfg, cache)
     if cfg.table == "sampling":
@@ -175,9 +175,8 @@ def prepare(cfg: TableConfig, env: str, cache: str | None = None) -> None:
             for reg in cfg.methods:
                 _loadable(art.network(env, reg, seed=repeat_seed(cfg.seed, r)))
         return
-    # estimation's `ours-state` cell is N/A (it would be `ours` again) and reads nothing: no network is trained for it
-    networks = {get_method(m).network for m in cfg.methods
-                if not (cfg.table == "estimation" and get_method(m).loss == "state")} - {None}
+    read = estimation_network if cfg.table == "estimation" else (lambda m: get_method(m).network)
+    networks = {read(m) for m in cfg.methods} - {None}
     if cfg.table == "estimation":
         for r in range(cfg.repeats):
             art.test_shards(env, r)

@@ -106,15 +106,16 @@ def cell_networks(cfg: TableConfig, cell: Cell) -> dict:
     folder key holds the table's settings, not risp-train's defaults: a changed preset value, γ default or stem rule
     trains a new network, and this makes the cells that read the old one count as not done."""
     from .artifacts import network_identity
-    from .methods import get_method
+    from .methods import estimation_network, get_method
 
     if cfg.table == "sampling":
         return {"reg": network_identity(cfg, "rod", "reg")} if cell.env == "rod" else {}
     if cfg.table == "regularizers":
         return {cell.method: network_identity(cfg, cell.env, cell.method, seed=repeat_seed(cfg.seed, cell.repeat))}
+    if cfg.table == "estimation":
+        which = estimation_network(cell.method)
+        return {which: network_identity(cfg, cell.env, which)} if which else {}
     which = get_method(cell.method).network
-    if cfg.table == "estimation":  # `ours-state` is N/A there (it would be `ours` again): it reads nothing
-        return {which: network_identity(cfg, cell.env, which)} if which and get_method(cell.method).loss != "state" else {}
     if cfg.table in ("imitation", "control") and cell.env == "cube":  # N/A: no actions, nothing is read
         return {}
     role = which or "reg"  # a task reads its initial state from the row's network; rows without one use `ours`'

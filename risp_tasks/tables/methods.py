@@ -53,3 +53,10 @@ def get_method(name: str) -> Method:
         raise RispError(f"unknown method {name!r}; choose one of: {', '.join(METHODS)}")
     return METHOD_SPECS[name]
 
+
+def estimation_network(name: str) -> str | None:
+    """The network an estimation cell of method ``name`` reads: its own, except `ours-state`'s, whose cell is N/A
+    there (it would be `ours` again) and reads nothing."""
+    m = get_method(name)
+    return None if m.loss == "state" else m.network
+
