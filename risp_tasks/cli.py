@@ -27,7 +27,7 @@ def cli():
 @cli.command()
 @click.argument("data", nargs=-1, required=True, type=click.Path())
 @click.option("--env", type=click.Choice(ENV_NAMES), required=True, help="environment of the data")
-@click.option("--out", type=click.Path(file_okay=False), required=True, help="output folder (report.md, report.json, plots)")
+@click.option("--out", type=click.Path(file_okay=False), required=True, help="output folder (report.md, report.json, plots): new, empty or an earlier report, replaced whole")
 @click.option("--seed", type=int, default=0, show_default=True, help="seed of the fitting/held-out split and the bootstrap")
 @click.option("--held-out", type=float, default=0.3, show_default=True,
               help="fraction held out: of the trajectories (several files) or of the time span (one file)")

@@ -129,3 +129,38 @@ def test_an_uncalibrated_floor_is_said_on_the_terminal(monkeypatch):
     monkeypatch.setattr(run_mod, "diagnose", lambda cfg: report)
     out = CliRunner().invoke(cli, ["diagnose", "x.csv", "--env", "cube", "--out", "o", "--quiet"]).output
     assert "note: the floor was not calibrated: 18 resting frames in the fitting part, 20 needed" in out, out
+
+
+def test_a_failed_rewrite_keeps_the_earlier_report_whole(flights, tmp_path, monkeypatch):
+    """The report replaces --out as a whole: a disk that fills while the second report.md is written leaves the
+    first run's report.json and report.md as they were (not a new report.json beside an old report.md), and no
+    temporary folder behind."""
+    import risp_tasks.diagnose.report as report
+
+    out = tmp_path / "rep"
+    assert _run(flights, out, "--no-plots").exit_code == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert set(before) == {"report.json", "report.md"}
+    real = report.write_text_atomic
+
+    def full_at_md(path, text):
+        if str(path).endswith("report.md"):
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real(path, text)
+
+    monkeypatch.setattr(report, "write_text_atomic", full_at_md)
+    line = _one_error_line(_run(flights, out, "--no-plots", "--seed", "1"))
+    assert str(out / "report.md") in line and "No space left on device" in line
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rep"]
+
+
+def test_an_out_folder_of_other_files_is_refused_before_fitting(flights, tmp_path):
+    """--out naming a folder of the user's (not an earlier report) is one line and the folder is left alone,
+    since the report replaces its folder whole."""
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "notes.txt").write_text("keep me")
+    line = _one_error_line(_run(flights, out))
+    assert "notes.txt" in line and "not a diagnose report" in line
+    assert [p.name for p in out.iterdir()] == ["notes.txt"] and (out / "notes.txt").read_text() == "keep me"

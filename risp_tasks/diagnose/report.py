@@ -1,9 +1,11 @@
-"""report.md, report.json and the PNG plots of a diagnosis (written atomically: temp name, then os.replace)."""
+"""report.md, report.json and the PNG plots of a diagnosis, written into a temporary folder that is renamed into place
+whole (an earlier report in ``--out`` goes only once the new one is complete)."""
 
 from __future__ import annotations
 
 import json
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +14,7 @@ import torch
 from .adapter import measured_columns
 from .fit import longest_even, make_segments, predict
 from .residuals import one_step, unit_of
-from risp_data.atomic import atomic_write, write_text_atomic
+from risp_data.atomic import atomic_write, replace_folder, temp_folder, write_text_atomic
 
 from ..strict_json import strict_json
 
@@ -22,6 +24,8 @@ PLOTS = {
     "gain": "gain_overlay.png",
     "ranking": "ranking.png",
 }
+#: Every file a report folder holds (an --out holding only these is an earlier report, which a new one replaces).
+REPORT_FILES = frozenset({"report.json", "report.md", *PLOTS.values()})
 
 
 def _named(path: Path, write) -> None:
@@ -313,22 +317,37 @@ def markdown(report: dict) -> str:
 
 
 def write_report(report: dict, cfg, evaluated, base_ev, ext_ev, fit_trajs, held_trajs) -> None:
+    """Write report.json, report.md and the plots into a temporary sibling of ``cfg.out`` and rename it into place
+    (an earlier report there is replaced only once the new one is complete), so the folder always holds one
+    report whole: a failed or interrupted write leaves the earlier one untouched."""
     out = Path(cfg.out)
-    out.mkdir(parents=True, exist_ok=True)
+    parent = out.absolute().parent
+    parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(temp_folder(parent))
+    try:
+        _write_files(tmp, out, report, cfg, base_ev, ext_ev, held_trajs)
+        replace_folder(tmp, out)
+    except OSError as e:  # name the report's own path, not the temporary folder's
+        shutil.rmtree(tmp, ignore_errors=True)
+        name = str(e.filename or out).replace(str(tmp), str(out))
+        raise OSError(e.errno, e.strerror or str(e), name) from None
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _write_files(tmp: Path, out: Path, report: dict, cfg, base_ev, ext_ev, held_trajs) -> None:
     if cfg.plots:
         cap = dict(max_samples=10 * cfg.max_segments, seed=cfg.seed)
         os_b = one_step(base_ev.fit.model.sim, base_ev.obs, base_ev.fit.params, held_trajs, base_ev.k, **cap)
         os_e = None
         if ext_ev is not base_ev:
             os_e = one_step(ext_ev.fit.model.sim, ext_ev.obs, ext_ev.fit.params, held_trajs, ext_ev.k, **cap)
-        plot_residuals_time(out / PLOTS["residuals_time"], os_b, os_e, ("base", ext_ev.fit.model.name))
-        plot_residuals_regressors(out / PLOTS["residuals_regressors"], os_b)
-        plot_gain(out / PLOTS["gain"], base_ev, ext_ev, held_trajs, report["base_error"]["rollout_horizon_samples"])
-        plot_ranking(out / PLOTS["ranking"], report)
-        report["plots"] = {k: str(out / v) for k, v in PLOTS.items()}
-    else:  # a report rewritten without plots: an earlier report's PNGs here would pass for this one's
-        for fn in PLOTS.values():
-            (out / fn).unlink(missing_ok=True)
+        plot_residuals_time(tmp / PLOTS["residuals_time"], os_b, os_e, ("base", ext_ev.fit.model.name))
+        plot_residuals_regressors(tmp / PLOTS["residuals_regressors"], os_b)
+        plot_gain(tmp / PLOTS["gain"], base_ev, ext_ev, held_trajs, report["base_error"]["rollout_horizon_samples"])
+        plot_ranking(tmp / PLOTS["ranking"], report)
+        report["plots"] = {k: str(out / v) for k, v in PLOTS.items()}  # where they will be once renamed
     text = json.dumps(strict_json(report), indent=2, allow_nan=False)
-    _named(out / "report.json", lambda: write_text_atomic(out / "report.json", text))
-    _named(out / "report.md", lambda: write_text_atomic(out / "report.md", markdown(report)))
+    _named(out / "report.json", lambda: write_text_atomic(tmp / "report.json", text))
+    _named(out / "report.md", lambda: write_text_atomic(tmp / "report.md", markdown(report)))

@@ -6,6 +6,7 @@ Method, statistics and thresholds: docs/diagnose.md.
 
 from __future__ import annotations
 
+import os
 import tempfile
 import time
 from dataclasses import asdict, dataclass
@@ -179,15 +180,31 @@ def diagnose(cfg: DiagnoseConfig) -> dict:
 
 
 def check_out(out: str | None) -> None:
-    """Fail before hours of fitting when the output folder cannot be created or written (one line)."""
+    """Fail before hours of fitting when the report could not be put in place (one line).  The report replaces
+    ``out`` as a whole (:func:`report.write_report`), so ``out`` must be new, empty or an earlier report: a folder
+    holding anything else is refused rather than deleted."""
     if out is None:
         return
+    from risp_data.atomic import TEMP_PREFIX
+
+    from .report import REPORT_FILES
+
     path = Path(out)
     try:
-        if path.exists() and not path.is_dir():
-            raise RispError(f"{path}: --out exists and is not a folder")
-        path.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=path, prefix=".write-test-"):
+        if path.exists():
+            if not path.is_dir():
+                raise RispError(f"{path}: --out exists and is not a folder")
+            if Path.cwd().resolve().is_relative_to(path.resolve()):
+                raise RispError(f"{path}: --out is the current folder (or holds it); the report replaces its "
+                                f"folder as a whole: name a new one, e.g. --out report/")
+            other = sorted(n for n in os.listdir(path) if n not in REPORT_FILES and not n.startswith(TEMP_PREFIX))
+            if other:
+                raise RispError(f"{path}: --out holds files that are not a diagnose report ({other[0]}"
+                                f"{', …' if len(other) > 1 else ''}); the report replaces its folder as a whole: "
+                                f"name a new or empty folder")
+        parent = path.absolute().parent
+        parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=parent, prefix=".write-test-"):
             pass
     except OSError as e:
         raise RispError(f"{e.filename or path}: cannot write the report there ({e.strerror})") from None
