@@ -262,6 +262,9 @@ def test_a_subset_run_keeps_the_rows_earlier_runs_finished_in_the_shared_table(c
                       on_cell=lambda c, r: seen.append(c), echo=lambda *_: None)
     assert [c.method for c in seen] == ["oracle", "oracle"]  # only the new row was computed
     assert later["config"]["methods"] == ["average", "random", "oracle"]  # the usual order
+    # config.json describes the folder's table.md (all three rows), not the last run's subset
+    saved = json.load(open(os.path.join(later["folder"], "config.json")))
+    assert saved["methods"] == ["average", "random", "oracle"] and saved["envs"] == ["cube"]
     assert later["cells"]["cube"]["random"]["values"] == first["cells"]["cube"]["random"]["values"]
     text = open(later["files"][0]).read()
     assert "| average |" in text and "| random |" in text and "| oracle |" in text

@@ -1,6 +1,6 @@
 """The cell grid of a table (environment × method × repeat) and the resumable runner.
 
-    <out>/<table>-<preset>[-quick]-<key>/config.json           the table's configuration
+    <out>/<table>-<preset>[-quick]-<key>/config.json           the configuration of the table.md beside it
     <out>/<table>-<preset>[-quick]-<key>/cells/<env>/<method>/r<k>.json   one atomic file per finished cell
     <out>/<table>-<preset>[-quick]-<key>/table.md, table.json  the report (report.py)
 
@@ -181,7 +181,8 @@ def run_table(cfg: TableConfig, cache: str | None = None, on_cell: Callable[[Cel
     if cfg.executor == "ray":  # before anything is written: without the extra the run cannot start
         require_ray()
     os.makedirs(folder, exist_ok=True)
-    write_text_atomic(os.path.join(folder, "config.json"), json.dumps(cfg.to_dict(), indent=1, sort_keys=True) + "\n")
+    if not os.path.exists(os.path.join(folder, "config.json")):  # a first run killed before its report has one
+        _write_config(cfg, folder)
     cells = grid(cfg)
     todo = [c for c in cells if _done(cfg, folder, c) is None]
     echo(f"{cfg.table}: {len(cells) - len(todo)} of {len(cells)} cells done, {len(todo)} to run; results: {folder}")
@@ -204,7 +205,13 @@ def run_table(cfg: TableConfig, cache: str | None = None, on_cell: Callable[[Cel
                     on_cell(cell, result)
     results = [_done(cfg, folder, c) or _failed(folder, c) for c in cells]
     shown, earlier = widened(cfg, folder)
-    return write_report(shown, folder, results + earlier)
+    report = write_report(shown, folder, results + earlier)
+    _write_config(shown, folder)  # the configuration of the table.md beside it, not of this run's subset alone
+    return report
+
+
+def _write_config(cfg: TableConfig, folder: str) -> None:
+    write_text_atomic(os.path.join(folder, "config.json"), json.dumps(cfg.to_dict(), indent=1, sort_keys=True) + "\n")
 
 
 #: the entry of a shown cell that no run computed in the folder
