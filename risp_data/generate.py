@@ -15,6 +15,7 @@ import contextlib
 import dataclasses
 import os
 import queue as _queue
+import shutil
 import tempfile
 import threading
 from dataclasses import dataclass
@@ -24,7 +25,7 @@ import numpy as np
 
 from .atomic import remove_temporaries
 from .errors import RispError
-from .processes import exit_with, start_time
+from .processes import end_pool_workers, exit_with, start_time
 from .ray_support import ray_errors, require_ray
 from .threads import available_cpus
 from .shards.manifest import (
@@ -551,9 +552,8 @@ def _run_pool(job, todo, on_record, bar):
                     finished, pending = wait(pending, return_when=FIRST_COMPLETED)
                     for f in finished:
                         on_record(f.result())
-            except BaseException:
-                for f in pending:
-                    f.cancel()
+            except BaseException:  # Ctrl-C, or a shard that failed: the workers stop now, not after the shards
+                end_pool_workers(ex)  # already queued to them (a finished one is kept: its completion marker)
                 raise
     finally:
         stop.set()
@@ -611,6 +611,24 @@ def run_job(job: RenderJob, progress: bool = True, log: Callable[[str], None] = 
         return _run_locked(job, variant, progress, log, stats)
 
 
+def _check_space(job: RenderJob, manifest: dict) -> None:
+    """Stop a render that will not fit on its disk now, with the shards so far kept, rather than when the disk is
+    full (ours and every other program's writes then fail): the samples still to render, at the bytes per sample
+    of the shards written so far, against the free space of ``job.out``'s file system."""
+    written = manifest["shards"]
+    samples = sum(r["stop"] - r["start"] for r in written)
+    if not samples:
+        return
+    per_sample = sum(info["bytes"] for r in written for info in r["files"].values()) / samples
+    need = per_sample * (job.n - samples)
+    free = shutil.disk_usage(job.out).free
+    if need > free:
+        raise RispError(f"{job.out}: the {job.n - samples} samples still to render need about {need / 1e9:.3g} GB "
+                        f"(at {per_sample / 1e3:.0f} kB per sample so far) but {free / 1e9:.3g} GB are free there; "
+                        f"the {len(written)} finished shard(s) are kept: free space and rerun the same command to "
+                        f"resume, or render fewer samples into another --out")
+
+
 def version_changes(recorded: dict, now: dict) -> list[str]:
     """``name old (now new)`` for every package whose recorded version differs from the installed one."""
     return [f"{k} {recorded[k]} (now {now.get(k)})" for k in sorted(recorded) if recorded[k] != now.get(k)]
@@ -644,6 +662,7 @@ def _run_locked(job: RenderJob, variant: str, progress: bool, log: Callable[[str
                 mark_complete_shards(job.out, manifest)
             if stats is not None:
                 stats["rendered_samples"] = stats.get("rendered_samples", 0) + rec["stop"] - rec["start"]
+            _check_space(job, manifest)
 
     total = sum(job.shard_range(i)[1] - job.shard_range(i)[0] for i in todo)
     with tqdm(total=total, unit="sample", desc=f"render {job.env}/{job.domain}", disable=not progress) as bar:

@@ -1,5 +1,6 @@
 """Helper processes that end with the process they serve (risp_data.generate's render pool, risp_train's
-DataLoader workers): a pid and its start time name one process, on Linux through /proc."""
+DataLoader workers, risp-task table's --jobs pool): a pid and its start time name one process, on Linux through
+/proc; a pool stopped at once on Ctrl-C."""
 
 from __future__ import annotations
 
@@ -57,3 +58,20 @@ def exit_with(pid: int, started: str | None = None, period: float = 0.5) -> None
         os._exit(1)
 
     threading.Thread(target=watch, name="exit-with-job", daemon=True).start()
+
+
+def end_pool_workers(pool, grace: float = 5.0) -> None:
+    """Stop a ``concurrent.futures.ProcessPoolExecutor``'s workers now instead of waiting for the work already handed
+    to them (a shard or a table cell, minutes each; their outputs are atomic files, so a stopped one leaves
+    nothing under its final name): SIGTERM, then SIGKILL for one still inside a native call after ``grace``
+    seconds.  Cancelling the pending futures alone does not do it: the executor has already queued a few calls
+    to each worker, and leaving its ``with`` block waits for them."""
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    for proc in procs:
+        proc.terminate()
+    deadline = time.monotonic() + grace
+    for proc in procs:
+        proc.join(max(0.0, deadline - time.monotonic()))
+        if proc.is_alive():
+            proc.kill()
+    pool.shutdown(wait=True, cancel_futures=True)

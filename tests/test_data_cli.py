@@ -220,6 +220,50 @@ def test_resume_after_kill(tmp_path):
     _assert_same(_samples(tmp_path / "u"), _samples(out))
 
 
+def test_ctrl_c_stops_a_worker_pool_render_now(tmp_path):
+    """SIGINT to a `--workers 2` render: the workers stop at once (exit 130 in seconds) rather than first finishing
+    the shards already queued to them (about a minute each here), and no shard is marked complete."""
+    out = tmp_path / "int"
+    cmd = [sys.executable, "-m", "risp_data", "render", "--env", "cube", "--res", "64", "--spp", "256", "--quiet",
+           "--no-jacobian", "--n", "600", "--shard-size", "300", "--workers", "2", "--out", str(out)]
+    # SIGINT's default action restored (a background job of a non-interactive shell inherits it ignored)
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        deadline = time.time() + 120
+        while not (out / "manifest.json").exists() and time.time() < deadline and proc.poll() is None:
+            time.sleep(0.2)
+        time.sleep(5)  # the workers start rendering
+        proc.send_signal(signal.SIGINT)  # to the job alone, as `kill -INT`: the workers must be stopped by it
+        _, err = proc.communicate(timeout=45)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130 and "Error: aborted" in err, (proc.returncode, err)
+    markers = sorted((out / "complete").glob("*")) if (out / "complete").exists() else []
+    assert markers == [], markers
+
+
+def test_a_render_that_will_not_fit_on_its_disk_stops_keeping_its_shards(tmp_path, monkeypatch):
+    """After a shard is written, the samples still to render (at its bytes per sample) are compared with the free
+    space: a render that cannot fit stops with one line and keeps its finished shards, instead of filling the disk."""
+    import shutil as _shutil
+
+    import risp_data.generate as generate
+
+    out = tmp_path / "big"
+    monkeypatch.setattr(generate.shutil, "disk_usage", lambda p: _shutil._ntuple_diskusage(10**12, 10**12 - 1000, 1000))
+    r = _render(out, "--no-jacobian", n=6, shard_size=2)
+    lines = [ln for ln in r.output.splitlines() if ln.startswith("Error:")]
+    assert r.exit_code == 1 and len(lines) == 1, r.output
+    assert "the 4 samples still to render need about" in lines[0] and "finished shard(s) are kept" in lines[0]
+    assert load_manifest(str(out))["counts"]["complete_shards"] == 1
+    monkeypatch.undo()
+    _ok(_render(out, "--no-jacobian", n=6, shard_size=2))  # resumes once there is room
+    assert load_manifest(str(out))["complete"]
+
+
 # ------------------------------------------------------------------------------------------ bad input
 
 

@@ -21,6 +21,7 @@ from typing import Callable
 
 from risp_data.atomic import write_text_atomic
 from risp_data.errors import RispError
+from risp_data.processes import end_pool_workers
 from risp_data.ray_support import ray_errors, require_ray
 from risp_data.shards.manifest import sha256_file
 
@@ -292,7 +293,7 @@ def _pool_worker_init(parent: int) -> None:
     # Ctrl-C reaches the whole process group: the table process ends its workers itself (_run_processes), and an
     # idle worker interrupted in the pool's queue would print a traceback of its own
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, _end_worker)  # _end_workers: this worker and its data loaders
+    signal.signal(signal.SIGTERM, _end_worker)  # end_pool_workers: this worker and its data loaders
 
     def watch():
         while os.getppid() == parent:
@@ -374,11 +375,11 @@ def _run_processes(cfg: TableConfig, todo: list[Cell], folder: str, cache: str |
                     if on_cell is not None:
                         on_cell(cell, result)
     except BrokenProcessPool:
-        _end_workers(pool)
+        end_pool_workers(pool)
         raise RispError("a --jobs process died (killed, or out of memory); finished cells are kept: rerun the same "
                         "command to resume, with fewer --jobs if memory is short") from None
     except BaseException:  # Ctrl-C, or an artifact that cannot be made: the cells being computed are dropped
-        _end_workers(pool)
+        end_pool_workers(pool)
         raise
     pool.shutdown(wait=True)
 
@@ -391,21 +392,6 @@ def _end_worker(*_) -> None:
     for child in mp.active_children():
         child.kill()
     os._exit(1)
-
-
-def _end_workers(pool, grace: float = 5.0) -> None:
-    """Stop a pool's workers now (their cells are atomic files: a stopped cell leaves nothing) instead of waiting
-    for the cells they compute, minutes each: SIGTERM (each ends its data loaders, _end_worker), then SIGKILL for
-    one that is still inside a native call after ``grace`` seconds."""
-    procs = list((getattr(pool, "_processes", None) or {}).values())
-    for proc in procs:
-        proc.terminate()
-    deadline = time.monotonic() + grace
-    for proc in procs:
-        proc.join(max(0.0, deadline - time.monotonic()))
-        if proc.is_alive():
-            proc.kill()
-    pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _run_ray(cfg: TableConfig, todo: list[Cell], folder: str, cache: str | None, on_cell) -> None:
