@@ -19,8 +19,11 @@ def atomic_write(path: "str | os.PathLike", mode: str = "wb", suffix: str = "") 
     """Yield a file in ``path``'s folder under a temporary name (``.tmp-*``); on success flush, fsync and
     rename it over ``path``; on any exception (including KeyboardInterrupt) remove it and re-raise."""
     folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=TEMP_PREFIX, suffix=suffix, dir=folder)
+    try:
+        os.makedirs(folder, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=TEMP_PREFIX, suffix=suffix, dir=folder)
+    except OSError as e:  # name the file being written, not a temporary name the user never chose
+        raise OSError(e.errno, e.strerror or str(e), os.fspath(path)) from None
     try:
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the file the usual permissions
         with os.fdopen(fd, mode) as f:
@@ -37,6 +40,22 @@ def atomic_write(path: "str | os.PathLike", mode: str = "wb", suffix: str = "") 
 
 
 TEMP_PREFIX = ".tmp-"
+
+
+def check_writable(folder: "str | os.PathLike", what: str = "output folder") -> None:
+    """Raise one RispError line now — not after minutes of work — when ``folder`` could not be created or written
+    into: a file in its path, or no write permission on it or on the nearest folder above it that exists.
+    Nothing is created (a command refused later for bad input leaves no empty folder)."""
+    from .errors import RispError
+
+    path = os.path.abspath(folder)
+    probe = path
+    while not os.path.exists(probe) and os.path.dirname(probe) != probe:
+        probe = os.path.dirname(probe)
+    if not os.path.isdir(probe):
+        raise RispError(f"{what} {os.fspath(folder)} cannot be made: {probe} is a file")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise RispError(f"{what} {os.fspath(folder)} cannot be written: no write permission on {probe}")
 
 
 def temp_folder(parent: "str | os.PathLike") -> str:

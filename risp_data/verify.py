@@ -59,6 +59,8 @@ class VerifyReport:
     files_checked: int
     tol: float
     failures: list[str] = field(default_factory=list)
+    repaired: int | None = None  # samples re-rendered by --repair (None: no repair asked for)
+    jacobian: bool = True  # False: a --no-jacobian folder, whose repair and checksums were all there was to do
 
     def raise_if_failed(self) -> None:
         if self.failures:
@@ -66,8 +68,11 @@ class VerifyReport:
 
 
 def format_report(r: VerifyReport) -> str:
-    lines = [
-        f"checksums: {r.files_checked} shard files ok" if r.files_checked else "checksums: skipped",
+    lines = [] if r.repaired is None else [f"repair: {r.repaired} sample(s) re-rendered"]
+    lines.append(f"checksums: {r.files_checked} shard files ok" if r.files_checked else "checksums: skipped")
+    if not r.jacobian:
+        return "\n".join(lines + ["no Jacobians to verify: the folder was rendered with --no-jacobian"])
+    lines += [
         f"re-rendered samples {r.indices}; primal vs stored image: max rel. difference {r.image_error:.2e}",
         f"{'psi':<18} {'rel.error':>10} {'worst sample':>13}   (tolerance {r.tol:g})",
     ]
@@ -115,15 +120,14 @@ def verify_folder(cfg: VerifyConfig) -> VerifyReport:
     if cfg.eps > MAX_EPS:  # ψ ± h would leave ψ's range by far (negative reflectances): not a derivative check
         raise RispError(f"--eps {cfg.eps:g} is a step of {cfg.eps:g}× each ψ's range; use at most {MAX_EPS:g} "
                         "(default 1e-2)")
-    if cfg.repair:
-        repair_folder(cfg.folder, cfg.progress)
+    repaired = repair_folder(cfg.folder, cfg.progress) if cfg.repair else None
     m = load_manifest(cfg.folder)
-    if not m["jacobian"]:
-        raise RispError(f"{cfg.folder} was rendered with --no-jacobian: there are no Jacobians to verify")
-    try:
-        files = verify_checksums(cfg.folder, m) if cfg.checksums else 0
-    except RispError as e:
-        raise RispError(f"{e}; repair: risp-data verify --repair {cfg.folder}") from None
+    if not m["jacobian"] and not cfg.repair:
+        raise RispError(f"{cfg.folder} was rendered with --no-jacobian: there are no Jacobians to verify "
+                        f"(--repair still re-renders its damaged shards)")
+    files = verify_checksums(cfg.folder, m) if cfg.checksums else 0  # a damaged file's error names the repair
+    if not m["jacobian"]:  # repaired and checked: there is nothing more to compare
+        return VerifyReport(cfg.folder, [], [], [], [], 0.0, files, cfg.tol, repaired=repaired, jacobian=False)
     look = look_fingerprint(m["env"])
     if m.get("look") != look:  # the re-renders would show another object than the stored images
         raise RispError(f"{cfg.folder} was rendered with another look of {m['env']} (look {m.get('look')}, risp "
@@ -180,4 +184,5 @@ def verify_folder(cfg: VerifyConfig) -> VerifyReport:
     failures.extend(bad)
     if not np.isfinite(image_err):
         failures.append("a re-rendered image holds NaN or inf")
-    return VerifyReport(cfg.folder, chosen, names, rel.tolist(), worst.tolist(), image_err, files, cfg.tol, failures)
+    return VerifyReport(cfg.folder, chosen, names, rel.tolist(), worst.tolist(), image_err, files, cfg.tol, failures,
+                        repaired=repaired)

@@ -280,7 +280,7 @@ def collate(samples: list[dict], state_dim: int | None = None) -> dict:
         if s["image"].shape != first["image"].shape:
             raise RispError(f"sample {s['key']} in {s.get('url', '?')}: image shape {s['image'].shape} differs "
                             f"from {first['image'].shape}")
-        for field in ("image", "state", "jacobian"):
+        for field in ("image", "state", "jacobian", "psi"):  # ψ: recorded with the batch (its look), never NaN
             if s[field] is not None and not np.isfinite(s[field]).all():
                 raise RispError(f"sample {s['key']} in {s.get('url', '?')}: {field} contains NaN or inf")
     out = {

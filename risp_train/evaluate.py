@@ -41,7 +41,7 @@ from risp_data.shards.manifest import package_versions, sha256_file
 from .checkpoint import check_compatible, load_checkpoint, model_file
 from .data import iter_batches, manifest_hash, open_shards
 from .predictor import predictor_from_checkpoint
-from risp_data.atomic import write_text_atomic
+from risp_data.atomic import check_writable, write_text_atomic
 
 METRICS = ("l1", "l2")
 ANGLE_NAMES = ("yaw", "pitch", "roll")
@@ -137,6 +137,8 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
         raise RispError("--seed must be >= 0, --batch-size >= 1 and --limit >= 1")
     ckpt = load_checkpoint(cfg.model)
     shards = open_shards(cfg.shards, cfg.format)
+    prefix = _out_prefix(cfg)
+    check_writable(os.path.dirname(os.path.abspath(prefix)), "--out folder")  # before the evaluation, not after
     check_compatible(ckpt, cfg.model, env=shards.env, state_names=shards.state_names, resolution=shards.resolution)
     env = get_environment(shards.env)
     predictor = predictor_from_checkpoint(ckpt, cfg.model)
@@ -167,10 +169,6 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
         "groups": {k: summarize_groups(shards.env, v, true) for k, v in estimates.items()},
         "config": asdict(cfg),
     }
-    name = "eval-" + os.path.basename(os.path.normpath(cfg.shards))
-    prefix = cfg.out or os.path.join(os.path.dirname(os.path.abspath(cfg.model)), name)
-    if cfg.out and (cfg.out.endswith(("/", os.sep)) or os.path.isdir(cfg.out)):  # a folder: the default name in it
-        prefix = os.path.join(cfg.out, name)
     os.makedirs(os.path.dirname(os.path.abspath(prefix)), exist_ok=True)
     _atomic_text(prefix + ".json", json.dumps(result, indent=1, sort_keys=True) + "\n")
     _atomic_text(prefix + ".md", markdown_table(result) + "\n")
@@ -180,6 +178,16 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
                            title=f"{shards.env}, {result['domain']} domain, {n} images")
     result["files"] = [prefix + ".json", prefix + ".md", prefix + "_scatter.png"]
     return result
+
+
+def _out_prefix(cfg: EvalConfig) -> str:
+    """The path prefix of the result files: ``--out``, or ``eval-<shards name>`` beside the model or in ``--out``'s
+    folder."""
+    name = "eval-" + os.path.basename(os.path.normpath(cfg.shards))
+    prefix = cfg.out or os.path.join(os.path.dirname(os.path.abspath(cfg.model)), name)
+    if cfg.out and (cfg.out.endswith(("/", os.sep)) or os.path.isdir(cfg.out)):  # a folder: the default name in it
+        prefix = os.path.join(cfg.out, name)
+    return prefix
 
 
 def markdown_table(result: dict) -> str:

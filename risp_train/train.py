@@ -35,7 +35,7 @@ from .memory import load_memory_set, memory_batches, resolve_cache
 from .model import ModelConfig, ResNet18, build_model, min_resolution, stem_for_resolution
 from .normalization import Normalization, StatsAccumulator
 from .regularizers import gamma_at, psi_scale, risp_loss
-from risp_data.atomic import atomic_write, remove_temporaries, write_text_atomic
+from risp_data.atomic import atomic_write, check_writable, remove_temporaries, write_text_atomic
 from risp_data.shards.manifest import package_versions
 from risp_data.threads import set_torch_threads
 
@@ -159,8 +159,9 @@ def _is_run_file(name: str) -> bool:
 
 def check_run_folder(out: str, resume: bool, overwrite: bool, remove: bool = True) -> None:
     """Refuse a run folder that holds a model or checkpoint unless ``--resume`` or ``--overwrite`` says what
-    to do with it; with ``--overwrite`` remove them (after every other check has passed; ``remove=False``: only
-    check)."""
+    to do with it; with ``--overwrite`` remove every file of the earlier run (after every other check has passed;
+    ``remove=False``: only check): its model and checkpoint, and also its history, losses, config and evaluations,
+    which would otherwise sit beside the new run's files and describe another model (a user's own files stay)."""
     held = [name for name in (MODEL, LAST) if os.path.exists(os.path.join(out, name))]
     if resume and overwrite:
         raise RispError("--resume and --overwrite exclude each other")
@@ -170,8 +171,10 @@ def check_run_folder(out: str, resume: bool, overwrite: bool, remove: bool = Tru
         raise RispError(f"{out} is not empty and holds no risp-train run ({shown}); choose another --out, or "
                         "--overwrite to write the run beside those files")
     if overwrite:
-        for name in held if remove else ():
-            os.unlink(os.path.join(out, name))
+        for name in [n for n in present if _is_run_file(n)] if remove else ():
+            path = os.path.join(out, name)
+            if os.path.isfile(path) or os.path.islink(path):
+                os.unlink(path)
     elif held and not resume:
         raise RispError(f"{out} already holds a run ({', '.join(held)}); pass --resume to continue it, "
                         "--overwrite to replace it, or choose another --out")
@@ -348,6 +351,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
                         "lower --batch-size or --workers, or render more samples")
 
     check_run_folder(cfg.out, resume, overwrite, remove=False)  # refuse before the decode below, delete nothing
+    check_writable(cfg.out, "run folder")
     mset = None
     if cache == "memory":  # decoded once (checksums and all) before anything is written; the epochs only index it
         mset = load_memory_set(shards, need_jacobian=need_j, workers=cfg.workers, state_dim=env.state_dim,

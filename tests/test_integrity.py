@@ -101,6 +101,27 @@ def _zero_tail_at_last_sample(tar_path):
 # ------------------------------------------------------------------------------ 1. fewer samples
 
 
+def test_a_truncated_shard_in_fit_names_the_repair_that_then_works(data, tmp_path):
+    """fit and eval on a cut shard: the one error line ends with the repair command (inspect named it, the readers
+    did not), and that command, run as printed, makes the folder trainable again."""
+    import shlex
+
+    bad = _copy(data["train"], tmp_path / "cut")
+    tar = os.path.join(bad, "wds", "shard-000001.tar")
+    with open(tar, "r+b") as f:
+        f.truncate(os.path.getsize(tar) // 2)
+    runner = CliRunner()
+    line = _one_line_error(runner.invoke(train_cli, ["fit", bad, "--out", str(tmp_path / "run"), *_TINY,
+                                                     "--format", "wds"]))
+    assert "shard-000001.tar" in line and line.endswith(f"repair: risp-data verify --repair {bad}")
+    args = shlex.split(line.rsplit("repair: risp-data ", 1)[1])
+    r = runner.invoke(data_cli, args + ["--samples", "1"])
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(train_cli, ["fit", bad, "--out", str(tmp_path / "run"), *_TINY, "--format", "wds",
+                                  "--epochs", "1"])
+    assert r.exit_code == 0, r.output
+
+
 def test_zero_filled_tar_tail_is_refused_by_every_reader(data, model, tmp_path):
     from risp_data.shards import iter_wds
 
@@ -132,6 +153,36 @@ def test_inspect_deep_finds_a_flipped_byte_that_sizes_miss(data, tmp_path):
     assert r.exit_code == 1 and "shard 1:" in r.output and "sha256 differs" in r.output, r.output
 
 
+def test_eval_and_fit_refuse_an_out_they_cannot_write_before_working(data, model, tmp_path, monkeypatch):
+    """An --out under a file: one line naming that file, before any image is evaluated or any data decoded (eval
+    found out only after evaluating every image, and said `File exists` of the file)."""
+    import risp_train.evaluate as evaluate
+    import risp_train.train as train
+
+    blocker = tmp_path / "afile"
+    blocker.write_text("x")
+    monkeypatch.setattr(evaluate, "iter_batches", lambda *a, **k: pytest.fail("evaluated before checking --out"))
+    line = _one_line_error(CliRunner().invoke(train_cli, ["eval", model, data["train"], "--quiet",
+                                                          "--out", str(blocker / "ev")]))
+    assert f"{blocker} is a file" in line
+    monkeypatch.setattr(train, "load_memory_set", lambda *a, **k: pytest.fail("decoded before checking --out"))
+    line = _one_line_error(CliRunner().invoke(train_cli, ["fit", data["train"], "--out", str(blocker / "run"), *_TINY,
+                                                          "--epochs", "1"]))
+    assert f"{blocker} is a file" in line
+
+
+def test_atomic_write_names_the_file_it_could_not_write(tmp_path):
+    """A failure to create the temporary names the file being written, not `.tmp-…`."""
+    from risp_data.atomic import atomic_write
+
+    (tmp_path / "afile").write_text("x")
+    target = tmp_path / "afile" / "x.json"
+    with pytest.raises(OSError) as e:
+        with atomic_write(target, "w") as f:
+            f.write("{}")
+    assert e.value.filename == str(target)
+
+
 # ---------------------------------------------------------------------------- 2. model overwritten
 
 
@@ -139,6 +190,8 @@ def test_fit_refuses_a_folder_holding_a_model_unless_overwrite(data, model, tmp_
     run = tmp_path / "finished"
     run.mkdir()
     shutil.copy(model, run / "model.pt")  # a finished run whose last.pt is gone
+    (run / "eval-old.json").write_text('{"model_sha256": "of the old model"}')  # its evaluation
+    (run / "notes.txt").write_text("mine")
     before = hashlib.sha256((run / "model.pt").read_bytes()).hexdigest()
     runner = CliRunner()
     line = _one_line_error(runner.invoke(train_cli, ["fit", data["train"], "--out", str(run), *_TINY, "--epochs", "1",
@@ -152,6 +205,8 @@ def test_fit_refuses_a_folder_holding_a_model_unless_overwrite(data, model, tmp_
                                   "--overwrite"])
     assert r.exit_code == 0, r.output
     assert hashlib.sha256((run / "model.pt").read_bytes()).hexdigest() != before
+    # the old run's evaluation went with it (it named the replaced model); a user's file stays
+    assert not (run / "eval-old.json").exists() and (run / "notes.txt").read_text() == "mine"
 
 
 def test_fit_refuses_a_folder_of_other_files_unless_overwrite(data, tmp_path):
@@ -204,6 +259,23 @@ def test_render_resume_and_verify_repair_re_render_damaged_shards(data, tmp_path
     assert "shard 0 is damaged" in r.output, r.output
     assert open(os.path.join(bad2, "wds", "shard-000000.tar"), "rb").read() == \
         open(os.path.join(ref, "wds", "shard-000000.tar"), "rb").read()
+
+
+def test_verify_repair_of_a_folder_without_jacobians_repairs_it_and_succeeds(data, tmp_path):
+    """`inspect` names `verify --repair` for every damaged folder; on a --no-jacobian (target-domain) one it re-rendered
+    the shard and then failed with exit 1 (no Jacobians to verify).  It succeeds, saying what it did; plain
+    `verify` there is still one line."""
+    ref = data["val8"]
+    bad = _copy(ref, tmp_path / "val-damaged")
+    tar = os.path.join(bad, "wds", "shard-000000.tar")
+    with open(tar, "r+b") as f:
+        f.truncate(os.path.getsize(tar) // 2)
+    r = CliRunner().invoke(data_cli, ["verify", bad, "--repair"])
+    assert r.exit_code == 0, r.output
+    assert "sample(s) re-rendered" in r.output and "no Jacobians to verify" in r.output
+    assert open(tar, "rb").read() == open(os.path.join(ref, "wds", "shard-000000.tar"), "rb").read()
+    r = CliRunner().invoke(data_cli, ["verify", bad])
+    assert r.exit_code != 0 and "--no-jacobian" in r.output
 
 
 def test_repair_renders_with_the_folders_variant_and_a_local_pool_this_machine_has(data, tmp_path, monkeypatch):

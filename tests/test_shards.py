@@ -246,6 +246,27 @@ def test_missing_or_corrupt_manifest(tmp_path):
         wds_urls(str(tmp_path))
 
 
+@pytest.mark.parametrize("field, value, words", [
+    ("n", "abc", "field n is not a non-negative integer"),
+    ("resolution", 64.5, "field resolution is not a non-negative integer"),
+    ("seed", True, "field seed is not a non-negative integer"),
+    ("env", 3, "field env is not a string"),
+    ("jacobian", "yes", "field jacobian is not true or false"),
+    ("formats", "wds", "field formats is not a list"),
+    ("shards", [{"index": 0, "start": "0", "stop": 2, "files": {}}], "a record of field shards is malformed"),
+])
+def test_a_manifest_field_of_the_wrong_type_is_one_error(tmp_path, field, value, words):
+    """A hand-edited manifest ("n": "abc") was a ValueError traceback in risp-train (inspect passed it): now
+    load_manifest names the field."""
+    _write(str(tmp_path))
+    m = json.loads((tmp_path / "manifest.json").read_text())
+    load_manifest(str(tmp_path))  # as written: valid
+    m[field] = value
+    (tmp_path / "manifest.json").write_text(json.dumps(m))
+    with pytest.raises(RispError, match=f"corrupt manifest .*: {words}"):
+        load_manifest(str(tmp_path))
+
+
 def test_atomic_write_gives_normal_permissions_and_cleans_up(tmp_path):
     """Files written through risp_data.atomic get umask permissions (not mkstemp's 0600); a failure
     leaves neither the target nor a temporary file behind."""

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import shutil
 
+import numpy as np
 import pytest
 import torch
 
@@ -231,3 +232,21 @@ def test_cli_unknown_cache_is_one_error_line(shards, tmp_path):
     r = CliRunner().invoke(cli, ["fit", shards["train"], "--out", str(out), "--cache", "disk", "--quiet"])
     assert r.exit_code != 0 and "unknown --cache 'disk'" in r.output and r.output.strip().count("\n") == 0, r.output
     assert not out.exists()
+
+
+@pytest.mark.parametrize("field", ["image", "state", "jacobian", "psi"])
+def test_a_non_finite_value_in_any_stored_array_is_one_error(field):
+    """collate (both the streaming loader's and the in-memory decode's) refuses NaN/inf in every array a sample
+    holds; ψ, recorded with each batch, passed unchecked."""
+    from risp_train.data import collate
+
+    def sample(key):
+        return {"key": key, "url": "shard-000000.tar", "image": np.zeros((4, 4, 3), np.float32),
+                "state": np.zeros(3), "psi": np.ones(5), "jacobian": np.zeros((5, 4, 4, 3), np.float32)}
+
+    good, bad = sample("s0"), sample("s1")
+    collate([good, sample("s2")], state_dim=3)
+    bad[field] = bad[field].copy()
+    bad[field].flat[0] = np.nan
+    with pytest.raises(RispError, match=f"sample s1 in shard-000000.tar: {field} contains NaN or inf"):
+        collate([good, bad], state_dim=3)

@@ -132,11 +132,47 @@ def load_manifest(folder: str) -> dict[str, Any]:
     missing = [k for k in (*IDENTITY_FIELDS, "psi", "state_names", "shards") if k not in m and k != "look"]
     if missing:
         raise RispError(f"corrupt manifest {path}: missing field(s) {', '.join(missing)}")
+    wrong = _wrong_types(m)
+    if wrong:
+        raise RispError(f"corrupt manifest {path}: {wrong}")
     if m.get("format_version", 0) > FORMAT_VERSION:
         raise RispError(
             f"manifest {path} has format_version {m['format_version']}; this risp reads <= {FORMAT_VERSION}"
         )
     return m
+
+
+#: the manifest's fields that its readers compute with, and their JSON types (a hand-edited "n": "abc" must be one
+#: line here, not a traceback wherever it is first used)
+_INT_FIELDS = ("resolution", "spp", "n", "shard_size", "seed", "num_shards", "format_version")
+_STR_FIELDS = ("env", "domain", "variant", "look")
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _wrong_types(m: dict[str, Any]) -> str | None:
+    """The first field of ``m`` whose type is not the one risp writes (None when all are)."""
+    for k in _INT_FIELDS:
+        if k in m and not (_is_int(m[k]) and m[k] >= 0):
+            return f"field {k} is not a non-negative integer ({m[k]!r})"
+    for k in _STR_FIELDS:
+        if k in m and not isinstance(m[k], str):
+            return f"field {k} is not a string ({m[k]!r})"
+    if not isinstance(m["jacobian"], bool):
+        return f"field jacobian is not true or false ({m['jacobian']!r})"
+    if not (isinstance(m["formats"], list) and all(isinstance(f, str) for f in m["formats"])):
+        return "field formats is not a list of names"
+    if not isinstance(m["psi"], dict) or not isinstance(m["state_names"], list):
+        return "field psi is not an object" if not isinstance(m["psi"], dict) else "field state_names is not a list"
+    if not isinstance(m["shards"], list):
+        return "field shards is not a list"
+    for rec in m["shards"]:
+        if not (isinstance(rec, dict) and all(_is_int(rec.get(k)) for k in ("index", "start", "stop"))
+                and isinstance(rec.get("files"), dict)):
+            return f"a record of field shards is malformed ({str(rec)[:60]})"
+    return None
 
 
 def save_manifest(folder: str, manifest: dict[str, Any]) -> None:
@@ -220,6 +256,11 @@ def shard_problem(folder: str, record: dict[str, Any], deep: bool = True) -> str
     return None
 
 
+def repair_hint(folder: str) -> str:
+    """What every damaged-shard error ends with: the command that re-renders the damaged shards."""
+    return f"; repair: risp-data verify --repair {folder}"
+
+
 def verify_checksums(folder: str, manifest: dict[str, Any] | None = None) -> int:
     """Hash every file of every complete shard and compare with the manifest; returns the number checked.
 
@@ -231,11 +272,12 @@ def verify_checksums(folder: str, manifest: dict[str, Any] | None = None) -> int
         for rel, info in sorted(rec["files"].items()):
             path = os.path.join(folder, rel)
             if not os.path.exists(path):
-                raise RispError(f"shard file missing: {path}")
+                raise RispError(f"shard file missing: {path}{repair_hint(folder)}")
             size = os.path.getsize(path)
             if size != info["bytes"]:
-                raise RispError(f"truncated or corrupt shard file {path}: {size} bytes, manifest says {info['bytes']}")
+                raise RispError(f"truncated or corrupt shard file {path}: {size} bytes, manifest says {info['bytes']}"
+                                f"{repair_hint(folder)}")
             if sha256_file(path) != info["sha256"]:
-                raise RispError(f"corrupt shard file {path}: sha256 differs from the manifest")
+                raise RispError(f"corrupt shard file {path}: sha256 differs from the manifest{repair_hint(folder)}")
             checked += 1
     return checked

@@ -26,7 +26,7 @@ from typing import Any, Iterator
 import numpy as np
 
 from ..errors import RispError
-from .manifest import load_manifest
+from .manifest import load_manifest, repair_hint
 from .layout import RGB, is_compact
 from .sample import Sample
 from ..atomic import atomic_write
@@ -211,9 +211,10 @@ def wds_urls(folder: str) -> list[str]:
                 continue
             path = os.path.join(folder, rel)
             if not os.path.exists(path):
-                raise RispError(f"webdataset shard missing: {path}")
+                raise RispError(f"webdataset shard missing: {path}{repair_hint(folder)}")
             if os.path.getsize(path) != info["bytes"]:
-                raise RispError(f"truncated or corrupt webdataset shard {path}: size differs from the manifest")
+                raise RispError(f"truncated or corrupt webdataset shard {path}: size differs from the manifest"
+                                f"{repair_hint(folder)}")
             urls.append(path)
     return urls
 

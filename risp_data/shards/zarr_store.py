@@ -27,7 +27,7 @@ import numpy as np
 
 from ..errors import RispError
 from .layout import channel_map, from_planes, is_compact, plane_lists, to_planes
-from .manifest import load_manifest
+from .manifest import load_manifest, repair_hint
 
 ZARR_DIR = "data.zarr"
 _DIMS = {
@@ -169,9 +169,10 @@ class ZarrDataset:
                 if rel.startswith(ZARR_DIR + "/"):
                     p = os.path.join(folder, rel)
                     if not os.path.exists(p):
-                        raise RispError(f"zarr shard file missing: {p}")
+                        raise RispError(f"zarr shard file missing: {p}{repair_hint(folder)}")
                     if os.path.getsize(p) != info["bytes"]:
-                        raise RispError(f"truncated or corrupt zarr shard file {p}: size differs from the manifest")
+                        raise RispError(f"truncated or corrupt zarr shard file {p}: size differs from the manifest"
+                                        f"{repair_hint(folder)}")
             self._ranges.append((rec["start"], rec["stop"], rec["index"]))
         self._ranges.sort()
         self._offsets = np.cumsum([0] + [b - a for a, b, _ in self._ranges])
