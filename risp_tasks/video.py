@@ -14,6 +14,7 @@ from __future__ import annotations
 import hashlib
 import math
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,6 +36,8 @@ class Video:
     indices: tuple[int, ...]  # which decoded frames ``frames`` holds
     source_fps: float = 0.0  # frame rate of the decoded frames (0: unknown, a PNG folder without source_fps)
     comment: str = ""  # the file's comment tag ("" for a PNG folder): make-video writes MADE_BY there
+    notes: tuple[str, ...] = ()  # what the reader did that the user should know (an overridden frame rate)
+    source_size: tuple[int, int] | None = None  # (width, height) of the frames as decoded, before resizing
 
 
 def srgb_to_linear(x: np.ndarray) -> np.ndarray:
@@ -84,8 +87,9 @@ class _Converting(Exception):
     """An error of a frame's conversion (``each``), not of the decoder: re-raised as what it was."""
 
 
-def _decode_file(path: Path, each=lambda img: img) -> tuple[list[np.ndarray], float, str]:
-    """(``each`` of every decoded (H, W, 3) uint8 frame, the stream's frame rate, the container's comment tag)."""
+def _decode_file(path: Path, each=lambda img: img) -> tuple[list[np.ndarray], float, str, tuple | None]:
+    """(``each`` of every decoded (H, W, 3) uint8 frame, the stream's frame rate, the container's comment tag, the
+    frames' (width, height) as decoded)."""
     av = _av()
     first = None
 
@@ -107,24 +111,92 @@ def _decode_file(path: Path, each=lambda img: img) -> tuple[list[np.ndarray], fl
                 raise RispError(f"{path}: not a video (no video stream)")
             stream = streams[0]
             rate = stream.average_rate or stream.base_rate or stream.guessed_rate
-            frames = [convert(f.to_ndarray(format="rgb24")) for f in container.decode(stream)]
+            frames, times = [], []
+            for f in container.decode(stream):
+                frames.append(convert(f.to_ndarray(format="rgb24")))
+                times.append(None if f.pts is None or f.time_base is None else float(f.pts * f.time_base))
             tags = {k.lower(): v for k, v in container.metadata.items()}  # Matroska writes COMMENT
+            announced = _announced(container, stream)
     except RispError:
         raise
     except _Converting as e:
         raise e.__cause__ from None
     except Exception as e:  # noqa: BLE001 - PyAV raises many error types (InvalidDataError, …)
         raise RispError(f"{path}: cannot decode as a video ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
-    return frames, float(rate) if rate else 0.0, str(tags.get("comment", ""))
+    _check_complete(path, frames, times, announced)
+    _check_constant_rate(path, times)
+    return frames, float(rate) if rate else 0.0, str(tags.get("comment", "")), (first[1], first[0]) if first else None
 
 
-OTHER_IMAGE_SUFFIXES = (".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".exr")
+def _announced(container, stream) -> tuple[int | None, float | None]:
+    """(frame count, seconds) a file's header announces: the stream's own count, and its (or the container's)
+    duration; None for what it does not say."""
+    seconds = None
+    if stream.duration and stream.time_base:
+        seconds = float(stream.duration * stream.time_base)
+    elif container.duration:
+        seconds = container.duration / 1e6  # av.time_base
+    return (int(stream.frames) if stream.frames else None), seconds
+
+
+def _check_complete(path: Path, frames: list, times: list, announced: tuple) -> None:
+    """RispError when fewer frames decode than the header announces: a truncated Matroska or AVI file decodes
+    without an error, only to fewer frames (an MP4 cut short fails to open).  Against the stream's frame count
+    where the header has one, else against its duration: the decoded frames' span must reach it (within two
+    frames or 5 %) — a span, not a count, so that a variable frame rate is not taken for a cut."""
+    count, seconds = announced
+    n = len(frames)
+    if count is not None:
+        if n < count - max(2, 0.05 * count):
+            raise RispError(f"{path}: only {n} of the {count} frames its header announces could be decoded: the file "
+                            "is cut short (an interrupted download or copy?)")
+        return
+    if seconds is None or len(times) < 2 or any(t is None for t in times):
+        return
+    step = float(np.median(np.diff(times)))
+    span = times[-1] - times[0] + step
+    if step > 0 and seconds - span > max(2 * step, 0.05 * seconds):
+        raise RispError(f"{path}: the decoded frames end at {span:.3g} s of the {seconds:.3g} s its header announces "
+                        f"({n} frames): the file is cut short (an interrupted download or copy?)")
+
+
+#: a step between two frames' timestamps may differ from the median step by this fraction (timestamp rounding,
+#: a phone's jitter); more (a frame held or dropped: a variable frame rate) and times taken at a constant rate
+#: would be wrong
+RATE_TOLERANCE = 0.5
+
+
+def _check_constant_rate(path: Path, times: list) -> None:
+    """RispError when the frames' presentation times are not evenly spaced: every task runs its simulation at one
+    step per frame, so a variable-frame-rate file would put each frame at the wrong time."""
+    if len(times) < 3 or any(t is None for t in times):
+        return
+    steps = np.diff(np.asarray(times, np.float64))
+    step = float(np.median(steps))
+    if not step > 0:
+        return
+    worst = int(np.argmax(np.abs(steps - step)))
+    if abs(steps[worst] - step) > RATE_TOLERANCE * step:
+        raise RispError(f"{path}: a variable frame rate (frames {worst} → {worst + 1} are {steps[worst] * 1e3:.0f} ms "
+                        f"apart, most {step * 1e3:.0f} ms): re-encode it at a constant rate (e.g. ffmpeg -i IN "
+                        f"-fps_mode cfr -r {1 / step:.3g} OUT) or export its frames as PNGs")
+
+
+OTHER_IMAGE_SUFFIXES = (".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".exr", ".gif", ".avif", ".heic", ".heif",
+                        ".jp2", ".jxl", ".ppm", ".pgm", ".tga")
+
+
+def frame_order(path: Path) -> tuple:
+    """Sort key of a frame file: numbers in the name compare as numbers, so ``2.png`` comes before ``10.png``
+    (plain text order would put frames 10–19 between 1 and 2) and zero-padded names keep their order."""
+    parts = re.split(r"(\d+)", path.name)
+    return tuple((0, int(x), x) if x.isdigit() else (1, 0, x) for x in parts), path.name
 
 
 def png_frames(folder: Path) -> list[Path]:
-    """A PNG folder's frames in name order (``.png`` in any case); RispError if it also holds other images,
-    which would otherwise go missing from the sequence without a word."""
-    files = sorted(f for f in folder.iterdir() if f.is_file() and f.suffix.lower() == ".png")
+    """A PNG folder's frames in the numeric order of their names (:func:`frame_order`; ``.png`` in any case);
+    RispError if it also holds other images, which would otherwise go missing from the sequence without a word."""
+    files = sorted((f for f in folder.iterdir() if f.is_file() and f.suffix.lower() == ".png"), key=frame_order)
     others = sorted(f.name for f in folder.iterdir() if f.is_file() and f.suffix.lower() in OTHER_IMAGE_SUFFIXES)
     if others:
         raise RispError(f"{folder}: the folder holds images that are not PNG ({others[0]}"
@@ -148,8 +220,8 @@ def read_rgb8(path: str | os.PathLike) -> np.ndarray:
         return np.asarray(im.convert("RGB"))
 
 
-def _decode_pngs(folder: Path, each=lambda img: img) -> list[np.ndarray]:
-    """``each`` of every frame of a PNG folder, in name order (the frames must share one size)."""
+def _decode_pngs(folder: Path, each=lambda img: img) -> tuple[list[np.ndarray], tuple[int, int]]:
+    """(``each`` of every frame of a PNG folder, in name order; their (width, height): one size for all)."""
     files = png_frames(folder)
     if not files:
         raise RispError(f"{folder}: folder holds no .png frames")
@@ -164,7 +236,7 @@ def _decode_pngs(folder: Path, each=lambda img: img) -> list[np.ndarray]:
             raise RispError(f"{f}: PNG frame of {img.shape[1]}×{img.shape[0]} pixels, but {files[0].name} "
                             f"has {first[1]}×{first[0]}: the frames of a video share one size")
         out.append(each(img))
-    return out
+    return out, (first[1], first[0])
 
 
 def resize(frames: np.ndarray, resolution: int) -> np.ndarray:
@@ -222,7 +294,8 @@ def read_video(path: str | os.PathLike, resolution: int | None = None, every: in
                source_fps: float | None = None) -> Video:
     """Decode ``path`` (video file or PNG folder) to linear RGB frames, resampled in time and size.
 
-    ``source_fps`` gives the frame rate of a PNG folder (files carry their own)."""
+    ``source_fps`` gives the frame rate of a PNG folder; on a file it replaces the rate the file carries (slow
+    motion stored at 30 fps), which ``notes`` then says."""
     p = Path(path)
     if not p.exists():
         raise RispError(f"{p}: no such file or folder")
@@ -233,13 +306,16 @@ def read_video(path: str | os.PathLike, resolution: int | None = None, every: in
         full-size copy of every frame of a long 1080p clip would not fit in memory), else as decoded."""
         return img if resolution is None else resize(SRGB8_TO_LINEAR[img][None], int(resolution))[0]
 
-    comment = ""
+    comment, notes = "", []
     if p.is_dir():
-        raw, rate = _decode_pngs(p, each), float(source_fps or 0.0)
+        (raw, size), rate = _decode_pngs(p, each), float(source_fps or 0.0)
     else:
         if p.stat().st_size == 0:
             raise RispError(f"{p}: empty file (0 bytes)")
-        raw, rate, comment = _decode_file(p, each)
+        raw, rate, comment, size = _decode_file(p, each)
+        if source_fps is not None and rate and abs(source_fps - rate) > 1e-6 * rate:  # e.g. slow motion stored at 30
+            notes.append(f"--source-fps {source_fps:g} replaces the {rate:g} fps written in {p.name}: its frames are "
+                         f"taken {1 / source_fps:.4g} s apart")
         rate = float(source_fps or rate)
     if not raw:
         raise RispError(f"{p}: the video has no frames")
@@ -251,7 +327,7 @@ def read_video(path: str | os.PathLike, resolution: int | None = None, every: in
         frames = SRGB8_TO_LINEAR[frames]
     out_fps = (fps if fps is not None else rate) / every if (fps or rate) else 0.0
     return Video(frames=frames, fps=float(out_fps), source=str(p), source_frames=len(raw), indices=tuple(idx),
-                 source_fps=float(rate), comment=comment)
+                 source_fps=float(rate), comment=comment, notes=tuple(notes), source_size=size)
 
 
 #: the comment tag of make-video's files: "risp make-video env=<env> seed=<seed>" (made_by / made_for)

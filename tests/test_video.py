@@ -173,3 +173,81 @@ def test_a_frame_conversion_error_is_not_called_a_decoding_error(tmp_path, monke
     monkeypatch.setattr(video, "resize", no_memory)
     with pytest.raises(MemoryError, match="resize"):
         read_video(path, resolution=8)
+
+
+def test_png_frames_with_unpadded_numbers_are_read_in_numeric_order(tmp_path):
+    """1.png … 12.png: text order (1, 10, 11, 12, 2, …) shuffled the frames without a word."""
+    from PIL import Image
+
+    folder = tmp_path / "unpadded"
+    folder.mkdir()
+    for i in range(1, 13):  # frame i is uniformly i·20 grey
+        Image.fromarray(np.full((8, 8, 3), 20 * i, np.uint8)).save(folder / f"{i}.png")
+    v = read_video(folder, source_fps=10)
+    grey = np.round(linear_to_srgb(v.frames[:, 0, 0, 0]) * 255).astype(int)
+    assert grey.tolist() == [20 * i for i in range(1, 13)]
+
+
+@pytest.mark.parametrize("suffix", [".mkv", ".avi"])
+def test_a_cut_matroska_or_avi_file_is_refused_not_read_short(tmp_path, suffix):
+    """A truncated .mkv/.avi decodes without an error, only to fewer frames: it was read as a shorter video (exit
+    0, or an actions file blamed for the count).  The header's frame count or duration names the cut."""
+    write_video(tmp_path / f"v{suffix}", _frames(T=30), fps=10)
+    assert read_video(tmp_path / f"v{suffix}").frames.shape[0] == 30  # whole: read as it is
+    data = (tmp_path / f"v{suffix}").read_bytes()
+    (tmp_path / f"cut{suffix}").write_bytes(data[: len(data) * 9 // 10])  # (cut shorter, this AVI does not open)
+    with pytest.raises(RispError, match=rf"cut{suffix}: .*the file is cut short"):
+        read_video(tmp_path / f"cut{suffix}")
+
+
+def _write_with_times(path, frames, times_ms):
+    """A video whose frames have the given presentation times (ms): a variable frame rate."""
+    import av
+    from fractions import Fraction
+
+    from risp_tasks.video import to_uint8
+
+    with av.open(str(path), "w") as out:
+        stream = out.add_stream("libx264", rate=10)
+        stream.width, stream.height, stream.pix_fmt = frames.shape[2], frames.shape[1], "yuv444p"
+        stream.time_base = Fraction(1, 1000)
+        for img, t in zip(to_uint8(frames), times_ms):
+            f = av.VideoFrame.from_ndarray(img, format="rgb24")
+            f.pts, f.time_base = t, Fraction(1, 1000)
+            for packet in stream.encode(f):
+                out.mux(packet)
+        for packet in stream.encode():
+            out.mux(packet)
+
+
+def test_a_variable_frame_rate_video_is_refused(tmp_path):
+    """Every fifth gap 300 ms instead of 100: the tasks put frame k at k / rate, so such a file was read with
+    wrong times (exit 0).  Evenly spaced times pass."""
+    frames = _frames(T=20, H=16, W=16)
+    even = [100 * k for k in range(20)]
+    _write_with_times(tmp_path / "even.mkv", frames, even)
+    assert read_video(tmp_path / "even.mkv").frames.shape[0] == 20
+    uneven = np.cumsum([0] + [300 if k % 5 == 4 else 100 for k in range(19)]).tolist()
+    _write_with_times(tmp_path / "vfr.mkv", frames, uneven)
+    with pytest.raises(RispError, match=r"vfr.mkv: a variable frame rate \(frames \d+ → \d+ are 300 ms apart, most 100 ms\)"):
+        read_video(tmp_path / "vfr.mkv")
+
+
+def test_source_fps_on_a_file_replaces_its_rate_and_says_so(tmp_path):
+    write_video(tmp_path / "v.mp4", _frames(T=6), fps=10)
+    assert read_video(tmp_path / "v.mp4").notes == ()
+    v = read_video(tmp_path / "v.mp4", source_fps=20)
+    assert v.fps == 20 and len(v.notes) == 1 and "--source-fps 20 replaces the 10 fps written in v.mp4" in v.notes[0]
+
+
+@pytest.mark.parametrize("other", ["frame_00002.gif", "frame_00002.tga"])
+def test_other_image_kinds_in_a_png_folder_are_named(tmp_path, other):
+    from PIL import Image
+
+    folder = tmp_path / "f"
+    folder.mkdir()
+    for i in range(2):
+        Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(folder / f"frame_{i:05d}.png")
+    Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(folder / other)
+    with pytest.raises(RispError, match=rf"not PNG \({other}\)"):
+        read_video(folder, source_fps=10)
