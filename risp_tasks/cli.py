@@ -125,7 +125,7 @@ def _task_options(task: str):
         click.option("--every", type=int, default=1, show_default=True, **shown("--every"), help="keep every k-th frame (not control)"),
         click.option("--fps", type=float, default=None, help="resample the video to this frame rate (a divisor of the "
                      "video's own); control: the simulation's frame rate [default 10]"),
-        click.option("--source-fps", type=float, default=None, **shown("--source-fps"), help="frame rate of a PNG folder (not control)"),
+        click.option("--source-fps", type=float, default=None, **shown("--source-fps"), help="frame rate of a PNG folder; on a file, replaces its own rate (not control)"),
         click.option("--actions", default=None, **shown("--actions"), help="sysid, estimate: actions CSV (t + f0..f3 [N] / u0.. ; one row "
                      "per frame)"),
         click.option("--truth", default=None, help="ground-truth JSON (oracle loss, error report)"),

@@ -80,6 +80,12 @@ def test_actions_wrong_width_and_nan(quad, tmp_path):
     line = _invoke(["sysid", video, "--model", model, "--actions", str(tmp_path / "wide.csv")], tmp_path)
     assert "wide.csv" in line and "unexpected column(s) f4" in line and "t,f0,f1,f2,f3" in line
     assert b"\r" not in open(_actions(video), "rb").read()  # written with plain newlines
+    # thrusts in other units (×1000: grams?) were clamped by the simulator without a word
+    head, *body = open(_actions(video)).read().splitlines()
+    big = [head] + [",".join([r.split(",")[0]] + [str(float(x) * 1000) for x in r.split(",")[1:]]) for r in body]
+    (tmp_path / "big.csv").write_text("\n".join(big) + "\n")
+    line = _invoke(["sysid", video, "--model", model, "--actions", str(tmp_path / "big.csv")], tmp_path)
+    assert "big.csv: rotor thrusts up to" in line and "above the 25 N the simulated rotors can give" in line
 
 
 def test_actions_from_a_spreadsheet_read_as_written():
@@ -438,6 +444,38 @@ def test_truth_of_another_video_is_refused(quad, tmp_path):
     assert "other.truth.json: the ground truth of another video" in line
 
 
+@pytest.mark.parametrize("change, words", [(dict(frames=999), "the ground truth of a 999-frame video"),
+                                           (dict(fps=30), "the ground truth of a 30 fps video")])
+def test_a_truth_without_checksum_must_match_the_videos_timeline(quad, tmp_path, change, words):
+    """A truth file from before video_sha256 was compared row by row with any video (exit 0): its frame count and
+    rate must at least be the video's."""
+    model, video = quad
+    truth = json.load(open(os.path.splitext(video)[0] + ".truth.json"))
+    del truth["video_sha256"]
+    truth.update(change)
+    (tmp_path / "old.truth.json").write_text(json.dumps(truth))
+    line = _invoke(["estimate", video, "--model", model, "--truth", str(tmp_path / "old.truth.json")], tmp_path)
+    assert "old.truth.json: " + words in line
+
+
+def test_estimate_without_actions_and_an_unused_camera_say_so(quad, tmp_path):
+    """estimate without --actions writes a CSV diagnose refuses (no command columns), and --camera with the state
+    loss changes nothing: both are said in the result's warnings (printed as `warning:` lines at the end)."""
+    from risp_tasks.cli import cli
+
+    model, video = quad
+    (tmp_path / "cam.json").write_text(json.dumps({"intrinsics": {"width": 64, "height": 64, "fx": 60.0},
+                                                   "extrinsics": {"origin": [0, -2, 2], "target": [0, 0, 1],
+                                                                  "up": [0, 0, 1]}}))
+    res = CliRunner().invoke(cli, ["estimate", video, "--model", model, "--camera", str(tmp_path / "cam.json"),
+                                   "--out", str(tmp_path / "res"), "--quiet", "--no-plots"])
+    assert res.exit_code == 0, res.output
+    warnings = json.load(open(tmp_path / "res" / "result.json"))["warnings"]
+    assert any("without --actions the trajectory CSV has no command columns" in w for w in warnings), warnings
+    assert any("--camera is used where the task renders" in w for w in warnings), warnings
+    assert "warning: without --actions" in res.output
+
+
 def test_make_video_params_with_a_huge_integer(tmp_path):
     from risp_tasks.cli import cli
 
@@ -496,6 +534,18 @@ def test_make_video_names_the_one_bad_setting(tmp_path, option, value, words):
      "field of view"),
     ({"width": 64, "height": 64, "fx": 60.0, "cx": 10}, {"origin": [0, -2, 2], "target": [0, 0, 1], "up": [0, 0, 1]},
      "intrinsics.cx = 10 is off the image centre"),
+    # each of these was accepted (exit 0) and the value taken or ignored without a word
+    ({"width": "64", "height": 64, "fx": 60.0}, {"origin": [0, -2, 2], "target": [0, 0, 1], "up": [0, 0, 1]},
+     "must be numbers, not strings"),
+    ({"width": 64, "height": 64, "fx": 60.0, "fy": 30.0}, {"origin": [0, -2, 2], "target": [0, 0, 1], "up": [0, 0, 1]},
+     "only square pixels"),
+    ({"width": 64, "height": 64, "fx": 60.0, "distortion": [0.3, 0.1, 0, 0]},
+     {"origin": [0, -2, 2], "target": [0, 0, 1], "up": [0, 0, 1]}, "lens distortion is not modelled"),
+    ({"width": 64, "height": 64, "fx": 60.0},
+     {"origin": [0, -2, 2], "target": [0, 0, 1], "up": [0, 0, 1], "rotation": [[2, 0, 0], [0, 1, 0], [0, 0, 1]]},
+     "extrinsics.rotation is not part of the camera model"),
+    ({"width": 128, "height": 64, "fx": 60.0}, {"origin": [0, -2, 2], "target": [0, 0, 1], "up": [0, 0, 1]},
+     "another aspect ratio"),
 ])
 def test_camera_json_with_impossible_geometry(quad, tmp_path, intrinsics, extrinsics, words):
     """Each used to pass the checks: an undefined roll rendered NaN frames (blamed on the frames, or a flat grey
@@ -604,8 +654,9 @@ def test_bad_ground_truth_is_refused_before_any_work(quad, tmp_path, states, pro
 @pytest.mark.parametrize("settings, words", [
     (dict(iterations=-2), "--iterations must be >= 0, got -2"),
     (dict(lr=0.0), "--lr must be a finite number > 0, got 0"),
-    (dict(momentum=-0.5), "--momentum must be a finite number >= 0, got -0.5"),
-    (dict(momentum=float("nan")), "--momentum must be a finite number >= 0, got nan"),
+    (dict(momentum=-0.5), "--momentum must be in [0, 1): RMSProp's momentum; 1 or more diverges, got -0.5"),
+    (dict(momentum=float("nan")), "--momentum must be in [0, 1)"),
+    (dict(momentum=5.0), "--momentum must be in [0, 1)"),  # accepted, then the loss went NaN at iteration 6
     (dict(fps=0.0), "--fps must be a finite number > 0, got 0"),
     (dict(spp=0), "--spp must be >= 1, got 0"),
     (dict(init="track"), "--init track is imitate's"),
@@ -649,3 +700,10 @@ def test_actions_t_column_must_follow_the_video_timeline(tmp_path):
     no_t = tmp_path / "no_t.csv"
     no_t.write_text("f0,f1,f2,f3\n" + "1,2,3,4\n" * 4)
     assert read_actions(str(no_t), "quadrotor", 4, 10.0).shape == (4, 4)
+    # a t of NaNs skipped the check (exit 0); a column named twice used the first without a word
+    with pytest.raises(RispError, match=r"nan_t.csv: column t has NaN/inf at line 2"):
+        read_actions(write("nan_t.csv", ["nan", "nan", "nan", "nan"]), "quadrotor", 4, 10.0)
+    dup = tmp_path / "dup.csv"
+    dup.write_text("t,f0,f1,f2,f3,f0\n" + "".join(f"{k / 10},1,2,3,4,9\n" for k in range(4)))
+    with pytest.raises(RispError, match=r"dup.csv: column f0 appears 2 times in the header"):
+        read_actions(str(dup), "quadrotor", 4, 10.0)

@@ -99,7 +99,7 @@ class TaskConfig:
         for option, value, ok, rule in (
                 ("--iterations", self.iterations, self.iterations >= 0, ">= 0"),
                 ("--lr", self.lr, math.isfinite(self.lr) and self.lr > 0, "a finite number > 0"),
-                ("--momentum", self.momentum, math.isfinite(self.momentum) and self.momentum >= 0, "a finite number >= 0"),
+                ("--momentum", self.momentum, 0 <= self.momentum < 1, "in [0, 1): RMSProp's momentum; 1 or more diverges"),
                 ("--every", self.every, self.every >= 1, ">= 1"),
                 ("--horizon", self.horizon, self.horizon >= 1, ">= 1"),
                 ("--spp", self.spp, self.spp >= 1, ">= 1"),

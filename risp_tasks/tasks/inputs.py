@@ -18,6 +18,9 @@ from risp_data.errors import RispError
 from ..video import Video, read_video, sha256_file
 
 CAMERA_KEYS = {"intrinsics": ("width", "height", "fx"), "extrinsics": ("origin", "target", "up")}
+#: the keys a camera JSON may hold besides CAMERA_KEYS (anything else, e.g. a rotation matrix or distortion
+#: coefficients, would be ignored by this camera model: refused rather than silently not used)
+CAMERA_OPTIONAL = {"intrinsics": ("fy", "cx", "cy", "distortion"), "extrinsics": ()}
 
 
 def latest_model(runs: str = "runs") -> str:
@@ -104,6 +107,9 @@ def read_actions(path: str, env: str, n_frames: int, fps: float | None = None) -
     if not rows:
         raise RispError(f"{path}: empty actions file")
     header = [h.strip() for h in rows[0]]
+    twice = sorted({h for h in header if header.count(h) > 1})
+    if twice:  # which of the two is meant cannot be told: the first was taken without a word
+        raise RispError(f"{path}: column {twice[0]} appears {header.count(twice[0])} times in the header")
     missing = [c for c in cols if c not in header]
     if missing:
         raise RispError(f"{path}: actions file for {env} needs columns t,{','.join(cols)}; missing {','.join(missing)} "
@@ -144,8 +150,9 @@ def _check_times(path: str, times: list[str], lines: list[int], fps: float) -> N
         t = np.asarray([float(v) for v in times], np.float64)
     except ValueError:
         return
-    if not np.all(np.isfinite(t)):
-        return
+    bad = np.flatnonzero(~np.isfinite(t))
+    if bad.size:  # numbers, but NaN/inf: not clock times, a damaged column
+        raise RispError(f"{path}: column t has NaN/inf at line {lines[int(bad[0])]}")
     steps = np.diff(t) * fps  # in frames: 1 on the video's timeline
     off = np.flatnonzero((steps < 0.5) | (steps > 1.5))
     if off.size:
@@ -185,10 +192,11 @@ def read_json(path: str, what: str) -> dict:
 MAX_FOV_DEG = 170.0  # beyond this a pinhole's image is all border: fx is almost surely in the wrong unit
 
 
-def read_camera(path: str) -> Camera:
+def read_camera(path: str, video_size: tuple[int, int] | None = None) -> Camera:
     """Camera JSON (docs/tasks.md §Camera): pinhole intrinsics (square pixels, principal point at the centre)
     and look-at extrinsics in the world frame (metres, z up).  Videos are centre-cropped to a square of side
-    min(width, height), so the field of view the renderer uses is that square's: 2·atan(min(width, height) / 2fx)."""
+    min(width, height), so the field of view the renderer uses is that square's: 2·atan(min(width, height) / 2fx).
+    ``video_size`` (width, height of the decoded frames): the camera's must have its aspect ratio (within 1 %)."""
     data = read_json(path, "camera")
     for group, keys in CAMERA_KEYS.items():
         if not isinstance(data.get(group), dict):
@@ -197,19 +205,32 @@ def read_camera(path: str) -> Camera:
         if missing:
             raise RispError(f"{path}: camera JSON is missing {', '.join(f'{group}.{k}' for k in missing)}")
     intr, extr = data["intrinsics"], data["extrinsics"]
+    for group, keys in CAMERA_KEYS.items():
+        unknown = sorted(set(data[group]) - set(keys) - set(CAMERA_OPTIONAL[group]))
+        if unknown:
+            raise RispError(f"{path}: camera JSON key {group}.{unknown[0]} is not part of the camera model (pinhole, "
+                            f"square pixels, no distortion; look-at extrinsics origin/target/up): remove it")
 
     def number(value):
-        if isinstance(value, bool):  # float(True) is 1.0: a JSON true is not a size
+        if isinstance(value, (bool, str)):  # float(True) is 1.0, float("640") 640: a JSON true or string is no size
             raise TypeError
         return float(value)
 
     try:
         width, height, fx = (number(intr[k]) for k in ("width", "height", "fx"))
         centre = {k: number(intr[k]) for k in ("cx", "cy") if k in intr}
+        fy = number(intr["fy"]) if "fy" in intr else None
+        distortion = [number(v) for v in intr.get("distortion") or []]
         vecs = {k: np.array([number(v) for v in extr[k]]) for k in ("origin", "target", "up")}
     except (TypeError, ValueError):
-        raise RispError(f"{path}: camera values must be numbers (width, height, fx; origin/target/up: 3 numbers "
-                        "each)") from None
+        raise RispError(f"{path}: camera values must be numbers, not strings or true/false (width, height, fx, fy, cx, "
+                        "cy; origin/target/up: 3 numbers each)") from None
+    if fy is not None and not abs(fy - fx) <= 0.01 * abs(fx):
+        raise RispError(f"{path}: intrinsics.fy = {fy:g} differs from fx = {fx:g}: only square pixels are supported "
+                        "(resample the video so that fx = fy)")
+    if any(v != 0 for v in distortion):
+        raise RispError(f"{path}: intrinsics.distortion {distortion} is not zero: lens distortion is not modelled "
+                        "(undistort the video first)")
     if not all(math.isfinite(v) and v > 0 for v in (width, height, fx)):
         raise RispError(f"{path}: camera needs finite width, height and fx > 0, got {width:g}, {height:g}, {fx:g}")
     if any(len(v) != 3 or not np.all(np.isfinite(v)) for v in vecs.values()):
@@ -229,6 +250,10 @@ def read_camera(path: str) -> Camera:
     if fov >= MAX_FOV_DEG:
         raise RispError(f"{path}: fx = {fx:g} pixels for a {min(width, height):g}-pixel square gives a {fov:.1f}° "
                         f"field of view (at most {MAX_FOV_DEG:g}°): fx is in pixels of the same image as width")
+    if video_size is not None and abs(width / height - video_size[0] / video_size[1]) > 0.01 * width / height:
+        raise RispError(f"{path}: a {width:g}×{height:g} camera, but the video's frames are {video_size[0]}×"
+                        f"{video_size[1]} pixels (another aspect ratio): give the intrinsics of the camera that "
+                        "filmed this video")
     return Camera(origin=tuple(vecs["origin"].tolist()), target=tuple(vecs["target"].tolist()),
                   up=tuple(up.tolist()), fov=fov)
 

@@ -68,6 +68,33 @@ def _reference(cfg: TaskConfig, resolution: int):
     return ref.video.frames, ref.indices, ref.n_source, ref.source_fps, ref.sha256, ref
 
 
+def _check_thrusts(path: str, sim, file_actions: np.ndarray) -> None:
+    """Quadrotor thrusts [N] the simulator cannot apply (its commands are clamped at ±COMMAND_LIMIT): the file is in
+    other units (grams, RPM) — its commands would have been clipped without a word."""
+    if sim.env != "quadrotor":
+        return
+    from ..sims.quadrotor import COMMAND_LIMIT
+
+    k_f = float(sim.default_params()[0, sim.param_index("k_f")])
+    limit = COMMAND_LIMIT * k_f
+    worst = float(np.abs(file_actions).max()) if file_actions.size else 0.0
+    if worst > limit:
+        raise RispError(f"{path}: rotor thrusts up to {worst:.4g} N, above the {limit:.4g} N the simulated rotors can "
+                        f"give: the columns f0..f3 are thrusts in newtons per rotor (docs/tasks.md §Actions CSV)")
+
+
+def _check_truth_timeline(cfg: TaskConfig, truth: dict, ref) -> None:
+    """A truth file's frame count and rate must be the video's (a truth without ``video_sha256``, as make-video
+    wrote before 2026-11-29, was compared row by row with another video's frames)."""
+    frames, fps = truth.get("frames"), truth.get("fps")
+    if isinstance(frames, int) and frames != ref.video.source_frames:
+        raise RispError(f"{cfg.truth}: the ground truth of a {frames}-frame video, but {cfg.video} has "
+                        f"{ref.video.source_frames} frames: give the truth written beside this video")
+    if isinstance(fps, (int, float)) and ref.source_fps > 0 and abs(fps - ref.source_fps) > 0.01 * ref.source_fps:
+        raise RispError(f"{cfg.truth}: the ground truth of a {fps:g} fps video, but {cfg.video} runs at "
+                        f"{ref.source_fps:g} fps: give the truth written beside this video")
+
+
 def run_task(cfg: TaskConfig, echo=print) -> dict:
     """Run ``cfg.task``; returns the result dict (also written to ``<out>/result.json``)."""
     if cfg.task not in TASKS:
@@ -97,6 +124,9 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
 
         features = feature_extractor(cfg.perceptual_weights)
     frames, keep, n_source, fps, video_sha, ref = _reference(cfg, predictor.resolution)
+    # what the inputs' readers did that the user should know (e.g. --source-fps replacing the file's rate): with
+    # the result's warnings at the end, not before a later error line
+    input_notes = list(ref.video.notes) if ref is not None else []
     chosen = "" if cfg.model is not None else (f" (the most recent model under {cfg.runs}/, {model_path}, is a "
                                                f"{env_name} model: give --model of a run for the video's system)")
     made = made_for(ref.video.comment) if ref is not None else None
@@ -118,11 +148,19 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
         raise RispError(what + chosen)
     if cfg.actions is not None:
         file_actions = read_actions(cfg.actions, env_name, n_source, fps)
+        _check_thrusts(cfg.actions, sim, file_actions)
     truth = read_truth(cfg.truth, env_name, len(env.state_names), chosen) if cfg.truth else None
     if truth is not None and cfg.task != "control" and truth.get("video_sha256") not in (None, video_sha):
         raise RispError(f"{cfg.truth}: the ground truth of another video (its video_sha256 is not {cfg.video}'s); "
                         f"give the truth make-video wrote beside this video")
-    camera = read_camera(cfg.camera) if cfg.camera else None
+    if truth is not None and ref is not None:  # files from before video_sha256: at least the timeline must agree
+        _check_truth_timeline(cfg, truth, ref)
+    if cfg.task == "estimate" and sim.action_dim > 0 and cfg.actions is None:
+        input_notes.append(f"without --actions the trajectory CSV has no command columns, which `risp-task diagnose` "
+                           f"needs for the {env_name}: give the commands the video was filmed with as --actions A.csv")
+    camera = read_camera(cfg.camera, ref.video.source_size if ref is not None else None) if cfg.camera else None
+    if camera is not None and cfg.loss not in ("render", "pixelwise", "perceptual"):
+        input_notes.append(f"--camera is used where the task renders: with the {cfg.loss} loss only the plots show it")
     ctx = Context(cfg=cfg, env=env, sim=sim, predictor=predictor, frames=frames_t, keep=keep, n_source=n_source,
                   fps=fps, k=k, predicted=predicted.double(), predicted_targets=predicted_targets.double(),
                   file_actions=file_actions, truth=truth, rng=np.random.default_rng(cfg.seed))
@@ -208,7 +246,7 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
         result["view"], warning = _view(cfg, renderer, loss_frames, initial_states, final_states)
     stops = [f"{phase}: {h['stopped']}" for phase, h in (("warm start", warm), ("optimisation", history))
              if h is not None and h.get("stopped")]
-    result["warnings"] = warnings + stops + ([warning] if warning else [])
+    result["warnings"] = input_notes + warnings + stops + ([warning] if warning else [])
     folder = ResultFolder(out, cfg.overwrite)
     try:
         folder.write_json("result.json", result)
