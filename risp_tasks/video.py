@@ -87,9 +87,9 @@ class _Converting(Exception):
     """An error of a frame's conversion (``each``), not of the decoder: re-raised as what it was."""
 
 
-def _decode_file(path: Path, each=lambda img: img) -> tuple[list[np.ndarray], float, str, tuple | None]:
+def _decode_file(path: Path, each=lambda img: img) -> tuple[list[np.ndarray], float, str, tuple | None, list[str]]:
     """(``each`` of every decoded (H, W, 3) uint8 frame, the stream's frame rate, the container's comment tag, the
-    frames' (width, height) as decoded)."""
+    frames' (width, height) as decoded, notes on the timestamps)."""
     av = _av()
     first = None
 
@@ -124,62 +124,87 @@ def _decode_file(path: Path, each=lambda img: img) -> tuple[list[np.ndarray], fl
     except Exception as e:  # noqa: BLE001 - PyAV raises many error types (InvalidDataError, …)
         raise RispError(f"{path}: cannot decode as a video ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
     _check_complete(path, frames, times, announced)
-    _check_constant_rate(path, times)
-    return frames, float(rate) if rate else 0.0, str(tags.get("comment", "")), (first[1], first[0]) if first else None
+    note = _check_constant_rate(path, times)
+    return (frames, float(rate) if rate else 0.0, str(tags.get("comment", "")), (first[1], first[0]) if first else None,
+            [note] if note else [])
 
 
 def _announced(container, stream) -> tuple[int | None, float | None]:
-    """(frame count, seconds) a file's header announces: the stream's own count, and its (or the container's)
-    duration; None for what it does not say."""
+    """(frame count, seconds) the header announces for the video stream; None for what it does not say.  The
+    seconds are the video stream's own — its duration, or a Matroska track's DURATION tag — and the container's
+    only when it holds no other stream (an audio track may run longer than the picture)."""
     seconds = None
     if stream.duration and stream.time_base:
         seconds = float(stream.duration * stream.time_base)
-    elif container.duration:
+    elif stream.metadata.get("DURATION"):  # Matroska: "00:00:03.000000000" per track
+        try:
+            h, m, sec = stream.metadata["DURATION"].split(":")
+            seconds = int(h) * 3600 + int(m) * 60 + float(sec)
+        except ValueError:
+            seconds = None
+    elif container.duration and len(container.streams) == 1:
         seconds = container.duration / 1e6  # av.time_base
     return (int(stream.frames) if stream.frames else None), seconds
 
 
 def _check_complete(path: Path, frames: list, times: list, announced: tuple) -> None:
-    """RispError when fewer frames decode than the header announces: a truncated Matroska or AVI file decodes
-    without an error, only to fewer frames (an MP4 cut short fails to open).  Against the stream's frame count
-    where the header has one, else against its duration: the decoded frames' span must reach it (within two
-    frames or 5 %) — a span, not a count, so that a variable frame rate is not taken for a cut."""
+    """RispError when the file decodes to less than its header announces: a truncated Matroska or AVI file decodes
+    without an error, only to fewer frames (an MP4 cut short fails to open).  The decoded frames' span must reach
+    the stream's duration (within two frames or 5 %): a span, not a count, since a trimmed MP4/MOV (an edit list)
+    announces the frames before its cut that the decoder then drops, and a variable frame rate is no cut.  The
+    frame count is compared only where the header gives no duration."""
     count, seconds = announced
     n = len(frames)
-    if count is not None:
-        if n < count - max(2, 0.05 * count):
-            raise RispError(f"{path}: only {n} of the {count} frames its header announces could be decoded: the file "
-                            "is cut short (an interrupted download or copy?)")
-        return
-    if seconds is None or len(times) < 2 or any(t is None for t in times):
-        return
-    step = float(np.median(np.diff(times)))
-    span = times[-1] - times[0] + step
-    if step > 0 and seconds - span > max(2 * step, 0.05 * seconds):
-        raise RispError(f"{path}: the decoded frames end at {span:.3g} s of the {seconds:.3g} s its header announces "
-                        f"({n} frames): the file is cut short (an interrupted download or copy?)")
+    if seconds is not None and len(times) >= 2 and not any(t is None for t in times):
+        step = float(np.median(np.diff(times)))
+        span = times[-1] - times[0] + step
+        if step > 0 and seconds - span > max(2 * step, 0.05 * seconds):
+            raise RispError(f"{path}: the decoded frames end at {span:.3g} s of the {seconds:.3g} s its header "
+                            f"announces ({n} frames): the file is cut short (an interrupted download or copy?)")
+    elif seconds is None and count is not None and n < count - max(2, 0.05 * count):
+        raise RispError(f"{path}: only {n} of the {count} frames its header announces could be decoded: the file "
+                        "is cut short (an interrupted download or copy?)")
 
 
 #: a step between two frames' timestamps may differ from the median step by this fraction (timestamp rounding,
-#: a phone's jitter); more (a frame held or dropped: a variable frame rate) and times taken at a constant rate
-#: would be wrong
+#: a phone's jitter); a larger one is an irregular step (a frame dropped or held)
 RATE_TOLERANCE = 0.5
+#: irregular steps allowed as isolated events (noted, not refused): at most this fraction of the steps, or one
+IRREGULAR_FRACTION = 0.01
+#: the frames' times may stray this many frame steps from a constant rate (a straight line through the first and
+#: the last) before the file counts as having a variable rate
+MAX_DRIFT_STEPS = 2.0
 
 
-def _check_constant_rate(path: Path, times: list) -> None:
-    """RispError when the frames' presentation times are not evenly spaced: every task runs its simulation at one
-    step per frame, so a variable-frame-rate file would put each frame at the wrong time."""
+def _check_constant_rate(path: Path, times: list) -> str | None:
+    """RispError when the frames' presentation times are not those of a constant rate: every task runs its
+    simulation at one step per frame, so a variable-frame-rate file would put frames at the wrong times.
+    Refused: irregular steps (RATE_TOLERANCE off the median) more often than isolated events (IRREGULAR_FRACTION),
+    or times straying more than MAX_DRIFT_STEPS from the constant rate (a rate that changes slowly).  Isolated
+    ones (an AVI's empty first chunk, one dropped frame in hundreds) return a note instead."""
     if len(times) < 3 or any(t is None for t in times):
-        return
-    steps = np.diff(np.asarray(times, np.float64))
-    step = float(np.median(steps))
-    if not step > 0:
-        return
-    worst = int(np.argmax(np.abs(steps - step)))
-    if abs(steps[worst] - step) > RATE_TOLERANCE * step:
-        raise RispError(f"{path}: a variable frame rate (frames {worst} → {worst + 1} are {steps[worst] * 1e3:.0f} ms "
-                        f"apart, most {step * 1e3:.0f} ms): re-encode it at a constant rate (e.g. ffmpeg -i IN "
-                        f"-fps_mode cfr -r {1 / step:.3g} OUT) or export its frames as PNGs")
+        return None
+    t = np.asarray(times, np.float64)
+    steps = np.diff(t)
+    median = float(np.median(steps))
+    if not median > 0:
+        return None
+    irregular = np.flatnonzero(np.abs(steps - median) > RATE_TOLERANCE * median)
+    mean = (t[-1] - t[0]) / (len(t) - 1)
+    drift = float(np.abs(t - t[0] - mean * np.arange(len(t))).max() / mean)
+    advice = (f"re-encode it at a constant rate (e.g. ffmpeg -i IN -fps_mode cfr -r {1 / median:.3g} OUT) or export "
+              f"its frames as PNGs")
+    if len(irregular) > max(1, IRREGULAR_FRACTION * len(steps)) or drift > MAX_DRIFT_STEPS:
+        k = int(irregular[0]) if len(irregular) else int(np.argmax(np.abs(steps - median)))
+        raise RispError(f"{path}: a variable frame rate ({len(irregular)} of {len(steps)} steps between frames off "
+                        f"the usual {median * 1e3:.0f} ms, e.g. frames {k} → {k + 1} {steps[k] * 1e3:.0f} ms apart; "
+                        f"times stray up to {drift:.2g} frames from a constant rate): {advice}")
+    if len(irregular) or drift > RATE_TOLERANCE:
+        k = int(irregular[0]) if len(irregular) else int(np.argmax(np.abs(steps - median)))
+        return (f"{path.name}: the frame timestamps stray up to {drift:.2g} frames from a constant rate ({len(irregular)} "
+                f"step(s) more than {RATE_TOLERANCE:.0%} off the usual {median * 1e3:.0f} ms, e.g. frames {k} → {k + 1} "
+                f"{steps[k] * 1e3:.0f} ms apart: a dropped or held frame?); the tasks take frame k at k / rate")
+    return None
 
 
 OTHER_IMAGE_SUFFIXES = (".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".exr", ".gif", ".avif", ".heic", ".heif",
@@ -312,7 +337,7 @@ def read_video(path: str | os.PathLike, resolution: int | None = None, every: in
     else:
         if p.stat().st_size == 0:
             raise RispError(f"{p}: empty file (0 bytes)")
-        raw, rate, comment, size = _decode_file(p, each)
+        raw, rate, comment, size, notes = _decode_file(p, each)
         if source_fps is not None and rate and abs(source_fps - rate) > 1e-6 * rate:  # e.g. slow motion stored at 30
             notes.append(f"--source-fps {source_fps:g} replaces the {rate:g} fps written in {p.name}: its frames are "
                          f"taken {1 / source_fps:.4g} s apart")

@@ -229,8 +229,66 @@ def test_a_variable_frame_rate_video_is_refused(tmp_path):
     assert read_video(tmp_path / "even.mkv").frames.shape[0] == 20
     uneven = np.cumsum([0] + [300 if k % 5 == 4 else 100 for k in range(19)]).tolist()
     _write_with_times(tmp_path / "vfr.mkv", frames, uneven)
-    with pytest.raises(RispError, match=r"vfr.mkv: a variable frame rate \(frames \d+ → \d+ are 300 ms apart, most 100 ms\)"):
+    with pytest.raises(RispError, match=r"vfr.mkv: a variable frame rate \(\d+ of 19 steps between frames off the "
+                                        r"usual 100 ms, e.g. frames \d+ → \d+ 300 ms apart"):
         read_video(tmp_path / "vfr.mkv")
+    # one dropped frame (an isolated irregular step) is said, not refused
+    dropped = [100 * k for k in range(10)] + [100 * k for k in range(11, 21)]
+    _write_with_times(tmp_path / "drop.mkv", frames, dropped)
+    v = read_video(tmp_path / "drop.mkv")
+    assert v.frames.shape[0] == 20 and len(v.notes) == 1 and "a dropped or held frame?" in v.notes[0]
+
+
+def _synthetic_clip(path, n, fps=30, gop=None, audio_seconds=None):
+    """An H.264 clip of n frames (keyframe every ``gop``), with a silent AAC track of ``audio_seconds``."""
+    import av
+
+    with av.open(str(path), "w") as out:
+        vs = out.add_stream("libx264", rate=fps)
+        vs.width, vs.height, vs.pix_fmt = 32, 24, "yuv420p"
+        if gop:
+            vs.options = {"g": str(gop), "bf": "0"}
+        audio = out.add_stream("aac", rate=48000) if audio_seconds else None
+        for i in range(n):
+            f = av.VideoFrame.from_ndarray(np.full((24, 32, 3), (i * 2) % 255, np.uint8), format="rgb24")
+            for p in vs.encode(f):
+                out.mux(p)
+        for p in vs.encode():
+            out.mux(p)
+        k = 0
+        while audio is not None and k < audio_seconds * 48000:
+            af = av.AudioFrame.from_ndarray(np.zeros((1, 1024), np.float32), format="fltp", layout="mono")
+            af.sample_rate, af.pts = 48000, k
+            for p in audio.encode(af):
+                out.mux(p)
+            k += 1024
+        for p in (audio.encode() if audio is not None else []):
+            out.mux(p)
+
+
+@pytest.mark.parametrize("suffix", [".mp4", ".mov", ".mkv"])
+def test_a_stream_copy_trim_and_a_longer_audio_track_are_whole_files(tmp_path, suffix):
+    """Not every short decode is a cut: a stream-copied trim (ffmpeg -ss 1 -c copy) keeps the packets back to the
+    last keyframe, which the decoder drops (an MP4's edit list; the header's frame count still holds them), and a
+    sound track may run longer than the picture (a Matroska file's container duration is the longest stream's)."""
+    import av
+
+    src = tmp_path / "src.mp4"
+    _synthetic_clip(src, 120, gop=60)
+    trimmed = tmp_path / f"trim{suffix}"
+    with av.open(str(src)) as inp, av.open(str(trimmed), "w") as out:
+        ist = inp.streams.video[0]
+        ost = out.add_stream_from_template(ist)
+        shift = int(round(1.0 / ist.time_base))  # 1 s, mid-GOP: frames 30–59 need the keyframe at 0
+        for pk in inp.demux(ist):
+            if pk.dts is None:
+                continue
+            pk.pts, pk.dts, pk.stream = pk.pts - shift, pk.dts - shift, ost
+            out.mux(pk)
+    assert read_video(trimmed).frames.shape[0] >= 90
+    _synthetic_clip(tmp_path / f"sound{suffix}", 30, audio_seconds=3.0)  # 1 s of picture, 3 s of sound
+    v = read_video(tmp_path / f"sound{suffix}")
+    assert v.frames.shape[0] == 30 and v.notes == ()
 
 
 def test_source_fps_on_a_file_replaces_its_rate_and_says_so(tmp_path):

@@ -64,7 +64,7 @@ class TaskConfig:
     seed: int = 0
     every: int = 1
     fps: float | None = None  # resample the video to this rate
-    source_fps: float | None = None  # frame rate of a PNG folder (files carry their own)
+    source_fps: float | None = None  # frame rate of a PNG folder; on a file it replaces the file's own (noted)
     actions: str | None = None  # actions CSV (sysid, estimate)
     truth: str | None = None  # ground-truth JSON (oracle loss and error reports only)
     camera: str | None = None  # camera JSON (intrinsics/extrinsics) replacing the environment's camera
