@@ -99,13 +99,14 @@ def inspect(folder, png, samples, deep):
     --deep; exit 1 when one is damaged) and write a PNG contact sheet of images and Jacobians."""
     from .errors import RispError
     from .inspect import InspectConfig, inspect_folder
+    from .shards.manifest import repair_hint
 
     if png is not None and not png.lower().endswith(".png"):  # the sheet is written as PNG whatever the name
         raise RispError(f"--png {png}: the contact sheet is a PNG image; give a path ending in .png")
     summary, path, problems = inspect_folder(InspectConfig(folder=folder, png=png, samples=samples, deep=deep))
     click.echo(summary)
     if problems:
-        raise RispError(f"{len(problems)} damaged shard(s) in {folder}; repair: risp-data verify --repair {folder}")
+        raise RispError(f"{len(problems)} damaged shard(s) in {folder}{repair_hint(folder)}")
     click.echo(f"contact sheet: {path}" if path else "contact sheet: none (no complete shard yet)")
 
 

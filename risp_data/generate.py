@@ -621,8 +621,11 @@ def _check_space(job: RenderJob, manifest: dict) -> None:
         return
     per_sample = sum(info["bytes"] for r in written for info in r["files"].values()) / samples
     need = per_sample * (job.n - samples)
-    free = shutil.disk_usage(job.out).free
-    if need > free:
+    usage = shutil.disk_usage(job.out)
+    # the shards being written beside this one (one per worker) already hold part of their share of the disk
+    in_flight = per_sample * job.shard_size * (job.workers if isinstance(job.workers, int) else 1)
+    if usage.total > 0 and need - in_flight > usage.free:  # total 0: a file system that reports no sizes
+        free = usage.free
         raise RispError(f"{job.out}: the {job.n - samples} samples still to render need about {need / 1e9:.3g} GB "
                         f"(at {per_sample / 1e3:.0f} kB per sample so far) but {free / 1e9:.3g} GB are free there; "
                         f"the {len(written)} finished shard(s) are kept: free space and rerun the same command to "

@@ -18,6 +18,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
 import sys
 import time
 from dataclasses import dataclass
@@ -150,11 +151,13 @@ def _write_json(path: str, obj) -> None:
 
 
 RUN_FILES = (MODEL, LAST, "config.json", "losses.csv", "losses.png", "history.json")
+#: what `risp-train eval` writes into a run folder by default (risp_train.evaluate: eval-<shards>.json/.md/_scatter.png)
+_EVAL_OUTPUT = re.compile(r"eval-.+(\.json|\.md|_scatter\.png)$")
 
 
 def _is_run_file(name: str) -> bool:
     """A file a run folder holds: the trainer's own, its temporaries, or an evaluation written into it."""
-    return name in RUN_FILES or name.startswith((".tmp", "eval"))
+    return name in RUN_FILES or bool(_EVAL_OUTPUT.match(name)) or name.startswith(".tmp")
 
 
 def check_run_folder(out: str, resume: bool, overwrite: bool, remove: bool = True) -> None:
@@ -171,10 +174,15 @@ def check_run_folder(out: str, resume: bool, overwrite: bool, remove: bool = Tru
         raise RispError(f"{out} is not empty and holds no risp-train run ({shown}); choose another --out, or "
                         "--overwrite to write the run beside those files")
     if overwrite:
-        for name in [n for n in present if _is_run_file(n)] if remove else ():
-            path = os.path.join(out, name)
-            if os.path.isfile(path) or os.path.islink(path):
-                os.unlink(path)
+        # only when the folder holds a run: its own files (RUN_FILES), the evaluations risp-train eval wrote into it and
+        # temporaries — never a user's file that merely starts with "eval" (evaluate.py), nor anything in a folder of
+        # other files that the run is written beside
+        if remove and any(name in RUN_FILES for name in present):
+            for name in present:
+                if _is_run_file(name):
+                    path = os.path.join(out, name)
+                    if os.path.isfile(path) or os.path.islink(path):
+                        os.unlink(path)
     elif held and not resume:
         raise RispError(f"{out} already holds a run ({', '.join(held)}); pass --resume to continue it, "
                         "--overwrite to replace it, or choose another --out")

@@ -164,3 +164,22 @@ def test_an_out_folder_of_other_files_is_refused_before_fitting(flights, tmp_pat
     line = _one_error_line(_run(flights, out))
     assert "notes.txt" in line and "not a diagnose report" in line
     assert [p.name for p in out.iterdir()] == ["notes.txt"] and (out / "notes.txt").read_text() == "keep me"
+
+
+def test_a_symlinked_out_is_written_through_and_a_file_browsers_ds_store_is_no_obstacle(flights, tmp_path):
+    """--out as a symlink (or a mount point) cannot be replaced by a rename: the report is written into the folder
+    it names, the link kept; a reused report folder holding .DS_Store (macOS's, from browsing it) is accepted."""
+    target = tmp_path / "real"
+    target.mkdir()
+    (target / "keep.txt").write_text("mine")
+    link = tmp_path / "link"
+    link.symlink_to(target, target_is_directory=True)
+    res = _run(flights, link, "--no-plots")
+    assert res.exit_code == 0, res.output
+    assert link.is_symlink() and (target / "report.json").is_file() and (target / "keep.txt").read_text() == "mine"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["link", "real"]  # no temporary left beside them
+    out = tmp_path / "rep"
+    assert _run(flights, out, "--no-plots").exit_code == 0
+    (out / ".DS_Store").write_bytes(b"\0")
+    assert _run(flights, out, "--no-plots", "--seed", "2").exit_code == 0
+    assert '"seed": 2' in (out / "report.json").read_text()

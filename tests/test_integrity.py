@@ -191,7 +191,8 @@ def test_fit_refuses_a_folder_holding_a_model_unless_overwrite(data, model, tmp_
     run.mkdir()
     shutil.copy(model, run / "model.pt")  # a finished run whose last.pt is gone
     (run / "eval-old.json").write_text('{"model_sha256": "of the old model"}')  # its evaluation
-    (run / "notes.txt").write_text("mine")
+    for mine in ("notes.txt", "evaluate.py", "eval_notes.md"):  # a user's, whatever their names start with
+        (run / mine).write_text("mine")
     before = hashlib.sha256((run / "model.pt").read_bytes()).hexdigest()
     runner = CliRunner()
     line = _one_line_error(runner.invoke(train_cli, ["fit", data["train"], "--out", str(run), *_TINY, "--epochs", "1",
@@ -206,7 +207,8 @@ def test_fit_refuses_a_folder_holding_a_model_unless_overwrite(data, model, tmp_
     assert r.exit_code == 0, r.output
     assert hashlib.sha256((run / "model.pt").read_bytes()).hexdigest() != before
     # the old run's evaluation went with it (it named the replaced model); a user's file stays
-    assert not (run / "eval-old.json").exists() and (run / "notes.txt").read_text() == "mine"
+    assert not (run / "eval-old.json").exists()
+    assert all((run / mine).read_text() == "mine" for mine in ("notes.txt", "evaluate.py", "eval_notes.md"))
 
 
 def test_fit_refuses_a_folder_of_other_files_unless_overwrite(data, tmp_path):
@@ -215,14 +217,16 @@ def test_fit_refuses_a_folder_of_other_files_unless_overwrite(data, tmp_path):
     folder = tmp_path / "notes"
     folder.mkdir()
     (folder / "a.txt").write_text("mine")
+    (folder / "eval.yaml").write_text("mine")  # matched "eval*": --overwrite deleted it
     runner = CliRunner()
     args = ["fit", data["train"], "--out", str(folder), *_TINY, "--epochs", "1", "--seed", "5"]
     line = _one_line_error(runner.invoke(train_cli, args))
-    assert "is not empty and holds no risp-train run (a.txt)" in line and "--overwrite" in line
-    assert sorted(os.listdir(folder)) == ["a.txt"]
+    assert "is not empty and holds no risp-train run (a.txt" in line and "--overwrite" in line
+    assert sorted(os.listdir(folder)) == ["a.txt", "eval.yaml"]
     r = runner.invoke(train_cli, args + ["--overwrite"])
     assert r.exit_code == 0, r.output
     assert (folder / "model.pt").is_file() and (folder / "a.txt").read_text() == "mine"
+    assert (folder / "eval.yaml").read_text() == "mine"
 
 
 # ------------------------------------------------------------------------- 3. damaged render folder

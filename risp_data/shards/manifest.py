@@ -18,6 +18,7 @@ import datetime as _dt
 import hashlib
 import json
 import os
+import shlex
 from importlib import metadata as _md
 from typing import Any
 
@@ -258,7 +259,7 @@ def shard_problem(folder: str, record: dict[str, Any], deep: bool = True) -> str
 
 def repair_hint(folder: str) -> str:
     """What every damaged-shard error ends with: the command that re-renders the damaged shards."""
-    return f"; repair: risp-data verify --repair {folder}"
+    return f"; repair: risp-data verify --repair {shlex.quote(folder)}"  # quoted: copied into a shell as printed
 
 
 def verify_checksums(folder: str, manifest: dict[str, Any] | None = None) -> int:

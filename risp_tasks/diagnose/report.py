@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import shutil
 from pathlib import Path
 
@@ -24,8 +25,9 @@ PLOTS = {
     "gain": "gain_overlay.png",
     "ranking": "ranking.png",
 }
-#: Every file a report folder holds (an --out holding only these is an earlier report, which a new one replaces).
-REPORT_FILES = frozenset({"report.json", "report.md", *PLOTS.values()})
+#: Every file a report folder holds (an --out holding only these is an earlier report, which a new one replaces), and
+#: the files an operating system's file browser leaves in any folder it showed.
+REPORT_FILES = frozenset({"report.json", "report.md", *PLOTS.values(), ".DS_Store", "Thumbs.db", "desktop.ini"})
 
 
 def _named(path: Path, write) -> None:
@@ -316,11 +318,30 @@ def markdown(report: dict) -> str:
     return "\n".join(L) + "\n"
 
 
+def replaced_whole(out: Path) -> bool:
+    """Whether the report can replace ``out`` as a whole (a sibling folder renamed over it): not when ``out`` is a
+    symlink (the rename would replace the link, not the folder it names), a mount point (a bind-mounted output
+    folder cannot be renamed) or in a folder this user cannot write — then the files are written one by one inside
+    it, each atomically."""
+    if not os.path.lexists(out):
+        return True
+    if out.is_symlink() or os.path.ismount(out):
+        return False
+    return os.access(out.absolute().parent, os.W_OK | os.X_OK)
+
+
 def write_report(report: dict, cfg, evaluated, base_ev, ext_ev, fit_trajs, held_trajs) -> None:
     """Write report.json, report.md and the plots into a temporary sibling of ``cfg.out`` and rename it into place
     (an earlier report there is replaced only once the new one is complete), so the folder always holds one
-    report whole: a failed or interrupted write leaves the earlier one untouched."""
+    report whole: a failed or interrupted write leaves the earlier one untouched.  Where the folder cannot be
+    replaced (:func:`replaced_whole`), the files are written into it one by one instead."""
     out = Path(cfg.out)
+    if not replaced_whole(out):
+        if not cfg.plots:  # an earlier report's PNGs here would pass for this one's
+            for fn in PLOTS.values():
+                (out / fn).unlink(missing_ok=True)
+        _write_files(out, out, report, cfg, base_ev, ext_ev, held_trajs)
+        return
     parent = out.absolute().parent
     parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(temp_folder(parent))

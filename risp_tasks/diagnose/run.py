@@ -182,15 +182,22 @@ def diagnose(cfg: DiagnoseConfig) -> dict:
 def check_out(out: str | None) -> None:
     """Fail before hours of fitting when the report could not be put in place (one line).  The report replaces
     ``out`` as a whole (:func:`report.write_report`), so ``out`` must be new, empty or an earlier report: a folder
-    holding anything else is refused rather than deleted."""
+    holding anything else is refused rather than deleted.  A symlink, a mount point or a folder in an unwritable one
+    is written into file by file instead (:func:`report.replaced_whole`): it must be writable itself."""
     if out is None:
         return
     from risp_data.atomic import TEMP_PREFIX
 
-    from .report import REPORT_FILES
+    from .report import REPORT_FILES, replaced_whole
 
     path = Path(out)
     try:
+        if path.exists() and not replaced_whole(path):  # a symlink, a mount point: written into, file by file
+            if not path.is_dir():
+                raise RispError(f"{path}: --out exists and is not a folder")
+            with tempfile.NamedTemporaryFile(dir=path, prefix=".write-test-"):
+                pass
+            return
         if path.exists():
             if not path.is_dir():
                 raise RispError(f"{path}: --out exists and is not a folder")

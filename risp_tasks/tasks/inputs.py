@@ -18,9 +18,14 @@ from risp_data.errors import RispError
 from ..video import Video, read_video, sha256_file
 
 CAMERA_KEYS = {"intrinsics": ("width", "height", "fx"), "extrinsics": ("origin", "target", "up")}
-#: the keys a camera JSON may hold besides CAMERA_KEYS (anything else, e.g. a rotation matrix or distortion
-#: coefficients, would be ignored by this camera model: refused rather than silently not used)
+#: the keys a camera JSON may hold besides CAMERA_KEYS
 CAMERA_OPTIONAL = {"intrinsics": ("fy", "cx", "cy", "distortion"), "extrinsics": ()}
+#: keys that carry geometry this camera model does not use (a rotation matrix, distortion terms, skew, a field of
+#: view): refused, since ignoring them would render another camera than the file describes; other unknown keys
+#: (a name, a model string) are listed in the result's warnings
+CAMERA_GEOMETRY = {"rotation", "r", "rvec", "t", "tvec", "translation", "quaternion", "q", "position", "matrix", "k",
+                   "k1", "k2", "k3", "k4", "p1", "p2", "skew", "fov", "fovx", "fovy", "fov_deg", "dist",
+                   "dist_coeffs", "distortion_coefficients", "extrinsic_matrix", "intrinsic_matrix", "pose"}
 
 
 def latest_model(runs: str = "runs") -> str:
@@ -107,6 +112,9 @@ def read_actions(path: str, env: str, n_frames: int, fps: float | None = None) -
     if not rows:
         raise RispError(f"{path}: empty actions file")
     header = [h.strip() for h in rows[0]]
+    if "" in header:  # a trailing comma, or two columns without names
+        raise RispError(f"{path}: header column {header.index('') + 1} has no name (a trailing comma?); the {env}'s "
+                        f"actions file has columns t,{','.join(cols)}")
     twice = sorted({h for h in header if header.count(h) > 1})
     if twice:  # which of the two is meant cannot be told: the first was taken without a word
         raise RispError(f"{path}: column {twice[0]} appears {header.count(twice[0])} times in the header")
@@ -192,11 +200,12 @@ def read_json(path: str, what: str) -> dict:
 MAX_FOV_DEG = 170.0  # beyond this a pinhole's image is all border: fx is almost surely in the wrong unit
 
 
-def read_camera(path: str, video_size: tuple[int, int] | None = None) -> Camera:
+def read_camera(path: str, video_size: tuple[int, int] | None = None, notes: list | None = None) -> Camera:
     """Camera JSON (docs/tasks.md §Camera): pinhole intrinsics (square pixels, principal point at the centre)
     and look-at extrinsics in the world frame (metres, z up).  Videos are centre-cropped to a square of side
     min(width, height), so the field of view the renderer uses is that square's: 2·atan(min(width, height) / 2fx).
-    ``video_size`` (width, height of the decoded frames): the camera's must have its aspect ratio (within 1 %)."""
+    ``video_size`` (width, height of the decoded frames): the camera's must have its aspect ratio (within 1 %) unless
+    the video is square (then it is the camera's centre square).  ``notes`` receives the unknown keys not used."""
     data = read_json(path, "camera")
     for group, keys in CAMERA_KEYS.items():
         if not isinstance(data.get(group), dict):
@@ -207,9 +216,12 @@ def read_camera(path: str, video_size: tuple[int, int] | None = None) -> Camera:
     intr, extr = data["intrinsics"], data["extrinsics"]
     for group, keys in CAMERA_KEYS.items():
         unknown = sorted(set(data[group]) - set(keys) - set(CAMERA_OPTIONAL[group]))
-        if unknown:
-            raise RispError(f"{path}: camera JSON key {group}.{unknown[0]} is not part of the camera model (pinhole, "
+        geometry = [k for k in unknown if k.lower() in CAMERA_GEOMETRY]
+        if geometry:
+            raise RispError(f"{path}: camera JSON key {group}.{geometry[0]} is not part of the camera model (pinhole, "
                             f"square pixels, no distortion; look-at extrinsics origin/target/up): remove it")
+        if unknown and notes is not None:
+            notes.append(f"{path}: camera key(s) {', '.join(f'{group}.{k}' for k in unknown)} not used")
 
     def number(value):
         if isinstance(value, (bool, str)):  # float(True) is 1.0, float("640") 640: a JSON true or string is no size
@@ -250,7 +262,9 @@ def read_camera(path: str, video_size: tuple[int, int] | None = None) -> Camera:
     if fov >= MAX_FOV_DEG:
         raise RispError(f"{path}: fx = {fx:g} pixels for a {min(width, height):g}-pixel square gives a {fov:.1f}° "
                         f"field of view (at most {MAX_FOV_DEG:g}°): fx is in pixels of the same image as width")
-    if video_size is not None and abs(width / height - video_size[0] / video_size[1]) > 0.01 * width / height:
+    # a square video is the camera's centre square already (make-video --camera writes such frames): any aspect fits
+    if (video_size is not None and video_size[0] != video_size[1]
+            and abs(width / height - video_size[0] / video_size[1]) > 0.01 * width / height):
         raise RispError(f"{path}: a {width:g}×{height:g} camera, but the video's frames are {video_size[0]}×"
                         f"{video_size[1]} pixels (another aspect ratio): give the intrinsics of the camera that "
                         "filmed this video")

@@ -158,9 +158,11 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
     if cfg.task == "estimate" and sim.action_dim > 0 and cfg.actions is None:
         input_notes.append(f"without --actions the trajectory CSV has no command columns, which `risp-task diagnose` "
                            f"needs for the {env_name}: give the commands the video was filmed with as --actions A.csv")
-    camera = read_camera(cfg.camera, ref.video.source_size if ref is not None else None) if cfg.camera else None
+    camera = read_camera(cfg.camera, ref.video.source_size if ref is not None else None, input_notes) \
+        if cfg.camera else None
     if camera is not None and cfg.loss not in ("render", "pixelwise", "perceptual"):
-        input_notes.append(f"--camera is used where the task renders: with the {cfg.loss} loss only the plots show it")
+        input_notes.append(f"--camera is used where the task renders: with the {cfg.loss} loss "
+                           + ("only the plots show it" if cfg.plots else "and --no-plots it changes nothing"))
     ctx = Context(cfg=cfg, env=env, sim=sim, predictor=predictor, frames=frames_t, keep=keep, n_source=n_source,
                   fps=fps, k=k, predicted=predicted.double(), predicted_targets=predicted_targets.double(),
                   file_actions=file_actions, truth=truth, rng=np.random.default_rng(cfg.seed))
