@@ -111,9 +111,11 @@ def _decode_file(path: Path, each=lambda img: img) -> tuple[list[np.ndarray], fl
                 raise RispError(f"{path}: not a video (no video stream)")
             stream = streams[0]
             rate = stream.average_rate or stream.base_rate or stream.guessed_rate
-            frames, times = [], []
+            frames, times, turns = [], [], set()
             for f in container.decode(stream):
-                frames.append(convert(f.to_ndarray(format="rgb24")))
+                img, turn = _upright(path, f)
+                turns.add(turn)
+                frames.append(convert(img))
                 times.append(None if f.pts is None or f.time_base is None else float(f.pts * f.time_base))
             tags = {k.lower(): v for k, v in container.metadata.items()}  # Matroska writes COMMENT
             announced = _announced(container, stream)
@@ -125,8 +127,27 @@ def _decode_file(path: Path, each=lambda img: img) -> tuple[list[np.ndarray], fl
         raise RispError(f"{path}: cannot decode as a video ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
     _check_complete(path, frames, times, announced)
     note = _check_constant_rate(path, times)
+    notes = [note] if note else []
+    if turns - {0}:
+        said = {90: "90° counterclockwise", 180: "180°", 270: "90° clockwise"}
+        notes.append(f"{path.name}: frames turned {', '.join(said[t] for t in sorted(turns - {0}))}, as its display "
+                     "matrix says (a phone held upright or upside down)")
     return (frames, float(rate) if rate else 0.0, str(tags.get("comment", "")), (first[1], first[0]) if first else None,
-            [note] if note else [])
+            notes)
+
+
+def _upright(path: Path, frame) -> tuple[np.ndarray, int]:
+    """A decoded frame as it is meant to be seen, and the turn applied (degrees counterclockwise, a multiple of 90):
+    a phone held upright stores landscape frames and a display matrix turning them (PyAV's ``frame.rotation``; the
+    rotation ffmpeg's own autorotate applies), which a reader must apply or the network sees the scene sideways."""
+    img = frame.to_ndarray(format="rgb24")
+    rotation = float(getattr(frame, "rotation", 0) or 0)
+    turns = round(rotation / 90.0)
+    if abs(rotation - 90 * turns) > 1.0:
+        raise RispError(f"{path}: its display matrix turns the frames by {rotation:g}°, not a multiple of 90°: "
+                        "re-encode it upright")
+    turn = (90 * turns) % 360
+    return (np.ascontiguousarray(np.rot90(img, k=turns)) if turn else img), turn
 
 
 def _announced(container, stream) -> tuple[int | None, float | None]:

@@ -309,3 +309,31 @@ def test_other_image_kinds_in_a_png_folder_are_named(tmp_path, other):
     Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(folder / other)
     with pytest.raises(RispError, match=rf"not PNG \({other}\)"):
         read_video(folder, source_fps=10)
+
+
+def _with_display_matrix(src, dst, matrix):
+    """Copy an MP4 with its video track's display matrix (the tkhd box, version 0) replaced — how a phone marks a
+    clip filmed upright (ffmpeg 8 cannot set it through PyAV)."""
+    import struct
+
+    data = bytearray(src.read_bytes())
+    i = data.index(b"tkhd")
+    assert data[i + 4] == 0  # version 0: the matrix follows 40 bytes of times, ids, duration, layer, volume
+    off = i + 4 + 4 + 4 + 4 + 4 + 4 + 4 + 8 + 2 + 2 + 2 + 2
+    data[off:off + 36] = struct.pack(">9i", *matrix)
+    dst.write_bytes(bytes(data))
+
+
+def test_a_phone_clip_filmed_upright_is_read_upright(tmp_path):
+    """A display matrix of −90° (ffmpeg: "rotation of -90.00 degrees", autorotated clockwise): the frames are turned
+    as a player shows them — the landscape frame's bright left strip ends up at the top of a portrait frame — and
+    the turn is said.  Ignored, the network saw the scene sideways."""
+    img = np.zeros((4, 16, 32, 3), np.float32)
+    img[:, :, :8] = 1.0  # a bright strip on the left
+    write_video(tmp_path / "land.mp4", img, fps=10)
+    _with_display_matrix(tmp_path / "land.mp4", tmp_path / "upright.mp4", (0, 65536, 0, -65536, 0, 0, 0, 0, 1 << 30))
+    v = read_video(tmp_path / "upright.mp4")
+    assert v.frames.shape == (4, 32, 16, 3) and v.source_size == (16, 32)
+    assert v.frames[:, :8].mean() > 0.9 and v.frames[:, 24:].mean() < 0.05  # the strip on top
+    assert len(v.notes) == 1 and "frames turned 90° clockwise, as its display matrix says" in v.notes[0]
+    assert read_video(tmp_path / "land.mp4").frames.shape == (4, 16, 32, 3)
