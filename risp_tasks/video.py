@@ -136,12 +136,34 @@ def _decode_file(path: Path, each=lambda img: img) -> tuple[list[np.ndarray], fl
             notes)
 
 
+def _display_matrix(frame) -> np.ndarray | None:
+    """The frame's display matrix (9 int32: a b u / c d v / x y w, ffmpeg's DISPLAYMATRIX side data), or None."""
+    try:
+        data = frame.side_data.get("DISPLAYMATRIX")
+    except (AttributeError, KeyError, TypeError, ValueError):
+        return None
+    if data is None:
+        return None
+    values = np.frombuffer(memoryview(data), dtype=np.int32)
+    return values if values.size == 9 else None
+
+
 def _upright(path: Path, frame) -> tuple[np.ndarray, int]:
     """A decoded frame as it is meant to be seen, and the turn applied (degrees counterclockwise, a multiple of 90):
     a phone held upright stores landscape frames and a display matrix turning them (PyAV's ``frame.rotation``; the
     rotation ffmpeg's own autorotate applies), which a reader must apply or the network sees the scene sideways."""
     img = frame.to_ndarray(format="rgb24")
-    rotation = float(getattr(frame, "rotation", 0) or 0)
+    matrix = _display_matrix(frame)
+    if matrix is None:
+        return img, 0
+    a, b, c, d = matrix[0], matrix[1], matrix[3], matrix[4]
+    det = float(a) * d - float(b) * c
+    if det == 0:  # degenerate (e.g. all zero): no transformation, as ffmpeg plays it
+        return img, 0
+    if det < 0:
+        raise RispError(f"{path}: its display matrix mirrors the frames (a flip, which risp does not apply): "
+                        "re-encode it as it is shown")
+    rotation = float(frame.rotation)
     turns = round(rotation / 90.0)
     if abs(rotation - 90 * turns) > 1.0:
         raise RispError(f"{path}: its display matrix turns the frames by {rotation:g}°, not a multiple of 90°: "
@@ -150,47 +172,52 @@ def _upright(path: Path, frame) -> tuple[np.ndarray, int]:
     return (np.ascontiguousarray(np.rot90(img, k=turns)) if turn else img), turn
 
 
-def _announced(container, stream) -> tuple[int | None, float | None]:
-    """(frame count, seconds) the header announces for the video stream; None for what it does not say.  The
-    seconds are the video stream's own — its duration, or a Matroska track's DURATION tag — and the container's
-    only when it holds no other stream (an audio track may run longer than the picture)."""
-    seconds = None
+def _announced(container, stream) -> tuple[int | None, float | None, bool, bool]:
+    """(frame count, seconds, whether the seconds are an end time from 0 rather than a span, whether the count can
+    be trusted) that the header announces for the video stream; None for what it does not say.  The seconds are
+    the video stream's own — its duration (a span), or a Matroska track's DURATION tag (an end time) — and the
+    container's (an end time) only when it holds no other stream (an audio track may run longer than the picture).
+    The count is not trusted in MP4/MOV, whose edit lists (a stream-copied trim) announce frames the decoder drops."""
+    seconds, end_time = None, False
     if stream.duration and stream.time_base:
         seconds = float(stream.duration * stream.time_base)
     elif stream.metadata.get("DURATION"):  # Matroska: "00:00:03.000000000" per track
         try:
             h, m, sec = stream.metadata["DURATION"].split(":")
-            seconds = int(h) * 3600 + int(m) * 60 + float(sec)
+            seconds, end_time = int(h) * 3600 + int(m) * 60 + float(sec), True
         except ValueError:
             seconds = None
     elif container.duration and len(container.streams) == 1:
-        seconds = container.duration / 1e6  # av.time_base
-    return (int(stream.frames) if stream.frames else None), seconds
+        seconds, end_time = container.duration / 1e6, True  # av.time_base
+    names = set((container.format.name or "").split(","))
+    return (int(stream.frames) if stream.frames else None), seconds, end_time, not names & {"mov", "mp4"}
 
 
 def _check_complete(path: Path, frames: list, times: list, announced: tuple) -> None:
     """RispError when the file decodes to less than its header announces: a truncated Matroska or AVI file decodes
-    without an error, only to fewer frames (an MP4 cut short fails to open).  The decoded frames' span must reach
-    the stream's duration (within two frames or 5 %): a span, not a count, since a trimmed MP4/MOV (an edit list)
-    announces the frames before its cut that the decoder then drops, and a variable frame rate is no cut.  The
-    frame count is compared only where the header gives no duration."""
-    count, seconds = announced
+    without an error, only to fewer frames (an MP4 cut short fails to open).  The decoded frames must reach the
+    stream's duration (within two frames or 5 %), and, except in MP4/MOV (whose edit lists announce the frames
+    before a stream-copied trim that the decoder drops), number the frames the header counts, less two: an AVI cut
+    short keeps its count but ffmpeg rebuilds its duration from what is left."""
+    count, seconds, end_time, count_trusted = announced
     n = len(frames)
-    if seconds is not None and len(times) >= 2 and not any(t is None for t in times):
-        step = float(np.median(np.diff(times)))
-        span = times[-1] - times[0] + step
-        if step > 0 and seconds - span > max(2 * step, 0.05 * seconds):
-            raise RispError(f"{path}: the decoded frames end at {span:.3g} s of the {seconds:.3g} s its header "
-                            f"announces ({n} frames): the file is cut short (an interrupted download or copy?)")
-    elif seconds is None and count is not None and n < count - max(2, 0.05 * count):
+    # the count less two: an AVI's empty "drop" chunks count as frames (an AVI written with compressed audio has one)
+    if count is not None and count_trusted and n < count - 2:
         raise RispError(f"{path}: only {n} of the {count} frames its header announces could be decoded: the file "
                         "is cut short (an interrupted download or copy?)")
+    if seconds is not None and len(times) >= 2 and not any(t is None for t in times):
+        step = float(np.median(np.diff(times)))
+        reached = times[-1] + step if end_time else times[-1] - times[0] + step  # a Matroska video may start late
+        if step > 0 and seconds - reached > max(2 * step, 0.05 * seconds):
+            raise RispError(f"{path}: the decoded frames end at {reached:.3g} s of the {seconds:.3g} s its header "
+                            f"announces ({n} frames): the file is cut short (an interrupted download or copy?)")
 
 
 #: a step between two frames' timestamps may differ from the median step by this fraction (timestamp rounding,
 #: a phone's jitter); a larger one is an irregular step (a frame dropped or held)
 RATE_TOLERANCE = 0.5
-#: irregular steps allowed as isolated events (noted, not refused): at most this fraction of the steps, or one
+#: irregular steps allowed as isolated events (noted, not refused): at most this fraction of the steps, or two (one
+#: misplaced or repeated timestamp makes two: +d, then −d)
 IRREGULAR_FRACTION = 0.01
 #: the frames' times may stray this many frame steps from a constant rate (a straight line through the first and
 #: the last) before the file counts as having a variable rate
@@ -200,9 +227,9 @@ MAX_DRIFT_STEPS = 2.0
 def _check_constant_rate(path: Path, times: list) -> str | None:
     """RispError when the frames' presentation times are not those of a constant rate: every task runs its
     simulation at one step per frame, so a variable-frame-rate file would put frames at the wrong times.
-    Refused: irregular steps (RATE_TOLERANCE off the median) more often than isolated events (IRREGULAR_FRACTION),
-    or times straying more than MAX_DRIFT_STEPS from the constant rate (a rate that changes slowly).  Isolated
-    ones (an AVI's empty first chunk, one dropped frame in hundreds) return a note instead."""
+    Refused: irregular steps (RATE_TOLERANCE off the median) more often than isolated events (IRREGULAR_FRACTION, or
+    two), or times straying more than MAX_DRIFT_STEPS from the constant rate (a rate that changes slowly).
+    Isolated ones (an AVI's empty first chunk, one dropped frame or one repeated timestamp) return a note."""
     if len(times) < 3 or any(t is None for t in times):
         return None
     t = np.asarray(times, np.float64)
@@ -215,7 +242,7 @@ def _check_constant_rate(path: Path, times: list) -> str | None:
     drift = float(np.abs(t - t[0] - mean * np.arange(len(t))).max() / mean)
     advice = (f"re-encode it at a constant rate (e.g. ffmpeg -i IN -fps_mode cfr -r {1 / median:.3g} OUT) or export "
               f"its frames as PNGs")
-    if len(irregular) > max(1, IRREGULAR_FRACTION * len(steps)) or drift > MAX_DRIFT_STEPS:
+    if len(irregular) > max(2, IRREGULAR_FRACTION * len(steps)) or drift > MAX_DRIFT_STEPS:
         k = int(irregular[0]) if len(irregular) else int(np.argmax(np.abs(steps - median)))
         raise RispError(f"{path}: a variable frame rate ({len(irregular)} of {len(steps)} steps between frames off "
                         f"the usual {median * 1e3:.0f} ms, e.g. frames {k} → {k + 1} {steps[k] * 1e3:.0f} ms apart; "

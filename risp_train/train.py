@@ -177,7 +177,7 @@ def check_run_folder(out: str, resume: bool, overwrite: bool, remove: bool = Tru
         # only when the folder holds a run: its own files (RUN_FILES), the evaluations risp-train eval wrote into it and
         # temporaries — never a user's file that merely starts with "eval" (evaluate.py), nor anything in a folder of
         # other files that the run is written beside
-        if remove and any(name in RUN_FILES for name in present):
+        if remove and held:  # a model or a checkpoint: a config.json alone may be anyone's
             for name in present:
                 if _is_run_file(name):
                     path = os.path.join(out, name)

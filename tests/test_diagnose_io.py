@@ -171,13 +171,18 @@ def test_a_symlinked_out_is_written_through_and_a_file_browsers_ds_store_is_no_o
     it names, the link kept; a reused report folder holding .DS_Store (macOS's, from browsing it) is accepted."""
     target = tmp_path / "real"
     target.mkdir()
-    (target / "keep.txt").write_text("mine")
     link = tmp_path / "link"
     link.symlink_to(target, target_is_directory=True)
     res = _run(flights, link, "--no-plots")
     assert res.exit_code == 0, res.output
-    assert link.is_symlink() and (target / "report.json").is_file() and (target / "keep.txt").read_text() == "mine"
+    assert link.is_symlink() and (target / "report.json").is_file()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["link", "real"]  # no temporary left beside them
+    (target / "ranking.png").write_bytes(b"an earlier report's plot")
+    assert _run(flights, link, "--no-plots").exit_code == 0  # a rewrite: the earlier report's plots go
+    assert not (target / "ranking.png").exists()
+    (target / "keep.txt").write_text("mine")  # a folder of the user's behind the link: refused as any other
+    line = _one_error_line(_run(flights, link, "--no-plots"))
+    assert "keep.txt" in line and (target / "keep.txt").read_text() == "mine"
     out = tmp_path / "rep"
     assert _run(flights, out, "--no-plots").exit_code == 0
     (out / ".DS_Store").write_bytes(b"\0")

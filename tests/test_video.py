@@ -232,11 +232,16 @@ def test_a_variable_frame_rate_video_is_refused(tmp_path):
     with pytest.raises(RispError, match=r"vfr.mkv: a variable frame rate \(\d+ of 19 steps between frames off the "
                                         r"usual 100 ms, e.g. frames \d+ → \d+ 300 ms apart"):
         read_video(tmp_path / "vfr.mkv")
-    # one dropped frame (an isolated irregular step) is said, not refused
+    # one dropped frame, or one late timestamp (two irregular steps: +d, then −d), is said, not refused
     dropped = [100 * k for k in range(10)] + [100 * k for k in range(11, 21)]
-    _write_with_times(tmp_path / "drop.mkv", frames, dropped)
-    v = read_video(tmp_path / "drop.mkv")
-    assert v.frames.shape[0] == 20 and len(v.notes) == 1 and "a dropped or held frame?" in v.notes[0]
+    late = [100 * k + (50 if k == 7 else 0) for k in range(20)]
+    for name, times in (("drop.mkv", dropped), ("late.mkv", late)):
+        _write_with_times(tmp_path / name, frames, times)
+        v = read_video(tmp_path / name)
+        assert v.frames.shape[0] == 20 and len(v.notes) == 1 and "a dropped or held frame?" in v.notes[0], name
+    # a Matroska video that starts late (its DURATION tag is an end time from 0) is whole
+    _write_with_times(tmp_path / "starts_late.mkv", frames, [500 + 100 * k for k in range(20)])
+    assert read_video(tmp_path / "starts_late.mkv").notes == ()
 
 
 def _synthetic_clip(path, n, fps=30, gop=None, audio_seconds=None):
@@ -312,8 +317,8 @@ def test_other_image_kinds_in_a_png_folder_are_named(tmp_path, other):
 
 
 def _with_display_matrix(src, dst, matrix):
-    """Copy an MP4 with its video track's display matrix (the tkhd box, version 0) replaced — how a phone marks a
-    clip filmed upright (ffmpeg 8 cannot set it through PyAV)."""
+    """Copy an MP4 with its video track's display matrix (the tkhd box, version 0) replaced by any 3×3 matrix — how
+    a phone marks a clip filmed upright; flips and degenerate matrices included."""
     import struct
 
     data = bytearray(src.read_bytes())
@@ -337,3 +342,33 @@ def test_a_phone_clip_filmed_upright_is_read_upright(tmp_path):
     assert v.frames[:, :8].mean() > 0.9 and v.frames[:, 24:].mean() < 0.05  # the strip on top
     assert len(v.notes) == 1 and "frames turned 90° clockwise, as its display matrix says" in v.notes[0]
     assert read_video(tmp_path / "land.mp4").frames.shape == (4, 16, 32, 3)
+
+
+def test_a_mirroring_display_matrix_is_refused_and_a_degenerate_one_ignored(tmp_path):
+    """A flip (determinant < 0) is not applied by risp: one line, not frames turned the wrong way; an all-zero
+    matrix is no transformation (ffmpeg plays such a file as stored)."""
+    write_video(tmp_path / "land.mp4", _frames(T=3, H=16, W=32), fps=10)
+    _with_display_matrix(tmp_path / "land.mp4", tmp_path / "mirror.mp4", (-65536, 0, 0, 0, 65536, 0, 0, 0, 1 << 30))
+    with pytest.raises(RispError, match="mirror.mp4: its display matrix mirrors the frames"):
+        read_video(tmp_path / "mirror.mp4")
+    _with_display_matrix(tmp_path / "land.mp4", tmp_path / "zero.mp4", (0,) * 9)
+    v = read_video(tmp_path / "zero.mp4")
+    assert v.frames.shape == (3, 16, 32, 3) and v.notes == ()
+
+
+def test_an_avi_cut_anywhere_is_refused_or_whole(tmp_path):
+    """An AVI cut short keeps its header's frame count while ffmpeg rebuilds its duration from the chunks left:
+    wherever it is cut, reading it either refuses it or gives all but at most two frames — never a shorter video."""
+    write_video(tmp_path / "v.avi", _frames(T=90, H=24, W=32), fps=30)
+    data = (tmp_path / "v.avi").read_bytes()
+    shorter = []
+    for percent in range(50, 100, 5):
+        cut = tmp_path / f"cut{percent}.avi"
+        cut.write_bytes(data[: len(data) * percent // 100])
+        try:
+            n = read_video(cut).frames.shape[0]
+        except RispError:
+            continue
+        if n < 88:  # the last two frames are within the count's slack (an AVI's empty chunks count as frames)
+            shorter.append((percent, n))
+    assert shorter == []

@@ -192,23 +192,21 @@ def check_out(out: str | None) -> None:
 
     path = Path(out)
     try:
-        if path.exists() and not replaced_whole(path):  # a symlink, a mount point: written into, file by file
-            if not path.is_dir():
-                raise RispError(f"{path}: --out exists and is not a folder")
-            with tempfile.NamedTemporaryFile(dir=path, prefix=".write-test-"):
-                pass
-            return
+        whole = replaced_whole(path)
         if path.exists():
             if not path.is_dir():
                 raise RispError(f"{path}: --out exists and is not a folder")
-            if Path.cwd().resolve().is_relative_to(path.resolve()):
+            if whole and Path.cwd().resolve().is_relative_to(path.resolve()):
                 raise RispError(f"{path}: --out is the current folder (or holds it); the report replaces its "
                                 f"folder as a whole: name a new one, e.g. --out report/")
             other = sorted(n for n in os.listdir(path) if n not in REPORT_FILES and not n.startswith(TEMP_PREFIX))
-            if other:
+            if other:  # replaced whole they would be deleted; written into, their names could be the plots'
                 raise RispError(f"{path}: --out holds files that are not a diagnose report ({other[0]}"
-                                f"{', …' if len(other) > 1 else ''}); the report replaces its folder as a whole: "
-                                f"name a new or empty folder")
+                                f"{', …' if len(other) > 1 else ''}); name a new or empty folder")
+            if not whole:  # a symlink, a mount point: written into, file by file
+                with tempfile.NamedTemporaryFile(dir=path, prefix=".write-test-"):
+                    pass
+                return
         parent = path.absolute().parent
         parent.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=parent, prefix=".write-test-"):
