@@ -42,6 +42,15 @@ def atomic_write(path: "str | os.PathLike", mode: str = "wb", suffix: str = "") 
 TEMP_PREFIX = ".tmp-"
 
 
+def probe_writable(folder: "str | os.PathLike") -> None:
+    """Create ``folder`` (and its parents) and a temporary file in it, then delete the file: an OSError naming what
+    failed if files cannot be written there (permissions, a read-only file system, a file in the way)."""
+    os.makedirs(folder, exist_ok=True)
+    fd, probe = tempfile.mkstemp(prefix=TEMP_PREFIX + "write-check-", dir=folder)
+    os.close(fd)
+    os.unlink(probe)
+
+
 def check_writable(folder: "str | os.PathLike", what: str = "output folder") -> None:
     """Raise one RispError line now — not after minutes of work — when ``folder`` could not be created or written
     into: a file in its path, or no write permission on it or on the nearest folder above it that exists.

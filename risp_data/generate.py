@@ -16,14 +16,13 @@ import dataclasses
 import os
 import queue as _queue
 import shutil
-import tempfile
 import threading
 from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
 
-from .atomic import remove_temporaries
+from .atomic import probe_writable, remove_temporaries
 from .errors import RispError
 from .processes import end_pool_workers, exit_with, start_time
 from .ray_support import ray_errors, require_ray
@@ -324,10 +323,7 @@ def new_manifest(job: RenderJob, variant: str) -> dict[str, Any]:
 
 def _check_writable(folder: str) -> None:
     try:
-        os.makedirs(folder, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=".tmp-write-check-", dir=folder)
-        os.close(fd)
-        os.unlink(probe)
+        probe_writable(folder)
     except OSError as e:
         raise RispError(f"output folder {folder} is not writable: {e.strerror or e}") from None
 

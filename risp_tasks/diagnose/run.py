@@ -7,7 +7,6 @@ Method, statistics and thresholds: docs/diagnose.md.
 from __future__ import annotations
 
 import os
-import tempfile
 import time
 from dataclasses import asdict, dataclass
 
@@ -186,7 +185,7 @@ def check_out(out: str | None) -> None:
     is written into file by file instead (:func:`report.replaced_whole`): it must be writable itself."""
     if out is None:
         return
-    from risp_data.atomic import TEMP_PREFIX
+    from risp_data.atomic import TEMP_PREFIX, probe_writable
 
     from .report import REPORT_FILES, replaced_whole
 
@@ -203,14 +202,8 @@ def check_out(out: str | None) -> None:
             if other:  # replaced whole they would be deleted; written into, their names could be the plots'
                 raise RispError(f"{path}: --out holds files that are not a diagnose report ({other[0]}"
                                 f"{', …' if len(other) > 1 else ''}); name a new or empty folder")
-            if not whole:  # a symlink, a mount point: written into, file by file
-                with tempfile.NamedTemporaryFile(dir=path, prefix=".write-test-"):
-                    pass
-                return
-        parent = path.absolute().parent
-        parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=parent, prefix=".write-test-"):
-            pass
+        # written into file by file (a symlink, a mount point), or a sibling folder renamed over it
+        probe_writable(path if path.exists() and not whole else path.absolute().parent)
     except OSError as e:
         raise RispError(f"{e.filename or path}: cannot write the report there ({e.strerror})") from None
 
