@@ -365,7 +365,13 @@ class FlatEdgesMixin:
         return L
 
     def _radiance_difference(self, scene, sampler, sensor, ss, ss_out, is_crease, active):
-        """f_in − f_out at the edge point, 0 where the point is hidden from the camera."""
+        """f_in − f_out at the edge point, 0 where the point is hidden from the camera.
+
+        Only the visible lanes are shaded: they are gathered into a narrower wavefront (``dr.compress``) with a
+        sampler of their own, seeded from ``sampler``, and the differences scattered back.  Of a frame's edge
+        samples 40–80 % are hidden (behind the object or outside the image), and the shading paths are the
+        boundary term's main cost; masked lanes of a full-width wavefront would still pay for them.
+        """
         import drjit as dr
         import mitsuba as mi
 
@@ -385,19 +391,33 @@ class FlatEdgesMixin:
 
         wavelength_sample = sampler.next_1d() if mi.is_spectral else 0
         wavelengths, weight = sensor.sample_wavelengths(dr.zeros(mi.SurfaceInteraction3f), wavelength_sample, active)
-        ray_bg = ss.spawn_ray(wavelengths)
+        width = dr.width(visible)
+        # the shading sampler's seed: one draw of the caller's stream, so a frame's seed still fixes everything
+        seed = dr.gather(mi.UInt32, dr.reinterpret_array(mi.UInt32, sampler.next_1d()), mi.UInt32(0))
+        keep = dr.compress(visible)
+        n = dr.width(keep)
+        if n == 0:
+            return dr.zeros(mi.Spectrum, width), wavelengths
+        shading = sampler.fork()
+        shading.seed(seed, n)
+        ss, ss_out = dr.gather(type(ss), ss, keep), dr.gather(type(ss_out), ss_out, keep)
+        is_crease = dr.gather(mi.Bool, is_crease, keep) if dr.width(is_crease) > 1 else is_crease
+        wl = _take(wavelengths, keep) if dr.width(wavelengths) > 1 else wavelengths
+        weight = _take(weight, keep) if dr.width(weight) > 1 else weight
+        ray_bg = ss.spawn_ray(wl)
+        on = mi.Bool(True)
         # the radiance on either side is the image's: paths as long as the primal's (boundary_max_depth), even
         # where the interior term uses shorter ones
         depth, self.max_depth = self.max_depth, getattr(self, "boundary_max_depth", self.max_depth)
         try:
-            L_in = self._shade(scene, sampler, ss, ray_bg, visible)
-            L_bg, _, _, _ = self.sample(dr.ADMode.Primal, scene, sampler, ray_bg, 0, None, None,
-                                        visible & ~is_crease, False, None)
-            L_face = self._shade(scene, sampler, ss_out, ray_bg, visible & is_crease)
+            L_in = self._shade(scene, shading, ss, ray_bg, on)
+            L_bg, _, _, _ = self.sample(dr.ADMode.Primal, scene, shading, ray_bg, 0, None, None, ~is_crease, False, None)
+            L_face = self._shade(scene, shading, ss_out, ray_bg, is_crease)
         finally:
             self.max_depth = depth
-        ΔL = L_in - dr.select(is_crease, L_face, L_bg)
-        return dr.select(visible, ΔL * weight, 0), wavelengths
+        ΔL = dr.zeros(mi.Spectrum, width)
+        dr.scatter(ΔL, (L_in - dr.select(is_crease, L_face, L_bg)) * weight, keep)
+        return ΔL, wavelengths
 
 
     def _render_point_light_shadows(self, scene, sensor, sampler, spp, shapes, meshes):
