@@ -79,7 +79,8 @@ def diagnose(data, env, out, seed, held_out, horizon, rollout_horizon, max_segme
 # from their --help), so that TaskConfig can say in one line why the option is not theirs.
 ONLY_FOR = {"--grow-horizon": ("sysid", "imitate"), "--action-knots": ("imitate", "control"),
             "--params": ("imitate", "control"), "--actions": ("sysid", "estimate"),
-            "--every": ("estimate", "sysid", "imitate"), "--source-fps": ("estimate", "sysid", "imitate")}
+            "--every": ("estimate", "sysid", "imitate"), "--source-fps": ("estimate", "sysid", "imitate"),
+            "--fit-initial-state": ("sysid", "imitate"), "--fit-params": ("imitate",)}
 
 
 def _task_options(task: str):
@@ -121,6 +122,14 @@ def _task_options(task: str):
         click.option("--params", default=None, **shown("--params"),
                      help="imitate, control: known physical parameters — a JSON object, a JSON file, or a sysid "
                           "result.json (default: the simulator's nominal ones)"),
+        click.option("--fit-initial-state/--fixed-initial-state", default=None, **shown("--fit-initial-state"),
+                     help="sysid, imitate: identify the initial state read from the first two frames jointly, or keep "
+                          "it fixed [default: fit; the rod starts at rest] (docs/tasks.md §Initial state)"),
+        click.option("--fit-params/--no-fit-params", default=None, **shown("--fit-params"),
+                     help="imitate: identify the physical parameters sysid would (quadrotor mass, hand stiffnesses, "
+                          "rod log10 E) jointly with the actions, from the middle of their ranges or --params "
+                          "[default: yes for the hand and the rod unless --params gives them, no for the quadrotor] "
+                          "(docs/tasks.md §Unknown physical parameters)"),
         click.option("--seed", type=int, default=0, show_default=True),
         click.option("--every", type=int, default=1, show_default=True, **shown("--every"), help="keep every k-th frame (not control)"),
         click.option("--fps", type=float, default=None, help="resample the video to this frame rate (a divisor of the "
@@ -206,16 +215,9 @@ def estimate(video, **kw):
     _run("estimate", video, **kw)
 
 
-_fit_initial = click.option(
-    "--fit-initial-state/--fixed-initial-state", default=None,
-    help="identify the initial state read from the first two frames jointly, or keep it fixed "
-         "[default: fit; the rod starts at rest] (docs/tasks.md §Initial state)")
-
-
 @cli.command()
 @click.argument("video", type=click.Path())
 @_task_options("sysid")
-@_fit_initial
 def sysid(video, **kw):
     """The physical parameter(s) that reproduce VIDEO (quadrotor mass, cube log10 k_n, hand stiffness, rod log10 E)."""
     _run("sysid", video, **kw)
@@ -224,12 +226,6 @@ def sysid(video, **kw):
 @cli.command()
 @click.argument("video", type=click.Path())
 @_task_options("imitate")
-@_fit_initial
-@click.option("--fit-params/--no-fit-params", default=None,
-              help="identify the physical parameters sysid would (quadrotor mass, hand stiffnesses, rod log10 E) "
-                   "jointly with the actions, from the middle of their ranges or --params [default: yes for the "
-                   "hand and the rod unless --params gives them, no for the quadrotor] (docs/tasks.md §Unknown "
-                   "physical parameters)")
 def imitate(video, **kw):
     """The action sequence that reproduces the motion in VIDEO (quadrotor, hand, rod)."""
     _run("imitate", video, **kw)

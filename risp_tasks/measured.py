@@ -529,6 +529,27 @@ def read_trajectory(path: Path, env: str, overrides: dict | None = None) -> Traj
     sidecar = find_sidecar(path, env, overrides)
     known = columns_read(env, sidecar)
     cols = read_csv_columns(path, known)
+    try:
+        return _read_columns(path, env, sidecar, cols, known)
+    except RispError as e:
+        hint = _estimate_hint(env, sidecar, str(e))
+        if hint:
+            raise RispError(f"{e}: {hint}") from None
+        raise
+
+
+def _estimate_hint(env: str, sidecar: Sidecar, message: str) -> str | None:
+    """Why a ``risp-task estimate`` file (its sidecar has ``estimated_by``) lacks columns, and what to do."""
+    if sidecar.get("estimated_by") is None or "missing column" not in message:
+        return None
+    if env == "rod":
+        return ("risp-task estimate writes the rod's ten sensor heights (z0…z9), not the node positions and "
+                "loads that diagnose fits: a rod estimate is not a diagnose input")
+    return ("an estimate made without --actions; make it again with --actions A.csv (the commands, which "
+            "diagnose needs beside the states)")
+
+
+def _read_columns(path: Path, env: str, sidecar: Sidecar, cols: dict, known: frozenset[str]) -> Trajectory:
     if env in ("hand", "rod"):
         return _read_generic(path, env, sidecar, cols, known)
     quat_cols = _quaternion_columns(cols, sidecar, path)

@@ -400,3 +400,25 @@ def test_two_trailing_commas_are_not_duplicate_columns(tmp_path):
     lines = p.read_text().splitlines()
     p.write_text("\n".join([lines[0] + ",,"] + [ln + ",," for ln in lines[1:]]) + "\n")
     assert load_measured([str(p)], "cube")[0].n == len(lines) - 1
+
+
+@pytest.mark.parametrize("env, cols, words", [
+    ("rod", ["t"] + [f"z{i}" for i in range(10)], "a rod estimate is not a diagnose input"),
+    ("hand", ["t"], "an estimate made without --actions"),
+])
+def test_an_estimate_file_diagnose_cannot_read_says_why(tmp_path, env, cols, words):
+    """risp-task estimate's CSV (its sidecar names the network: estimated_by) lacking what diagnose fits: the
+    missing-columns line says why (no --actions; the rod's sensor heights) instead of leaving the user to guess."""
+    from risp_tasks.measured import read_trajectory
+
+    path = tmp_path / "trajectory.csv"
+    write_trajectory_csv(path, {c: np.linspace(0, 1, 5) + i for i, c in enumerate(cols)},
+                         {"env": env, "estimated_by": {"model_sha256": "0" * 64}})
+    with pytest.raises(RispError, match="missing column") as e:
+        read_trajectory(path, env)
+    assert words in str(e.value)
+    # a measured file (no estimated_by) gets the plain line
+    write_trajectory_csv(path, {c: np.linspace(0, 1, 5) + i for i, c in enumerate(cols)}, {"env": env})
+    with pytest.raises(RispError, match="missing column") as e:
+        read_trajectory(path, env)
+    assert words not in str(e.value)

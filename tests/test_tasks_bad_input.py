@@ -474,6 +474,13 @@ def test_estimate_without_actions_and_an_unused_camera_say_so(quad, tmp_path):
     assert any("without --actions the trajectory CSV has no command columns" in w for w in warnings), warnings
     assert any("--camera is used where the task renders" in w for w in warnings), warnings
     assert "warning: without --actions" in res.output
+    # and diagnose's reader says what the file lacks and how to get it
+    from risp_data.errors import RispError
+    from risp_tasks.measured import read_trajectory
+
+    with pytest.raises(RispError, match=r"missing column\(s\) f0, f1, f2, f3: an estimate made without --actions; "
+                                        r"make it again with --actions A.csv"):
+        read_trajectory(tmp_path / "res" / "trajectory.csv", "quadrotor")
 
 
 def test_make_video_params_with_a_huge_integer(tmp_path):

@@ -128,7 +128,7 @@ class TaskConfig:
             raise RispError(f"--action-knots is for imitate and control (the actions), not {self.task}")
         if self.params and self.task not in ("imitate", "control"):
             raise RispError(f"--params is for imitate and control (sysid identifies them), not {self.task}")
-        if self.fit_params and self.task != "imitate":
+        if self.fit_params is not None and self.task != "imitate":
             raise RispError(f"--fit-params is for imitate (sysid identifies the parameters itself), not {self.task}")
         if self.fit_params and self.init == "track":
             raise RispError("--fit-params needs the commands as variables; --init track optimises the controller's "
@@ -139,7 +139,7 @@ class TaskConfig:
             raise RispError(f"--warm-start is for --loss render (it runs the state loss first), not --loss {self.loss}")
         if self.gradient not in ("flat", "mitsuba"):
             raise RispError(f"unknown --gradient {self.gradient!r}; choose one of: flat, mitsuba")
-        if self.fit_initial_state and self.task not in ("sysid", "imitate"):
+        if self.fit_initial_state is not None and self.task not in ("sysid", "imitate"):
             raise RispError(f"--fit-initial-state is for sysid and imitate, not {self.task}")
         if self.task == "control":  # one goal image: no video timeline, no commands to read
             given = [name for name, bad in (("--actions", self.actions), ("--every", self.every != 1),

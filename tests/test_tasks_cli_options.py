@@ -1,0 +1,48 @@
+"""risp-task's shared options: each task's --help lists the ones it uses, and any other task refuses them with
+one line naming whose option it is (docs/cli-task.md) — not click's "No such option" usage error."""
+
+import pytest
+from click.testing import CliRunner
+
+from risp_tasks.cli import ONLY_FOR, cli
+
+TASKS = ("estimate", "sysid", "imitate", "control")
+# a value for each option that takes one (the flags are given as they are)
+VALUES = {"--grow-horizon": ["3"], "--action-knots": ["4"], "--params": ['{"mass": 3.0}'], "--actions": ["a.csv"],
+          "--every": ["2"], "--source-fps": ["10"], "--fit-initial-state": [], "--fit-params": []}
+# the negative forms of the boolean pairs are refused too
+NEGATIVE = {"--fit-initial-state": "--fixed-initial-state", "--fit-params": "--no-fit-params"}
+
+
+def test_every_restricted_option_has_a_test_value():
+    assert set(ONLY_FOR) == set(VALUES)
+
+
+@pytest.mark.parametrize("task", TASKS)
+def test_help_lists_the_options_a_task_uses(task):
+    res = CliRunner().invoke(cli, [task, "--help"], terminal_width=200)
+    assert res.exit_code == 0, res.output
+    for option, users in ONLY_FOR.items():
+        assert (option in res.output) == (task in users), (task, option)
+
+
+@pytest.mark.parametrize("task, option", [(t, o) for o, users in ONLY_FOR.items() for t in TASKS if t not in users])
+def test_another_task_s_option_is_refused_in_one_line(task, option, tmp_path):
+    target = str(tmp_path / ("goal.png" if task == "control" else "video.mp4"))
+    for given in filter(None, (option, NEGATIVE.get(option))):
+        args = [given, *VALUES[option]]
+        res = CliRunner().invoke(cli, [task, target, *args, "--out", str(tmp_path / "res"), "--quiet"])
+        lines = res.output.strip().splitlines()
+        assert res.exit_code == 1, (task, given, res.output)
+        assert len(lines) == 1 and lines[0].startswith("Error:"), res.output
+        assert "No such option" not in res.output
+        assert option in lines[0], lines[0]  # the line names the option (and whose it is)
+        assert not (tmp_path / "res").exists()
+
+
+@pytest.mark.parametrize("task, args", [("sysid", ["--fit-params"]), ("estimate", ["--no-fit-params"]),
+                                        ("control", ["--fit-initial-state"]), ("estimate", ["--fixed-initial-state"])])
+def test_the_boolean_options_of_sysid_and_imitate_are_refused_by_the_others(task, args, tmp_path):
+    """Before: click's usage error ("No such option", exit 2) instead of the line saying whose option it is."""
+    res = CliRunner().invoke(cli, [task, str(tmp_path / "v.mp4"), *args, "--quiet"])
+    assert res.exit_code == 1 and "is for" in res.output and "No such option" not in res.output, res.output
