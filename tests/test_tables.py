@@ -58,6 +58,10 @@ def test_every_method_estimation(cache, tmp_path):
     assert report["perceptual_extractor"] == "filterbank"
     runs = sorted(os.listdir(os.path.join(cache, "runs")))
     assert cfg.reg != "none" and any("-none-" in r for r in runs) and any(f"-{cfg.reg}-" in r for r in runs)
+    # each network row read its own network: `ours` the regularized one, `ours-no-grad` the one trained without
+    for method, reg in (("ours", cfg.reg), ("ours-no-grad", "none")):
+        cell = json.load(open(cell_path(run_folder(cfg), Cell("cube", method, 0))))
+        assert f"-{reg}-" in os.path.basename(os.path.dirname(cell["model"])), (method, cell["model"])
     for r in runs:  # trained from memory (a fixed sample order) on one thread, like every cell
         run_cfg = json.load(open(os.path.join(cache, "runs", r, "config.json")))
         assert run_cfg["cache"] == "memory" and run_cfg["threads"] == 1, (r, run_cfg["cache"], run_cfg["threads"])

@@ -55,6 +55,18 @@ def test_estimate_writes_measured_csv_that_diagnose_reads(quad, tmp_path):
     traj = load_measured([str(tmp_path / "est" / "trajectory.csv")], "quadrotor")[0]
     assert traj.n == 6 and traj.thrust is not None
     assert np.allclose(traj.thrust, np.loadtxt(_stem(video) + ".actions.csv", delimiter=",", skiprows=1)[:, 1:])
+    # the pose columns are the estimates: position as read, the quaternion (scalar first) turned back into
+    # R = Rz(yaw) Ry(pitch) Rx(roll) gives the estimated angles; signs continuous from row to row; t = frame / fps
+    est = np.asarray(r["estimates"]["env_states"], np.float64)
+    np.testing.assert_allclose(traj.pos, est[:, :3], atol=1e-12)
+    np.testing.assert_allclose(traj.t, np.arange(6) / 10.0, atol=1e-12)
+    w, x, y, z = traj.quat.T
+    angles = np.stack([np.arctan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z)),
+                       np.arcsin(np.clip(-2 * (x * z - w * y), -1, 1)),
+                       np.arctan2(2 * (y * z + w * x), 1 - 2 * (x * x + y * y))], 1)
+    wrapped = (angles - est[:, 3:] + np.pi) % (2 * np.pi) - np.pi
+    np.testing.assert_allclose(wrapped, 0, atol=1e-9)
+    assert ((traj.quat[1:] * traj.quat[:-1]).sum(1) >= 0).all()
     for name in ("result.json", "loss.png", "trajectory.png", "frames.png"):
         assert (tmp_path / "est" / name).is_file()
     saved = json.load(open(tmp_path / "est" / "result.json"))

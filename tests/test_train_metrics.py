@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from risp_data.errors import RispError
 from risp_train.evaluate import STATE_GROUPS, geodesic_angle_deg, group_errors, markdown_table, summarize_groups
 
 
@@ -73,3 +74,25 @@ def test_summary_and_table_report_mean_std_count_and_units():
     assert "position [m]" in table and "attitude [deg]" in table and "n = 4" in table
     assert "0.0500 ± 0.0500" in table and "0.2000 ± 0.1000" in table
     assert set(STATE_GROUPS) == {"quadrotor", "cube", "hand", "rod"}
+
+
+def test_paper_l1_and_l2_on_a_hand_built_difference():
+    """state_differences wraps the angles to (−π, π] and only them; per_image_error is the mean absolute
+    difference (l1, the paper's) or the Euclidean norm (l2) of a row — on a case worked out by hand."""
+    from risp_train.evaluate import per_image_error, state_differences
+
+    names = ("x", "y", "z", "yaw", "pitch", "roll")
+    deg = np.pi / 180
+    pred = np.array([[1.0, 0.0, 0.5, 179 * deg, 0.0, np.pi], [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]])
+    true = np.array([[0.0, 3.0, 0.5, -179 * deg, 0.1, -np.pi], [0.0, 0.0, 4.0, 0.0, 0.0, 3 * np.pi / 2]])
+    d = state_differences(pred, true, names)
+    expected = np.array([[1.0, -3.0, 0.0, -2 * deg, -0.1, 0.0],  # 358° is a 2° error; π − (−π) is none
+                         [0.0, 0.0, -4.0, 0.0, 0.0, np.pi / 2]])  # −3π/2 wraps to +π/2; z (metres) is not wrapped
+    np.testing.assert_allclose(d, expected, atol=1e-12)
+    assert state_differences(np.array([[0.0, 0, 0, np.pi, 0, 0]]), np.zeros((1, 6)), names)[0, 3] == pytest.approx(np.pi)
+    assert state_differences(np.array([[0.0, 0, 0, -np.pi, 0, 0]]), np.zeros((1, 6)), names)[0, 3] == pytest.approx(np.pi)
+    np.testing.assert_allclose(per_image_error(d, "l1"), [(1 + 3 + 2 * deg + 0.1) / 6, (4 + np.pi / 2) / 6], rtol=1e-12)
+    np.testing.assert_allclose(per_image_error(d, "l2"), [np.sqrt(1 + 9 + (2 * deg) ** 2 + 0.01),
+                                                          np.sqrt(16 + np.pi ** 2 / 4)], rtol=1e-12)
+    with pytest.raises(RispError, match="unknown --metric"):
+        per_image_error(d, "l3")

@@ -170,7 +170,8 @@ def test_calibrated_forms_share_one_scale(setup):
     small factor of the exact form (equal in expectation over sign patterns)."""
     net, x, tangents, y, _ = setup
     scale = torch.tensor([0.5, 2.0, 1.3], dtype=torch.float64)
-    c_t = SQRT_2_OVER_PI / math.sqrt(T)
+    assert SQRT_2_OVER_PI == pytest.approx(math.sqrt(2 / math.pi), rel=1e-15)  # E|z| of a standard normal
+    c_t = math.sqrt(2 / math.pi) / math.sqrt(T)
     pred, m = rendering_gradients(net, x, tangents * scale.view(1, -1, 1, 1, 1))
     norms = torch.linalg.vector_norm(m.flatten(1), dim=1).detach()
     r_exact = risp_loss(net, x, y, "exact", 1.0, tangents, psi_scale=scale).reg
@@ -178,8 +179,12 @@ def test_calibrated_forms_share_one_scale(setup):
     g = torch.Generator().manual_seed(5)
     draws = torch.stack([risp_loss(net, x, y, "stochastic", 1.0, tangents, g, scale).reg for _ in range(3000)])
     assert float((draws**2).mean()) == pytest.approx(float(c_t**2 * (norms**2).mean()), rel=0.1)
+    # the surrogate: √(2/π)·√T · mean_b ‖M̃_bᵀ sign(ŷ_b − y_b) / T‖, written out here (a lost √T or a wrong
+    # constant in the code moves it by a factor of √T = 1.7 or more, which a ratio band alone would not see)
     r_surr = float(risp_loss(net, x, y, "surrogate", 1.0, tangents, psi_scale=scale).reg)
-    assert 1 / 3 < r_surr / float(r_exact) < 3
+    per_b = torch.linalg.vector_norm(torch.einsum("bkt,bt->bk", m.detach(), torch.sign(pred.detach() - y) / T), dim=1)
+    assert r_surr == pytest.approx(math.sqrt(2 / math.pi) * math.sqrt(T) * float(per_b.mean()), rel=1e-10)
+    assert 1 / 3 < r_surr / float(r_exact) < 3  # and on the same scale as the exact form
 
 
 def test_risp_loss_combines_terms(setup):
