@@ -558,10 +558,23 @@ def test_cli_writes_and_prints_the_table(tmp_path):
 
 
 def test_ray_executor_runs_cells_as_ray_tasks(cache, tmp_path):
+    """Only where the optional ray extra is installed (not in CI): every cell — the rod's computed ones and the
+    cube's N/A ones — ran in a Ray worker (its recorded pid is not this process's: no silent local fallback), and
+    the rod's cells agree with the serial runner's."""
     pytest.importorskip("ray")
-    cfg = make_config("control", quick=True, out=str(tmp_path), envs=("cube",), executor="ray", **TINY)
+    methods = ("average", "ours-state")
+    cfg = make_config("control", quick=True, out=str(tmp_path / "ray"), envs=("cube", "rod"), methods=methods,
+                      executor="ray", **TINY)
     report = run_table(cfg, cache=cache, echo=lambda *_: None)
     assert all(e["na"] == "the cube has no actions" for e in report["cells"]["cube"].values())
+    for env in ("cube", "rod"):
+        for m in methods:
+            cell = json.load(open(cell_path(run_folder(cfg), Cell(env, m, 0))))
+            assert cell["pid"] != os.getpid(), (env, m)
+    serial = run_table(make_config("control", quick=True, out=str(tmp_path / "serial"), envs=("rod",),
+                                   methods=methods, **TINY), cache=cache, echo=lambda *_: None)
+    for m in methods:
+        assert report["cells"]["rod"][m]["mean"] == pytest.approx(serial["cells"]["rod"][m]["mean"], rel=1e-9), m
 
 
 def test_ray_executor_without_ray_is_a_clear_error(tmp_path):
