@@ -12,6 +12,8 @@ Documentation: docs/cli-task.md.
 
 from __future__ import annotations
 
+import os
+
 import click
 
 from risp_data.cli_util import RispGroup, run_cli
@@ -72,7 +74,7 @@ def diagnose(data, env, out, seed, held_out, horizon, rollout_horizon, max_segme
     for name, p in report["parameters"].items():
         unit = "" if p["unit"] in ("1", "", None) else f" {p['unit']}"  # "1": dimensionless
         click.echo(f"  {name} = {p['value']:.4g} ± {p['std']:.2g}{unit}")
-    click.echo(f"held-out normalised RSS gain: {report['gain']['normalized_rss']:+.1%}; report: {out}/report.md")
+    click.echo(f"held-out normalised RSS gain: {report['gain']['normalized_rss']:+.1%}; report: {os.path.join(os.path.normpath(out), 'report.md')}")
 
 
 # The options of _task_options that only some tasks use, and those tasks.  The others still accept them (hidden
@@ -196,6 +198,10 @@ def _run(task, video, **kw):
         click.echo(f"note: no step improved on {start} (loss {loss[first]:.4g}); {kept} (docs/tasks.md §Pipeline)")
     for name, value in result["estimates"].get("parameters", {}).items():
         click.echo(f"  {name} = {value:.4g}")
+    fitted = set(result.get("info", {}).get("fitted_parameters", []))
+    for name, value in result.get("info", {}).get("given_parameters", {}).items():
+        if name not in fitted:  # a fitted one is printed above, where it ended
+            click.echo(f"  {name} = {value:.4g} (from --params)")
     for name, value in result.get("errors", {}).items():
         if isinstance(value, float):
             click.echo(f"  {name} = {value:.4g}")

@@ -76,6 +76,8 @@ def check_demo_folder(out: Path) -> None:
     """A demo folder is new, empty (hidden files such as .DS_Store aside), or an earlier demo's — it holds the
     marker written first, or demo.json — whose finished steps are reused. Any other folder is refused before
     anything is written, so the demo's files (its README.md, its shards/) never land in or over a user's."""
+    if str(out).startswith("-"):  # `risp demo --out --help` would make a folder named "--help"
+        raise RispError(f"--out {out} looks like an option, not a folder (give the folder after --out)")
     if out.is_file():
         raise RispError(f"--out {out} is a file; pass a folder")
     if not out.is_dir() or (out / DEMO_MARKER).exists() or (out / "demo.json").is_file():

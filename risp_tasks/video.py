@@ -411,6 +411,19 @@ def made_by(env: str, seed: int) -> str:
     return f"{MADE_BY} env={env} seed={seed}"
 
 
+def comment_tag(path: str | os.PathLike) -> str:
+    """The container's comment tag, read from the header (nothing decoded); "" for a file without one, a folder or
+    a file that cannot be opened (reading it in full reports that)."""
+    if not os.path.isfile(path):
+        return ""
+    try:
+        with _av().open(str(path)) as container:
+            tags = {k.lower(): v for k, v in container.metadata.items()}  # Matroska writes COMMENT
+    except Exception:  # noqa: BLE001 - not a video: the full read says so in one line
+        return ""
+    return str(tags.get("comment", ""))
+
+
 def made_for(comment: str) -> str | None:
     """The environment a make-video file names in its comment tag, None for any other file."""
     if not comment.startswith(MADE_BY + " "):

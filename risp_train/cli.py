@@ -79,7 +79,8 @@ def fit(shards, out, reg, gamma, gamma_ramp, gamma_start, preset, epochs, batch_
     if rank0:
         click.echo(f"data: {shards}; preset: {preset} ({why}); regularizer: {describe_regularizer(cfg, shards)}; "
                    f"run folder: {out}", err=True)
-    path = run_fit(cfg, resume=resume, progress=not quiet, overwrite=overwrite, allow_incomplete=allow_incomplete)
+    path = run_fit(cfg, resume=resume, progress=not quiet, overwrite=overwrite, allow_incomplete=allow_incomplete,
+                   echo=lambda line: click.echo(line, err=True))
     if rank0:
         click.echo(f"model: {path}")
 

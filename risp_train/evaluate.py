@@ -174,8 +174,12 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
     _atomic_text(prefix + ".md", markdown_table(result) + "\n")
     from .plots import plot_predicted_vs_true
 
+    units = [None] * len(names)
+    for unit, idx in STATE_GROUPS.get(shards.env, {}).values():
+        for i in idx:
+            units[i] = unit
     plot_predicted_vs_true(pred, true, names, prefix + "_scatter.png",
-                           title=f"{shards.env}, {result['domain']} domain, {n} images")
+                           title=f"{shards.env}, {result['domain']} domain, {n} images", units=units)
     result["files"] = [prefix + ".json", prefix + ".md", prefix + "_scatter.png"]
     return result
 

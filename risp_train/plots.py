@@ -40,11 +40,16 @@ def plot_losses(csv_path: str, png_path: str, history: list[dict] | None = None,
     if val:
         ax[0].plot(*zip(*val), "o-", label="held-out state error")
     ax[0].set_xlabel("step")
+    ax[0].set_ylabel("state error (batch mean)")
     ax[0].set_yscale("log")
     ax[0].legend(fontsize=8)
     if any(r > 0 for r in values):
-        ax[1].plot(steps, [max(r, 1e-12) for r in values], lw=0.8, marker=marker, color="C2")
+        # only the steps that evaluated it (r > 0): before γ's ramp the logged 0 is "not computed", which a log
+        # axis would draw as a real value at its floor
+        shown = [(st, r) for st, r in zip(steps, values) if r > 0]
+        ax[1].plot(*zip(*shown), lw=0.8, marker="o" if len(shown) <= 20 else None, color="C2")
         ax[1].set_yscale("log")
+        ax[1].set_xlim(min(steps), max(steps))
     else:
         text = ("no regularizer (--reg none)" if reg == "none" else
                 f"--reg {reg}: not evaluated yet\n(γ = 0 before its ramp starts)")
@@ -55,11 +60,17 @@ def plot_losses(csv_path: str, png_path: str, history: list[dict] | None = None,
     plt.close(fig)
 
 
-def plot_predicted_vs_true(pred, true, names, png_path: str, title: str = "") -> None:
-    """One scatter panel per state entry: prediction (y) against truth (x), with the diagonal y = x."""
+def plot_predicted_vs_true(pred, true, names, png_path: str, title: str = "", units=None) -> None:
+    """One scatter panel per state entry: prediction (y) against truth (x), with the diagonal y = x.  ``units``: one
+    per entry ("m", "rad", "deg", …) for the panel titles; "deg" entries are given in radians and drawn in degrees,
+    as the eval tables report attitude."""
     import numpy as np
 
-    pred, true = np.asarray(pred), np.asarray(true)
+    pred, true = np.asarray(pred, np.float64).copy(), np.asarray(true, np.float64).copy()
+    units = list(units) if units is not None else [None] * len(names)
+    for i, unit in enumerate(units):
+        if unit == "deg":
+            pred[:, i], true[:, i] = np.degrees(pred[:, i]), np.degrees(true[:, i])
     cols = min(len(names), 5)
     rows = -(-len(names) // cols)
     plt = _pyplot()
@@ -71,7 +82,7 @@ def plot_predicted_vs_true(pred, true, names, png_path: str, title: str = "") ->
         lo, hi = float(min(true[:, i].min(), pred[:, i].min())), float(max(true[:, i].max(), pred[:, i].max()))
         ax.plot([lo, hi], [lo, hi], color="0.6", lw=0.8)
         ax.scatter(true[:, i], pred[:, i], s=4, alpha=0.6)
-        ax.set_title(names[i], fontsize=9)
+        ax.set_title(names[i] + (f" [{'°' if units[i] == 'deg' else units[i]}]" if units[i] else ""), fontsize=9)
         ax.tick_params(labelsize=7)
     axes[0, 0].set_ylabel("predicted")
     axes[-1, 0].set_xlabel("true")

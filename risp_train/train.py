@@ -260,13 +260,15 @@ def check_resume_counts(state: dict, shards, cache: str, world: int, threads: in
 
 
 def fit(cfg: TrainConfig, *, resume: bool = False, progress: bool = True,
-        stop_after_step: int | None = None, overwrite: bool = False, allow_incomplete: bool = False) -> str:
+        stop_after_step: int | None = None, overwrite: bool = False, allow_incomplete: bool = False,
+        echo=None) -> str:
     """Train according to ``cfg``; returns the path of the final checkpoint (``cfg.out/model.pt``).
 
     Refuses an incomplete shard folder unless ``allow_incomplete`` and a folder holding a run unless
     ``resume`` or ``overwrite`` (docs/cli-train.md). The run uses one fixed torch thread count
     (``cfg.threads``; 0: the CPUs left after the data workers, risp_data.threads) and gives the caller's
-    setting back when it returns.
+    setting back when it returns.  ``echo``: called with a note line for the user (e.g. a resume of a finished
+    run, which trains nothing).
     """
     device = resolve_device(cfg.device)  # before anything is written: a bad --device leaves no run folder
     dist_info = init_distributed()
@@ -274,13 +276,13 @@ def fit(cfg: TrainConfig, *, resume: bool = False, progress: bool = True,
     try:
         return _fit(cfg, dist_info, device=device, resume=resume, progress=progress,
                     stop_after_step=stop_after_step,
-                    overwrite=overwrite, allow_incomplete=allow_incomplete)
+                    overwrite=overwrite, allow_incomplete=allow_incomplete, echo=echo)
     finally:
         torch.set_num_threads(before)
 
 
 def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: bool, progress: bool,
-         stop_after_step: int | None, overwrite: bool, allow_incomplete: bool) -> str:
+         stop_after_step: int | None, overwrite: bool, allow_incomplete: bool, echo=None) -> str:
     from risp_data.envs import get_environment
 
     rank, world = dist_info.rank, dist_info.world_size
@@ -290,7 +292,8 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
     check_complete(shards, allow_incomplete)
     need_j = cfg.reg != "none"
     if need_j and not shards.has_jacobian:
-        raise RispError(f"shard folder {cfg.shards} was rendered without Jacobians; --reg {cfg.reg} needs them")
+        raise RispError(f"shard folder {cfg.shards} was rendered without Jacobians; --reg {cfg.reg} needs them "
+                        "(render the training set without --no-jacobian, or train without the regularizer: --reg none)")
     val = open_shards(cfg.val) if cfg.val else None
     if val is not None:
         if val.env != shards.env:
@@ -336,6 +339,14 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
         changes = option_changes(state["config"], cfg, shards.env, used=state)  # before the data set is decoded below
         if changes:
             raise RispError(f"cannot resume {last_path} with different options: {', '.join(changes)}")
+        final = os.path.join(cfg.out, MODEL)
+        if state["progress"].get("complete") and os.path.isfile(final):
+            # nothing left to train: the finished run's model.pt stays as it is (rewriting it changed its checksum,
+            # which task results record)
+            if echo is not None and dist_info.rank == 0:
+                echo(f"note: the run in {cfg.out} is already complete ({cfg.epochs} epochs): nothing trained, "
+                     f"{MODEL} unchanged")
+            return final
         # a resumed run keeps the σ_ψ it began with; checkpoints from before σ_ψ followed the shards' domain
         # (2026-11-28) trained with the train domain's
         stored_psi = state.get("psi_std")
@@ -355,7 +366,8 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
     total_steps = sum(plan)
     if total_steps == 0:
         raise RispError(f"--batch-size {cfg.batch_size} is larger than the samples each of the {world} process(es) "
-                        f"and {cfg.workers} worker(s) read from {len(shards.counts)} shard(s) of {shards.folder}; "
+                        f"and {cfg.workers} worker(s) read from {len(shards.counts)} shard(s) of {shards.folder} "
+                        f"({shards.num_samples} samples); "
                         "lower --batch-size or --workers, or render more samples")
 
     check_run_folder(cfg.out, resume, overwrite, remove=False)  # refuse before the decode below, delete nothing

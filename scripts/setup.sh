@@ -2,7 +2,7 @@
 # Install everything risp needs on a fresh Debian/Ubuntu-like machine, into ./.venv.
 #   - a libLLVM that Dr.Jit's CPU backend accepts (>= 16; drjit 1.5 refuses 14 and aborts on 15)
 #   - a Python virtual environment with risp and its dependencies (CPU torch unless a GPU is present)
-# Idempotent: a second run only checks.
+# Idempotent: a second run only checks (pip runs again only when pyproject.toml changed).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -40,6 +40,16 @@ if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi
 VPY=.venv/bin/python
+# A second run skips pip when this checkout's risp is installed from this pyproject.toml (a stamp in .venv): the
+# demo and the tests run the set-up every time, and pip's resolve took ~5 s and printed setuptools' banner.
+STAMP=.venv/.risp-setup
+WANT="$(sha256sum pyproject.toml | cut -d' ' -f1) $(pwd)"
+installed() {
+  [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$WANT" ] && [ "$("$VPY" -c 'import os, risp_data; print(os.path.dirname(os.path.dirname(os.path.abspath(risp_data.__file__))))' 2>/dev/null)" = "$(pwd)" ]
+}
+if installed && "$VPY" -c 'import torch' >/dev/null 2>&1; then
+  echo "[setup] risp is installed (pyproject.toml unchanged since the last set-up)"
+else
 "$VPY" -m pip install -q --upgrade pip >/dev/null 2>&1 || true
 if ! "$VPY" -c 'import torch' >/dev/null 2>&1; then
   if command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi >/dev/null 2>&1; then
@@ -57,4 +67,6 @@ if ! "$VPY" -c 'import torch' >/dev/null 2>&1; then
 fi
 echo "[setup] installing risp and its dependencies"
 "$VPY" -m pip install -q -e ".[dev]"
+echo "$WANT" > "$STAMP"
+fi
 "$VPY" -c 'from risp_data.llvm import ensure_llvm; print("[setup] Dr.Jit will use", ensure_llvm())'

@@ -115,6 +115,9 @@ def test_a_folder_of_data_sets_is_named_not_called_missing(rendered, tmp_path):
     empty.mkdir()
     with pytest.raises(Exception, match="manifest not found"):  # a folder with no data set at all: as before
         load_manifest(str(empty))
+    video = tmp_path / "video.mp4"  # a file given where a folder is meant: not called missing either
+    video.write_bytes(b"\x00" * 16)
+    _error_line(CliRunner().invoke(cli, ["inspect", str(video)]), "is a file, not a shard folder")
 
 
 def test_verify_passes_then_fails_on_tampered_jacobian(tmp_path):

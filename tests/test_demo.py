@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -120,3 +121,18 @@ def test_demo_refuses_a_folder_that_is_not_a_demos(tmp_path):
     (hidden / ".DS_Store").write_text("")
     check_demo_folder(hidden)
     check_demo_folder(tmp_path / "new")
+
+
+def test_demo_script_passes_options_and_refuses_an_option_as_folder(tmp_path):
+    """`bash scripts/demo.sh --help` shows risp demo's help (it used to become `--out --help`: a folder named
+    "--help", then a failed render); `risp demo --out --help` is refused before anything is written."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    proc = subprocess.run(["bash", os.path.join(root, "scripts", "demo.sh"), "--help"], capture_output=True,
+                          text=True, timeout=600, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "--quick" in proc.stdout and "--seed" in proc.stdout
+    assert not os.path.exists(os.path.join(root, "--help")) and not (tmp_path / "--help").exists()
+    proc = subprocess.run([sys.executable, "-m", "cli", "demo", "--out", "--help"], capture_output=True, text=True,
+                          timeout=120, cwd=root)
+    assert proc.returncode == 1 and "--out --help looks like an option, not a folder" in proc.stderr, proc.stderr
+    assert not os.path.exists(os.path.join(root, "--help"))

@@ -3,6 +3,7 @@ non-zero exit, and no result folder (not even a half-written one)."""
 
 import json
 import os
+import time
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -203,6 +204,35 @@ def test_a_most_recent_model_for_another_system_is_named(quad, tmp_path_factory,
     assert "the cube has no actions" in line and "is a cube model: give --model" in line
     line = _invoke(["estimate", plain, "--truth", stem + ".truth.json"], tmp_path)
     assert "ground truth of a quadrotor video, but the model is a cube model" in line
+
+
+def test_without_model_the_newest_run_of_the_video_s_system_is_used(quad, tmp_path_factory, tmp_path, monkeypatch):
+    """runs/ holds an older quadrotor run and a newer cube run: a make-video quadrotor file (its tag names the
+    system) is read with the quadrotor run, and the first line says why that one; so is --env quadrotor on untagged
+    footage. (Before, the newest run was taken whatever its system, and the task stopped at the mismatch.)"""
+    import shutil
+
+    from risp_tasks.cli import cli
+    from risp_tasks.video import read_video, write_video
+
+    model, video = quad
+    for name, src, age in (("quad-run", model, 100), ("cube-run", shared_model(tmp_path_factory, "cube"), 0)):
+        (tmp_path / "runs" / name).mkdir(parents=True)
+        shutil.copy(src, tmp_path / "runs" / name / "model.pt")
+        t = time.time() - age
+        os.utime(tmp_path / "runs" / name / "model.pt", (t, t))
+    monkeypatch.chdir(tmp_path)
+    res = CliRunner().invoke(cli, ["estimate", video, "--out", str(tmp_path / "a"), "--quiet", "--no-plots"])
+    assert res.exit_code == 0, res.output
+    first = res.output.splitlines()[0]
+    assert "quad-run" in first and "the most recent quadrotor model under runs/, for the video's system" in first
+    plain = str(tmp_path / "plain.mp4")
+    write_video(plain, read_video(video).frames, fps=10)
+    res = CliRunner().invoke(cli, ["estimate", plain, "--env", "quadrotor", "--out", str(tmp_path / "b"), "--quiet",
+                                   "--no-plots"])
+    assert res.exit_code == 0 and "quad-run" in res.output.splitlines()[0] and "for --env" in res.output, res.output
+    res = CliRunner().invoke(cli, ["estimate", plain, "--out", str(tmp_path / "c"), "--quiet", "--no-plots"])
+    assert "cube-run" in res.output.splitlines()[0]  # untagged and no --env: the newest run, as before
 
 
 def test_existing_result_folder_is_not_overwritten(quad, tmp_path):

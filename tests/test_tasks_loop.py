@@ -181,6 +181,26 @@ def test_bad_params_are_one_clear_error(given, message):
         set_params(sim, sim.default_params(), given)
 
 
+def test_params_given_as_a_missing_path_or_a_result_folder(tmp_path):
+    """A path that is not there says so (it used to be called "not a JSON object"); sysid's result folder — what it
+    prints after "results:" — stands for its result.json; a folder without one is refused in one line."""
+    import json
+
+    from risp_data.errors import RispError
+    from risp_tasks.sims import get_simulator
+    from risp_tasks.tasks.simulate import read_params
+
+    sim = get_simulator("hand")
+    with pytest.raises(RispError, match=r"--params results/nosuch/result.json: no such file or folder"):
+        read_params(sim, "results/nosuch/result.json")
+    run = tmp_path / "sysid-v-seed0"
+    run.mkdir()
+    with pytest.raises(RispError, match=r"a folder without a result.json"):
+        read_params(sim, str(run))
+    (run / "result.json").write_text(json.dumps({"task": "sysid", "estimates": {"parameters": {"stiffness_index": 0.25}}}))
+    assert read_params(sim, str(run)) == {"stiffness_index": 0.25}
+
+
 def test_params_from_a_result_without_parameters_is_one_clear_error(tmp_path):
     """An imitate or estimate result.json has no ``estimates.parameters``: say so, instead of rejecting its
     ``task`` key as an unknown parameter."""
@@ -376,3 +396,24 @@ def test_each_tasks_help_lists_the_options_it_uses(task, shown, hidden):
     assert set(shown) <= listed and not set(hidden) & listed, sorted(listed)
     assert ("track" in text.split("--init")[1].split("\n")[0]) and ((task == "imitate") ==
                                                                      ("tracking controller" in text)), text
+
+
+def test_loss_plot_marks_the_returned_iterate_at_result_json_s_index(tmp_path, monkeypatch):
+    """loss.png's x axis counts the steps taken (0 = the start), the index of result.json's best_iteration: the
+    star sits at that index (it was drawn one to the right, at best + 1)."""
+    import matplotlib.pyplot as plt
+
+    from risp_tasks.tasks.results import plot_loss
+
+    figs = []
+    monkeypatch.setattr(plt, "close", lambda fig=None: figs.append(fig))
+    history = [5.0, 3.0, 1.0, 2.0, 4.0]
+    plot_loss(str(tmp_path / "loss.png"), history, "t", last=6.0, best=2)
+    (ax,) = figs[-1].axes
+    stars = [ln for ln in ax.get_lines() if ln.get_marker() == "*"]
+    assert len(stars) == 1 and list(stars[0].get_xdata()) == [2] and list(stars[0].get_ydata()) == [1.0]
+    loss_line = next(ln for ln in ax.get_lines() if ln.get_label() == "loss")
+    assert list(loss_line.get_xdata()) == [0, 1, 2, 3, 4]
+    plot_loss(str(tmp_path / "loss2.png"), history, "t", last=0.5, best=5)  # the last iterate returned
+    stars = [ln for ln in figs[-1].axes[0].get_lines() if ln.get_marker() == "*"]
+    assert list(stars[0].get_xdata()) == [5] and list(stars[0].get_ydata()) == [0.5]

@@ -46,6 +46,33 @@ def test_make_video_writes_video_truth_and_actions(quad):
     assert np.ptp(np.asarray(truth["env_states"])[:, :3], 0).max() > 0.01
 
 
+def test_imitate_prints_the_parameters_params_gave(quad, tmp_path):
+    """imitate --params: the values it simulated with are printed (they were only in result.json), the fitted
+    ones where they ended instead."""
+    from click.testing import CliRunner
+
+    from risp_tasks.cli import cli
+
+    model, video = quad
+    res = CliRunner().invoke(cli, ["imitate", video, "--model", model, "--params", '{"mass": 3.05}', "--iterations", "1",
+                                   "--out", str(tmp_path / "o"), "--quiet", "--no-plots"])
+    assert res.exit_code == 0, res.output
+    assert "  mass = 3.05 (from --params)" in res.output.splitlines()
+    saved = json.load(open(tmp_path / "o" / "result.json"))
+    assert saved["info"]["given_parameters"] == {"mass": 3.05}
+
+
+def test_a_truth_file_beside_the_video_is_pointed_at_not_read(quad, tmp_path):
+    """make-video's <stem>.truth.json beside the video: without --truth the result says how to compare with it
+    (no solver reads it, so no errors are reported); with --truth the errors are there and the hint is not."""
+    model, video = quad
+    r = _run("estimate", video, tmp_path / "a", model=model, plots=False)
+    beside = _stem(video) + ".truth.json"
+    assert r["errors"] == {} and any(f"add --truth {beside} to see the errors" in w for w in r["warnings"])
+    r = _run("estimate", video, tmp_path / "b", model=model, plots=False, truth=beside)
+    assert "state_rmse_network" in r["errors"] and not any("lies beside the video" in w for w in r["warnings"])
+
+
 def test_estimate_writes_measured_csv_that_diagnose_reads(quad, tmp_path):
     from risp_tasks.measured import load_measured
 
@@ -120,7 +147,8 @@ def test_render_losses_differentiate_through_renderer_and_network(quad, tmp_path
     n = len(view["frames"])
     assert n == 6 and len(view["fraction_in_view_initial"]) == n == len(view["fraction_in_view_final"])
     assert all(0.0 <= v <= 1.0 for v in view["fraction_in_view_final"])
-    assert bool(r["warnings"]) == bool(view["frames_out_of_view_final"])
+    view_warnings = [w for w in r["warnings"] if "lies beside the video" not in w]  # the --truth hint aside
+    assert bool(view_warnings) == bool(view["frames_out_of_view_final"])
     if loss == "perceptual":
         assert r["info"]["perceptual_extractor"] == "filterbank"
 

@@ -96,3 +96,48 @@ def test_paper_l1_and_l2_on_a_hand_built_difference():
                                                           np.sqrt(16 + np.pi ** 2 / 4)], rtol=1e-12)
     with pytest.raises(RispError, match="unknown --metric"):
         per_image_error(d, "l3")
+
+
+def test_scatter_plot_draws_attitude_in_degrees_with_units(tmp_path, monkeypatch):
+    """eval's predicted-vs-true PNG: angles in degrees, as its tables report them, and each panel names its unit
+    (the yaw/pitch/roll panels were radians without a unit beside a table in degrees)."""
+    import matplotlib.pyplot as plt
+
+    from risp_train.plots import plot_predicted_vs_true
+
+    figs = []
+    monkeypatch.setattr(plt, "close", lambda fig=None: figs.append(fig))
+    true = _rigid_truth(4)
+    pred = true + 0.01
+    names = ["x", "y", "z", "yaw", "pitch", "roll"]
+    plot_predicted_vs_true(pred, true, names, str(tmp_path / "s.png"), units=["m"] * 3 + ["deg"] * 3)
+    axes = [ax for ax in figs[-1].axes if ax.get_title()]
+    assert [ax.get_title() for ax in axes] == ["x [m]", "y [m]", "z [m]", "yaw [°]", "pitch [°]", "roll [°]"]
+    yaw_points = axes[3].collections[0].get_offsets()
+    np.testing.assert_allclose(np.asarray(yaw_points)[:, 0], np.degrees(true[:, 3]))
+    x_points = axes[0].collections[0].get_offsets()
+    np.testing.assert_allclose(np.asarray(x_points)[:, 0], true[:, 0])
+
+
+def test_loss_plot_leaves_out_the_steps_before_the_regularizer_starts(tmp_path, monkeypatch):
+    """losses.png: the steps whose logged regularizer is 0 (γ not started: not computed) are not drawn at the log
+    axis' floor as if they were values; the computed ones are drawn as logged."""
+    import csv
+
+    import matplotlib.pyplot as plt
+
+    from risp_train.plots import plot_losses
+
+    rows = [(s, 1.0 / (s + 1), 0.0 if s < 5 else 0.2 + 0.01 * s) for s in range(10)]
+    path = tmp_path / "losses.csv"
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["step", "epoch", "batch", "lr", "gamma", "loss", "error", "reg", "seconds"])
+        for s, e, r in rows:
+            w.writerow([s, 0, s, 1e-3, 0.3, e + r, e, r, 0.1])
+    figs = []
+    monkeypatch.setattr(plt, "close", lambda fig=None: figs.append(fig))
+    plot_losses(str(path), str(tmp_path / "losses.png"), reg="stochastic")
+    (line,) = figs[-1].axes[1].get_lines()
+    assert list(line.get_xdata()) == list(range(5, 10))
+    np.testing.assert_allclose(line.get_ydata(), [r for _, _, r in rows[5:]])

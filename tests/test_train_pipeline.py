@@ -234,7 +234,7 @@ def test_clear_errors(shards, tmp_path):
     assert r.exit_code != 0 and "state dimension" in r.output, r.output
     # regularizer on shards without Jacobians; unknown regularizer
     r = runner.invoke(cli, ["fit", shards["held_out"], "--out", str(tmp_path / "r4"), "--reg", "exact", "--quiet"])
-    assert r.exit_code != 0 and "Jacobians" in r.output, r.output
+    assert r.exit_code != 0 and "Jacobians" in r.output and "--reg none" in r.output, r.output
     r = runner.invoke(cli, ["fit", shards["held_out"], "--out", str(tmp_path / "r5"), "--reg", "bogus"])
     assert r.exit_code != 0 and "unknown --reg" in r.output
     r = runner.invoke(cli, ["fit", shards["train"], "--out", str(tmp_path / "r5b"), "--gamma-start", "1.5"])
@@ -410,6 +410,26 @@ def test_resume_compares_resolved_options(shards, tmp_path):
     with pytest.raises(RispError, match=r"different options: gamma=.*→0\.123"):
         fit(_cfg(shards, tmp_path / "r", gamma=0.123, **kw), resume=True, progress=False)
     assert os.path.isfile(fit(same, resume=True, progress=False))
+
+
+def test_resume_of_a_finished_run_trains_nothing_and_keeps_model_pt(shards, tmp_path):
+    """--resume of a complete run: a note says so, and model.pt keeps its bytes (it used to be written again, with
+    a new checksum that no longer matched the task results recording it); more epochs are another run."""
+    from risp_data.shards.manifest import sha256_file
+
+    out = tmp_path / "done"
+    args = ["fit", shards["train"], "--out", str(out), "--quiet", "--epochs", "1", "--batch-size", "8",
+            "--width", "4", "--workers", "0", "--reg", "none"]
+    r = CliRunner().invoke(cli, args)
+    assert r.exit_code == 0, r.output
+    before = sha256_file(str(out / "model.pt")), os.path.getmtime(out / "model.pt"), os.path.getmtime(out / "last.pt")
+    r = CliRunner().invoke(cli, args + ["--resume"])
+    assert r.exit_code == 0, r.output
+    assert f"note: the run in {out} is already complete (1 epochs): nothing trained, model.pt unchanged" in r.output
+    assert (sha256_file(str(out / "model.pt")), os.path.getmtime(out / "model.pt"),
+            os.path.getmtime(out / "last.pt")) == before
+    r = CliRunner().invoke(cli, [a if a != "1" else "2" for a in args] + ["--resume"])
+    assert r.exit_code != 0 and "different options: epochs=1→2" in r.output, r.output
 
 
 def test_resume_keeps_the_gamma_the_run_trained_with(shards, tmp_path, monkeypatch):

@@ -119,6 +119,8 @@ def datasets_in(folder: str) -> list[str]:
 def load_manifest(folder: str) -> dict[str, Any]:
     """Read ``folder/manifest.json``; RispError when it is missing, corrupt or not a risp shard manifest."""
     path = os.path.join(folder, MANIFEST)
+    if os.path.isfile(folder):  # e.g. a video given to `risp-data inspect`
+        raise RispError(f"{folder} is a file, not a shard folder (give the folder risp-data render wrote)")
     if not os.path.isdir(folder):
         raise RispError(f"shard folder not found: {folder}")
     if not os.path.exists(path):

@@ -145,6 +145,8 @@ def build(ctx: Context, n_frames: int | None = None, s0: torch.Tensor | None = N
             "parameters": {n: float(start[0, i]) for i, n in enumerate(sim.param_names)}}
     if free is not None:
         info["fitted_parameters"] = list(free.names)
+    if given:  # what --params set (the rest nominal): printed by the CLI, so a user sees which values were used
+        info["given_parameters"] = dict(given)
     return Problem(variables={"actions": z, **({"x": free.x} if free is not None else {}), **s0.variables},
                    states=lambda: frame_states(sim, physics(), s0(), actions(z), n_frames, ctx.k),
                    estimates=lambda: {**estimates(), **s0.info()}, info=info,

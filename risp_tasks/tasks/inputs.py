@@ -28,13 +28,39 @@ CAMERA_GEOMETRY = {"rotation", "r", "rvec", "t", "tvec", "translation", "quatern
                    "dist_coeffs", "distortion_coefficients", "extrinsic_matrix", "intrinsic_matrix", "pose"}
 
 
-def latest_model(runs: str = "runs") -> str:
-    """The most recently written ``model.pt`` under ``runs/`` (one level of run folders)."""
+def latest_model(runs: str = "runs", env: str | None = None) -> str:
+    """The most recently written ``model.pt`` under ``runs/`` (one level of run folders); with ``env``, the most
+    recent one of that system (its run's config.json, else its checkpoint, says which), or the most recent of any
+    system when none is ``env``'s (the caller then names the mismatch)."""
     found = glob.glob(os.path.join(runs, "*", "model.pt")) + glob.glob(os.path.join(runs, "model.pt"))
     if not found:
         raise RispError(f"no trained model under {runs}/ (looked for {runs}/*/model.pt); train one with "
                         "`risp-train fit SHARDS --out runs/NAME` or pass --model")
-    return max(found, key=os.path.getmtime)
+    found.sort(key=os.path.getmtime, reverse=True)
+    if env is not None:
+        for path in found:
+            if model_env(path) == env:
+                return path
+    return found[0]
+
+
+def model_env(path: str) -> str | None:
+    """The environment a checkpoint was trained for, from its run's config.json (cheap) or the checkpoint; None when
+    neither can be read (the caller's own load then reports the file)."""
+    try:
+        with open(os.path.join(os.path.dirname(path), "config.json")) as fh:
+            env = json.load(fh).get("env")
+        if isinstance(env, str):
+            return env
+    except (OSError, ValueError, AttributeError):
+        pass
+    try:
+        import torch
+
+        env = torch.load(path, map_location="cpu", weights_only=True).get("env")
+        return env if isinstance(env, str) else None
+    except Exception:  # noqa: BLE001 - any unreadable checkpoint: not this system's
+        return None
 
 
 def load_model(path: str, env: str | None):

@@ -92,20 +92,22 @@ def plot_loss(path: str, history: list[float], title: str, last: float | None = 
 
     fig, ax = plt.subplots(figsize=(5, 3.2))
     if history:
-        x = np.arange(1, len(history) + 1)
+        # x = the steps taken before the loss was measured (0: the start), the index result.json's best_iteration
+        # uses; the point after the last step is x = len(history)
+        x = np.arange(len(history))
         ax.semilogy(x, np.maximum(history, 1e-12), marker="o" if len(history) <= 20 else None, ms=3, label="loss")
         if last is not None and np.isfinite(last):
-            ax.semilogy([len(history), len(history) + 1], np.maximum([history[-1], last], 1e-12), "--", color="C0",
+            ax.semilogy([len(history) - 1, len(history)], np.maximum([history[-1], last], 1e-12), "--", color="C0",
                         lw=0.8, label="after the last step")
         if best is not None and best < len(history):
-            ax.semilogy([best + 1], [max(history[best], 1e-12)], "*", color="C3", ms=10, label="returned (best)")
+            ax.semilogy([best], [max(history[best], 1e-12)], "*", color="C3", ms=10, label="returned (best)")
         elif best is not None and last is not None and np.isfinite(last):  # the last iterate is the one returned
-            ax.semilogy([len(history) + 1], [max(last, 1e-12)], "*", color="C3", ms=10, label="returned (best)")
+            ax.semilogy([len(history)], [max(last, 1e-12)], "*", color="C3", ms=10, label="returned (best)")
         ax.legend(fontsize=7)
     else:
         ax.text(0.5, 0.5, "no iterations (--iterations 0):\nthe result is the start", ha="center", va="center",
                 transform=ax.transAxes)
-    ax.set_xlabel("iteration")
+    ax.set_xlabel("steps taken (0: the start; result.json's best_iteration)")
     ax.set_ylabel("loss")
     ax.set_title(title, fontsize=9)
     fig.tight_layout()
@@ -139,8 +141,9 @@ def plot_trajectories(path: str, names, t, curves: dict[str, np.ndarray]) -> Non
     plt.close(fig)
 
 
-def save_strip(path: str, rows: dict[str, np.ndarray]) -> None:
-    """PNG: one row per label (reference / initial / optimized), frames side by side, sRGB."""
+def save_strip(path: str, rows: dict[str, np.ndarray], note: str | None = None) -> None:
+    """PNG: one row per label (reference / initial / optimized), frames side by side, sRGB; ``note``: a line of
+    text under the rows (e.g. that the simulated rows are drawn in the nominal look, not the video's)."""
     from PIL import Image, ImageDraw
 
     from ..video import to_uint8
@@ -149,10 +152,14 @@ def save_strip(path: str, rows: dict[str, np.ndarray]) -> None:
     imgs = {k: to_uint8(v) for k, v in rows.items()}
     h, w = next(iter(imgs.values())).shape[1:3]
     n = max(len(v) for v in imgs.values())
-    canvas = Image.new("RGB", (label_w + n * (w + 2), len(imgs) * (h + 2)), (255, 255, 255))
+    foot = 14 if note else 0
+    canvas = Image.new("RGB", (max(label_w + n * (w + 2), 6 * len(note or "") + 4), len(imgs) * (h + 2) + foot),
+                       (255, 255, 255))
     draw = ImageDraw.Draw(canvas)
     for r, (label, frames) in enumerate(imgs.items()):
         draw.text((2, r * (h + 2) + h // 2 - 5), label, fill=(0, 0, 0))
         for c, img in enumerate(frames):
             canvas.paste(Image.fromarray(img), (label_w + c * (w + 2), r * (h + 2)))
+    if note:
+        draw.text((2, len(imgs) * (h + 2) + 1), note, fill=(60, 60, 60))
     canvas.save(path)

@@ -34,8 +34,20 @@ def resolve_model(cfg: TaskConfig) -> tuple[str, str]:
     if cfg.model is not None:
         path = model_file(cfg.model)  # a run folder names its model.pt
         return path, f"model: {path}"
-    path = latest_model(cfg.runs)
+    wanted = cfg.env or (video_system(cfg.video) if cfg.task != "control" else None)
+    newest = latest_model(cfg.runs)
+    path = latest_model(cfg.runs, wanted) if wanted else newest
+    if path != newest:  # a newer run of another system lies there: say why this one
+        why = "--env" if cfg.env else "the video's system (make-video's tag)"
+        return path, f"model: {path} (the most recent {wanted} model under {cfg.runs}/, for {why})"
     return path, f"model: {path} (the most recent under {cfg.runs}/)"
+
+
+def video_system(path: str) -> str | None:
+    """The system a make-video file names in its comment tag; None for any other video or a PNG folder."""
+    from ..video import comment_tag, made_for
+
+    return made_for(comment_tag(path))
 
 
 def _reference(cfg: TaskConfig, resolution: int):
@@ -155,6 +167,10 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
                         f"give the truth make-video wrote beside this video")
     if truth is not None and ref is not None:  # files from before video_sha256: at least the timeline must agree
         _check_truth_timeline(cfg, truth, ref)
+    beside = os.path.splitext(os.path.normpath(cfg.video))[0] + ".truth.json"  # where make-video writes it
+    if truth is None and cfg.task != "control" and os.path.isfile(beside):
+        input_notes.append(f"{beside} lies beside the video (make-video's ground truth, which no solver reads): add "
+                           f"--truth {beside} to see the errors against it")
     if cfg.task == "estimate" and sim.action_dim > 0 and cfg.actions is None:
         input_notes.append(f"without --actions the trajectory CSV has no command columns, which `risp-task diagnose` "
                            f"needs for the {env_name}: give the commands the video was filmed with as --actions A.csv")
@@ -394,4 +410,5 @@ def _plots(folder, cfg, env, ctx, loss_frames, initial_states, final_states, tru
         rows = {"reference": ref_rows,
                 "initial": renderer(initial_states[frames].float(), seed=1).numpy(),
                 "optimized": renderer(final_states[frames].float(), seed=1).numpy()}
-    save_strip(folder.path("frames.png"), rows)
+    save_strip(folder.path("frames.png"), rows,
+               note="initial, optimized: rendered in the train domain's nominal look (the reference row is the video)")

@@ -78,7 +78,13 @@ def with_params(sim, params: torch.Tensor, values: dict[str, float]) -> torch.Te
 def read_params(sim, given: str, option: str = "--params") -> dict[str, float]:
     """The parameter values that ``given`` names: a JSON object {name: value}, the path of such a JSON file, or
     the path of a task's result.json (its identified ``estimates.parameters``, e.g. a ``sysid`` run).  Unknown
-    names, non-numbers and non-finite values are one error line each."""
+    names, non-numbers and non-finite values are one error line each.  A task's result folder (what sysid prints
+    after ``results:``) stands for its result.json."""
+    if os.path.isdir(given):
+        if not os.path.isfile(os.path.join(given, "result.json")):
+            raise RispError(f"{option} {given}: a folder without a result.json; give a sysid run's result folder or "
+                            "result.json, a JSON file, or a JSON object")
+        given = os.path.join(given, "result.json")
     if os.path.isfile(given):
         from .inputs import read_json
 
@@ -95,6 +101,9 @@ def read_params(sim, given: str, option: str = "--params") -> dict[str, float]:
         try:
             data = json.loads(given)
         except ValueError:
+            if given.endswith(".json") or os.sep in given:  # meant as a path: say that it is not there
+                raise RispError(f"{option} {given}: no such file or folder (give a JSON object, a JSON file or a "
+                                "sysid result folder)") from None
             raise RispError(f"{option} must be a JSON object of parameter values or a JSON file, got {given[:60]!r}") from None
         at = ""
     if not isinstance(data, dict):
