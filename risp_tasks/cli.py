@@ -92,9 +92,11 @@ def _task_options(task: str):
         return {"hidden": task not in ONLY_FOR.get(name, (task,))}
 
     opts = [
-        click.option("--model", default=None, help="risp-train checkpoint (default: the most recent runs/*/model.pt)"),
+        click.option("--model", default=None, help="risp-train checkpoint or run folder (default: the most recent "
+                     "runs/*/model.pt of the system --env or the video's make-video tag names, else the most recent)"),
         click.option("--runs", default="runs", show_default=True, help="where to look for the most recent model"),
-        click.option("--env", type=click.Choice(ENV_NAMES), default=None, help="expected environment (default: the model's)"),
+        click.option("--env", type=click.Choice(ENV_NAMES), default=None, help="the system: picks the newest run of "
+                     "it without --model, checks the model with it (default: the model's)"),
         click.option("--out", default=None, help="result folder (default results/<task>-<video>-seed<seed>)"),
         click.option("--overwrite", is_flag=True, help="replace an existing result folder at --out (a task's only)"),
         click.option("--loss", type=click.Choice(("render", "state", "oracle", "pixelwise", "perceptual")), default="state",

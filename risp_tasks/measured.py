@@ -539,14 +539,21 @@ def read_trajectory(path: Path, env: str, overrides: dict | None = None) -> Traj
 
 
 def _estimate_hint(env: str, sidecar: Sidecar, message: str) -> str | None:
-    """Why a ``risp-task estimate`` file (its sidecar has ``estimated_by``) lacks columns, and what to do."""
-    if sidecar.get("estimated_by") is None or "missing column" not in message:
+    """Why a ``risp-task estimate`` file (its sidecar has ``estimated_by``) lacks columns, and what to do: the rod's
+    estimate is not a diagnose input; a quadrotor or hand estimate whose only missing columns are the commands was
+    made without --actions.  None for anything else (the plain missing-columns line stands)."""
+    if sidecar.get("estimated_by") is None or "missing column(s) " not in message:
         return None
     if env == "rod":
         return ("risp-task estimate writes the rod's ten sensor heights (z0…z9), not the node positions and "
                 "loads that diagnose fits: a rod estimate is not a diagnose input")
-    return ("an estimate made without --actions; make it again with --actions A.csv (the commands, which "
-            "diagnose needs beside the states)")
+    missing = set(message.split("missing column(s) ", 1)[1].split(", "))
+    commands = set(ACTUATOR_COLUMNS["thrust"]) if env == "quadrotor" else \
+        set(generic_columns(env)[1]) if env == "hand" else set()
+    if missing and missing <= commands:
+        return ("an estimate made without --actions; make it again with --actions A.csv (the commands, which "
+                "diagnose needs beside the states)")
+    return None
 
 
 def _read_columns(path: Path, env: str, sidecar: Sidecar, cols: dict, known: frozenset[str]) -> Trajectory:

@@ -49,7 +49,8 @@ def plot_losses(csv_path: str, png_path: str, history: list[dict] | None = None,
         shown = [(st, r) for st, r in zip(steps, values) if r > 0]
         ax[1].plot(*zip(*shown), lw=0.8, marker="o" if len(shown) <= 20 else None, color="C2")
         ax[1].set_yscale("log")
-        ax[1].set_xlim(min(steps), max(steps))
+        if len(steps) > 1:
+            ax[1].set_xlim(min(steps), max(steps))
     else:
         text = ("no regularizer (--reg none)" if reg == "none" else
                 f"--reg {reg}: not evaluated yet\n(γ = 0 before its ramp starts)")

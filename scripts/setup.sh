@@ -45,7 +45,9 @@ VPY=.venv/bin/python
 STAMP=.venv/.risp-setup
 WANT="$(sha256sum pyproject.toml | cut -d' ' -f1) $(pwd)"
 installed() {
-  [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$WANT" ] && [ "$("$VPY" -c 'import os, risp_data; print(os.path.dirname(os.path.dirname(os.path.abspath(risp_data.__file__))))' 2>/dev/null)" = "$(pwd)" ]
+  # -I: the checkout's folder is not on sys.path, so this finds what the venv has installed, not ./risp_data
+  [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$WANT" ] && [ -x .venv/bin/risp ] \
+    && [ "$("$VPY" -I -c 'import os, risp_data; print(os.path.dirname(os.path.dirname(os.path.abspath(risp_data.__file__))))' 2>/dev/null)" = "$(pwd)" ]
 }
 if installed && "$VPY" -c 'import torch' >/dev/null 2>&1; then
   echo "[setup] risp is installed (pyproject.toml unchanged since the last set-up)"

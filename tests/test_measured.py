@@ -402,15 +402,22 @@ def test_two_trailing_commas_are_not_duplicate_columns(tmp_path):
     assert load_measured([str(p)], "cube")[0].n == len(lines) - 1
 
 
+def _hand_state_columns():
+    from risp_tasks.measured import generic_columns
+
+    return ["t", *generic_columns("hand")[0]]
+
+
 @pytest.mark.parametrize("env, cols, words", [
     ("rod", ["t"] + [f"z{i}" for i in range(10)], "a rod estimate is not a diagnose input"),
-    ("hand", ["t"], "an estimate made without --actions"),
+    ("hand", "states", "an estimate made without --actions"),
 ])
 def test_an_estimate_file_diagnose_cannot_read_says_why(tmp_path, env, cols, words):
     """risp-task estimate's CSV (its sidecar names the network: estimated_by) lacking what diagnose fits: the
     missing-columns line says why (no --actions; the rod's sensor heights) instead of leaving the user to guess."""
     from risp_tasks.measured import read_trajectory
 
+    cols = _hand_state_columns() if cols == "states" else cols
     path = tmp_path / "trajectory.csv"
     write_trajectory_csv(path, {c: np.linspace(0, 1, 5) + i for i, c in enumerate(cols)},
                          {"env": env, "estimated_by": {"model_sha256": "0" * 64}})
@@ -422,3 +429,15 @@ def test_an_estimate_file_diagnose_cannot_read_says_why(tmp_path, env, cols, wor
     with pytest.raises(RispError, match="missing column") as e:
         read_trajectory(path, env)
     assert words not in str(e.value)
+
+
+def test_an_estimate_missing_state_columns_gets_no_actions_hint(tmp_path):
+    """The --actions hint only where the commands are all that is missing: a hand file without its states (or a
+    cube file, which has no commands) keeps the plain missing-columns line."""
+    from risp_tasks.measured import read_trajectory
+
+    path = tmp_path / "trajectory.csv"
+    write_trajectory_csv(path, {"t": np.linspace(0, 1, 5)}, {"env": "hand", "estimated_by": {"model_sha256": "0"}})
+    with pytest.raises(RispError, match="missing column") as e:
+        read_trajectory(path, "hand")
+    assert "without --actions" not in str(e.value)

@@ -170,6 +170,7 @@ def test_a_bad_curriculum_or_knots_option_is_a_clear_error(kw, message):
     ('{"stiffness_index": true}', "'stiffness_index' must be a finite number"),
     ('[0.5]', "must be a JSON object of parameter values"),
     ("stiff=0.5", "must be a JSON object of parameter values or a JSON file"),
+    ('{"stiffness_index": 1/2}', "must be a JSON object of parameter values or a JSON file"),  # not "no such file"
 ])
 def test_bad_params_are_one_clear_error(given, message):
     from risp_data.errors import RispError

@@ -36,7 +36,7 @@ def latest_model(runs: str = "runs", env: str | None = None) -> str:
     if not found:
         raise RispError(f"no trained model under {runs}/ (looked for {runs}/*/model.pt); train one with "
                         "`risp-train fit SHARDS --out runs/NAME` or pass --model")
-    found.sort(key=os.path.getmtime, reverse=True)
+    found.sort(key=lambda p: (os.path.getmtime(p), p), reverse=True)  # ties in a fixed order, not the listing's
     if env is not None:
         for path in found:
             if model_env(path) == env:

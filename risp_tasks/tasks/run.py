@@ -37,7 +37,7 @@ def resolve_model(cfg: TaskConfig) -> tuple[str, str]:
     wanted = cfg.env or (video_system(cfg.video) if cfg.task != "control" else None)
     newest = latest_model(cfg.runs)
     path = latest_model(cfg.runs, wanted) if wanted else newest
-    if path != newest:  # a newer run of another system lies there: say why this one
+    if os.path.getmtime(path) < os.path.getmtime(newest):  # a newer run of another system lies there: say why
         why = "--env" if cfg.env else "the video's system (make-video's tag)"
         return path, f"model: {path} (the most recent {wanted} model under {cfg.runs}/, for {why})"
     return path, f"model: {path} (the most recent under {cfg.runs}/)"

@@ -101,7 +101,8 @@ def read_params(sim, given: str, option: str = "--params") -> dict[str, float]:
         try:
             data = json.loads(given)
         except ValueError:
-            if given.endswith(".json") or os.sep in given:  # meant as a path: say that it is not there
+            looks_like_json = given.lstrip().startswith(("{", "["))
+            if not looks_like_json and (given.endswith(".json") or os.sep in given):  # a path: say it is not there
                 raise RispError(f"{option} {given}: no such file or folder (give a JSON object, a JSON file or a "
                                 "sysid result folder)") from None
             raise RispError(f"{option} must be a JSON object of parameter values or a JSON file, got {given[:60]!r}") from None
