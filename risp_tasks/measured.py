@@ -385,10 +385,18 @@ def _validated_rows(reader, header: list[str], path: Path, known: frozenset[str]
     return np.asarray(rows, dtype=np.float64).reshape(-1, len(header))
 
 
+class MissingColumns(RispError):
+    """A required column is absent; ``missing`` names them (for a caller that explains why, e.g. an estimate)."""
+
+    def __init__(self, path: Path, missing: list[str]):
+        super().__init__(f"{path}: missing column(s) {', '.join(missing)}")
+        self.missing = tuple(missing)
+
+
 def _require(cols: dict, names: tuple[str, ...], path: Path) -> None:
     missing = [c for c in names if c not in cols]
     if missing:
-        raise RispError(f"{path}: missing column(s) {', '.join(missing)}")
+        raise MissingColumns(path, missing)
 
 
 def _check_finite(cols: dict, path: Path) -> None:
@@ -531,26 +539,25 @@ def read_trajectory(path: Path, env: str, overrides: dict | None = None) -> Traj
     cols = read_csv_columns(path, known)
     try:
         return _read_columns(path, env, sidecar, cols, known)
-    except RispError as e:
-        hint = _estimate_hint(env, sidecar, str(e))
+    except MissingColumns as e:
+        hint = _estimate_hint(env, sidecar, e.missing)
         if hint:
             raise RispError(f"{e}: {hint}") from None
         raise
 
 
-def _estimate_hint(env: str, sidecar: Sidecar, message: str) -> str | None:
+def _estimate_hint(env: str, sidecar: Sidecar, missing: tuple[str, ...]) -> str | None:
     """Why a ``risp-task estimate`` file (its sidecar has ``estimated_by``) lacks columns, and what to do: the rod's
     estimate is not a diagnose input; a quadrotor or hand estimate whose only missing columns are the commands was
     made without --actions.  None for anything else (the plain missing-columns line stands)."""
-    if sidecar.get("estimated_by") is None or "missing column(s) " not in message:
+    if sidecar.get("estimated_by") is None:
         return None
     if env == "rod":
         return ("risp-task estimate writes the rod's ten sensor heights (z0…z9), not the node positions and "
                 "loads that diagnose fits: a rod estimate is not a diagnose input")
-    missing = set(message.split("missing column(s) ", 1)[1].split(", "))
     commands = set(ACTUATOR_COLUMNS["thrust"]) if env == "quadrotor" else \
         set(generic_columns(env)[1]) if env == "hand" else set()
-    if missing and missing <= commands:
+    if missing and set(missing) <= commands:
         return ("an estimate made without --actions; make it again with --actions A.csv (the commands, which "
                 "diagnose needs beside the states)")
     return None

@@ -117,7 +117,7 @@ def _decode_file(path: Path, each=lambda img: img) -> tuple[list[np.ndarray], fl
                 turns.add(turn)
                 frames.append(convert(img))
                 times.append(None if f.pts is None or f.time_base is None else float(f.pts * f.time_base))
-            tags = {k.lower(): v for k, v in container.metadata.items()}  # Matroska writes COMMENT
+            comment = _comment(container)
             announced = _announced(container, stream)
     except RispError:
         raise
@@ -132,8 +132,7 @@ def _decode_file(path: Path, each=lambda img: img) -> tuple[list[np.ndarray], fl
         said = {90: "90° counterclockwise", 180: "180°", 270: "90° clockwise"}
         notes.append(f"{path.name}: frames turned {', '.join(said[t] for t in sorted(turns - {0}))}, as its display "
                      "matrix says (a phone held upright or upside down)")
-    return (frames, float(rate) if rate else 0.0, str(tags.get("comment", "")), (first[1], first[0]) if first else None,
-            notes)
+    return (frames, float(rate) if rate else 0.0, comment, (first[1], first[0]) if first else None, notes)
 
 
 def _display_matrix(frame) -> np.ndarray | None:
@@ -418,10 +417,14 @@ def comment_tag(path: str | os.PathLike) -> str:
         return ""
     try:
         with _av().open(str(path)) as container:
-            tags = {k.lower(): v for k, v in container.metadata.items()}  # Matroska writes COMMENT
+            return _comment(container)
     except Exception:  # noqa: BLE001 - not a video: the full read says so in one line
         return ""
-    return str(tags.get("comment", ""))
+
+
+def _comment(container) -> str:
+    """An open container's comment tag ("" without one); Matroska writes it as COMMENT."""
+    return str({k.lower(): v for k, v in container.metadata.items()}.get("comment", ""))
 
 
 def made_for(comment: str) -> str | None:

@@ -38,21 +38,9 @@ fi
 if [ ! -x .venv/bin/python ]; then
   echo "[setup] creating .venv"
   "$PY" -m venv .venv
+  .venv/bin/python -m pip install -q --upgrade pip >/dev/null 2>&1 || true  # a new venv's pip may be old
 fi
 VPY=.venv/bin/python
-# A second run skips pip when this checkout's risp is installed from this pyproject.toml (a stamp in .venv): the
-# demo and the tests run the set-up every time, and pip's resolve took ~5 s and printed setuptools' banner.
-STAMP=.venv/.risp-setup
-WANT="$(sha256sum pyproject.toml | cut -d' ' -f1) $(pwd)"
-installed() {
-  # -I: the checkout's folder is not on sys.path, so this finds what the venv has installed, not ./risp_data
-  [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$WANT" ] && [ -x .venv/bin/risp ] \
-    && [ "$("$VPY" -I -c 'import os, risp_data; print(os.path.dirname(os.path.dirname(os.path.abspath(risp_data.__file__))))' 2>/dev/null)" = "$(pwd)" ]
-}
-if installed && "$VPY" -c 'import torch' >/dev/null 2>&1; then
-  echo "[setup] risp is installed (pyproject.toml unchanged since the last set-up)"
-else
-"$VPY" -m pip install -q --upgrade pip >/dev/null 2>&1 || true
 if ! "$VPY" -c 'import torch' >/dev/null 2>&1; then
   if command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi >/dev/null 2>&1; then
     echo "[setup] installing torch (CUDA build)"
@@ -67,8 +55,20 @@ if ! "$VPY" -c 'import torch' >/dev/null 2>&1; then
            "$VPY" -m pip install -q "torch>=2.4"; }
   fi
 fi
-echo "[setup] installing risp and its dependencies"
-"$VPY" -m pip install -q -e ".[dev]"
-echo "$WANT" > "$STAMP"
+# A second run skips pip when this checkout's risp is installed from this pyproject.toml (a stamp in .venv): the
+# demo and the tests run the set-up every time, and pip's resolve took ~5 s and printed setuptools' banner.
+STAMP=.venv/.risp-setup
+WANT="$(sha256sum pyproject.toml | cut -d' ' -f1) $(pwd)"
+installed() {
+  # -I: the checkout's folder is not on sys.path, so this finds what the venv has installed, not ./risp_data
+  [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$WANT" ] && [ -x .venv/bin/risp ] \
+    && [ "$("$VPY" -I -c 'import os, risp_data; print(os.path.dirname(os.path.dirname(os.path.abspath(risp_data.__file__))))' 2>/dev/null)" = "$(pwd)" ]
+}
+if installed; then
+  echo "[setup] risp is installed (pyproject.toml unchanged since the last set-up)"
+else
+  echo "[setup] installing risp and its dependencies"
+  "$VPY" -m pip install -q -e ".[dev]"
+  echo "$WANT" > "$STAMP"
 fi
 "$VPY" -c 'from risp_data.llvm import ensure_llvm; print("[setup] Dr.Jit will use", ensure_llvm())'

@@ -28,20 +28,14 @@ CAMERA_GEOMETRY = {"rotation", "r", "rvec", "t", "tvec", "translation", "quatern
                    "dist_coeffs", "distortion_coefficients", "extrinsic_matrix", "intrinsic_matrix", "pose"}
 
 
-def latest_model(runs: str = "runs", env: str | None = None) -> str:
-    """The most recently written ``model.pt`` under ``runs/`` (one level of run folders); with ``env``, the most
-    recent one of that system (its run's config.json, else its checkpoint, says which), or the most recent of any
-    system when none is ``env``'s (the caller then names the mismatch)."""
+def models_newest_first(runs: str = "runs") -> list[str]:
+    """The ``model.pt`` files under ``runs/`` (one level of run folders), most recently written first (ties in path
+    order, not the file system's listing order); RispError when there is none."""
     found = glob.glob(os.path.join(runs, "*", "model.pt")) + glob.glob(os.path.join(runs, "model.pt"))
     if not found:
         raise RispError(f"no trained model under {runs}/ (looked for {runs}/*/model.pt); train one with "
                         "`risp-train fit SHARDS --out runs/NAME` or pass --model")
-    found.sort(key=lambda p: (os.path.getmtime(p), p), reverse=True)  # ties in a fixed order, not the listing's
-    if env is not None:
-        for path in found:
-            if model_env(path) == env:
-                return path
-    return found[0]
+    return sorted(found, key=lambda p: (os.path.getmtime(p), p), reverse=True)
 
 
 def model_env(path: str) -> str | None:
@@ -54,13 +48,13 @@ def model_env(path: str) -> str | None:
             return env
     except (OSError, ValueError, AttributeError):
         pass
-    try:
-        import torch
+    from risp_train.checkpoint import load_checkpoint
 
-        env = torch.load(path, map_location="cpu", weights_only=True).get("env")
-        return env if isinstance(env, str) else None
-    except Exception:  # noqa: BLE001 - any unreadable checkpoint: not this system's
+    try:
+        env = load_checkpoint(path).get("env")
+    except RispError:  # unreadable or not a risp checkpoint: not this system's
         return None
+    return env if isinstance(env, str) else None
 
 
 def load_model(path: str, env: str | None):

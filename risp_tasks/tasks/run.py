@@ -16,9 +16,10 @@ from risp_train.checkpoint import model_file
 from . import TASKS
 from .config import TaskConfig
 from .context import Context
-from .inputs import (latest_model, load_model, look_note, read_actions, read_camera, read_reference, read_truth,
-                     render_environment)
+from .inputs import (load_model, look_note, model_env, models_newest_first, read_actions, read_camera, read_reference,
+                     read_truth, render_environment)
 from .loop import Timer, make_loss, optimize
+from .reference import truth_path
 from .results import ResultFolder, check_free, plot_loss, plot_trajectories, save_strip, versions
 
 STRIP_FRAMES = 6
@@ -35,8 +36,10 @@ def resolve_model(cfg: TaskConfig) -> tuple[str, str]:
         path = model_file(cfg.model)  # a run folder names its model.pt
         return path, f"model: {path}"
     wanted = cfg.env or (video_system(cfg.video) if cfg.task != "control" else None)
-    newest = latest_model(cfg.runs)
-    path = latest_model(cfg.runs, wanted) if wanted else newest
+    found = models_newest_first(cfg.runs)
+    newest = found[0]
+    # the newest of the wanted system; with none of it, the newest of any (the caller then names the mismatch)
+    path = next((p for p in found if model_env(p) == wanted), newest) if wanted else newest
     if os.path.getmtime(path) < os.path.getmtime(newest):  # a newer run of another system lies there: say why
         why = "--env" if cfg.env else "the video's system (make-video's tag)"
         return path, f"model: {path} (the most recent {wanted} model under {cfg.runs}/, for {why})"
@@ -167,7 +170,7 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
                         f"give the truth make-video wrote beside this video")
     if truth is not None and ref is not None:  # files from before video_sha256: at least the timeline must agree
         _check_truth_timeline(cfg, truth, ref)
-    beside = os.path.splitext(os.path.normpath(cfg.video))[0] + ".truth.json"  # where make-video writes it
+    beside = truth_path(cfg.video)  # where make-video writes it
     if truth is None and cfg.task != "control" and os.path.isfile(beside):
         input_notes.append(f"{beside} lies beside the video (make-video's ground truth, which no solver reads): add "
                            f"--truth {beside} to see the errors against it")
