@@ -107,8 +107,10 @@ def test_estimate_writes_measured_csv_that_diagnose_reads(quad, tmp_path):
 
 @pytest.mark.parametrize("task, loss, extra", [
     ("sysid", "oracle", {"lr": 3e-2}),
-    ("sysid", "state", {"lr": 3e-2}),
-    ("sysid", "state", {"lr": 3e-2, "every": 2}),  # loss on frames 0, 2, 4 of the simulated timeline
+    # the state loss at lr 1e-2: at 3e-2 RMSProp's first step overshoots and the 6 iterations got back below the start
+    # by 8 % (every frame) and 1.5 % (every 2nd) only — a fresh-clone suite run on 2026-11-29 missed it by 0.9 %
+    ("sysid", "state", {"lr": 1e-2}),
+    ("sysid", "state", {"lr": 1e-2, "every": 2}),  # loss on frames 0, 2, 4 of the simulated timeline
     ("imitate", "state", {}),  # the paper's lr 3e-3 (RMSProp's first steps are ~10× lr)
 ])
 def test_task_lowers_its_loss(quad, tmp_path, task, loss, extra):
