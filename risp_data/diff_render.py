@@ -38,14 +38,16 @@ class StateRenderer:
     """Render states of one environment in one look; differentiable w.r.t. the states.
 
     ``config``: the look ψ (and its aux); None gives the domain's nominal look
-    (:func:`risp_data.psi.nominal_rendering`).  Frame t of a call is rendered with the random stream
+    (:func:`risp_data.psi.nominal_rendering`).  ``spp``: samples per pixel of the gradient pass;
+    ``primal_spp`` (None: ``spp``) those of the images returned, which a render loss's network reads
+    (docs/tasks.md §Primal spp).  Frame t of a call is rendered with the random stream
     ``frame_seed(seed, t)``, so the same (states, seed) give the same images; the gradient pass uses an
     independent stream (Mitsuba's ``seed_grad``), which keeps the gradient estimate unbiased.
     """
 
     def __init__(self, env: str, resolution: int = 64, spp: int = 8, domain: str = "train",
                  config: RenderConfig | None = None, integrator: str = "prb_projective", variant: str | None = None,
-                 grad_max_depth: int = 2, boundary: str = "flat"):
+                 grad_max_depth: int = 2, boundary: str = "flat", primal_spp: int | None = None):
         if integrator not in INTEGRATORS:
             raise RispError(f"unknown differentiable integrator {integrator!r}; choose one of: {', '.join(INTEGRATORS)}")
         if boundary not in BOUNDARIES:
@@ -54,7 +56,10 @@ class StateRenderer:
         self.renderer = Renderer(env, domain=domain, resolution=resolution, spp=spp, variant=variant)
         self.env = self.renderer.env
         self.resolution = self.renderer.resolution
+        if primal_spp is not None and (int(primal_spp) != primal_spp or primal_spp < 1):
+            raise RispError(f"primal_spp must be a positive integer, got {primal_spp!r}")
         self.spp = self.renderer.spp * self.renderer.settings.spp_factor
+        self.primal_spp = (int(primal_spp) if primal_spp is not None else spp) * self.renderer.settings.spp_factor
         import drjit as dr
         import mitsuba as mi
 
@@ -99,6 +104,7 @@ class StateRenderer:
         """
         mi, dr = self._mi, self._dr
         params, scene, integrator, spp = self.renderer.params, self.renderer.scene, self.integrator, self.spp
+        primal_spp = self.primal_spp
         primal_integrator = self.primal_integrator
         keys = self.renderer.mesh_keys
 
@@ -117,7 +123,7 @@ class StateRenderer:
         def primal(vertices: dict, seed: int):
             with dr.suspend_grad():
                 write(vertices, grad=False)
-                return mi.render(scene, params, integrator=primal_integrator, seed=seed, spp=spp)
+                return mi.render(scene, params, integrator=primal_integrator, seed=seed, spp=primal_spp)
 
         @dr.wrap(source="torch", target="drjit")
         def vjp(vertices: dict, grad_image, seed: int):

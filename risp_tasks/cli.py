@@ -144,7 +144,9 @@ def _task_options(task: str):
         click.option("--truth", default=None, help="ground-truth JSON (oracle loss, error report)"),
         click.option("--camera", default=None, help="camera JSON (intrinsics, extrinsics) replacing the environment's"),
         click.option("--mesh", default=None, help="quadrotor vehicle mesh (OBJ/PLY/STL/glTF, metres, body frame) to render"),
-        click.option("--spp", type=int, default=4, show_default=True, help="samples per pixel of the differentiable renderer"),
+        click.option("--spp", type=int, default=4, show_default=True, help="samples per pixel of the differentiable renderer's gradient pass"),
+        click.option("--primal-spp", type=int, default=None, help="samples per pixel of the rendered frames the network reads "
+                     "(render loss) or the image losses compare [default: --spp] (docs/tasks.md §Primal spp)"),
         click.option("--gradient", type=click.Choice(("flat", "mitsuba")), default="flat", show_default=True,
                      help="boundary term of the renderer's gradient: risp's for flat-shaded meshes, or Mitsuba's own "
                           "(cheaper, biased at creases and shadows; docs/tasks.md §Render-mode gradients)"),

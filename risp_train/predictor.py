@@ -24,7 +24,7 @@ from .normalization import Normalization
 
 class RispPredictor(nn.Module):
     def __init__(self, net: ResNet18, normalization: Normalization, env_name: str, state_names, target_names,
-                 resolution: int, look: str | None = None):
+                 resolution: int, look: str | None = None, spp: int | None = None):
         super().__init__()
         self.net = net
         self.normalization = normalization
@@ -33,6 +33,7 @@ class RispPredictor(nn.Module):
         self.target_names = tuple(target_names)
         self.resolution = int(resolution)
         self.look = look  # the training images' look (risp_data.envs.look); None when not recorded
+        self.spp = spp  # samples per pixel of the training images; None when not recorded (before 2026-12-01)
 
     def _check(self, images: torch.Tensor) -> None:
         r = self.resolution
@@ -67,7 +68,7 @@ def predictor_from_checkpoint(ckpt: dict, path: str = "<checkpoint>") -> RispPre
     except (KeyError, RuntimeError, TypeError, ValueError) as e:
         raise RispError(f"corrupt checkpoint {path}: {type(e).__name__}: {str(e).splitlines()[0]}") from None
     p = RispPredictor(net, norm, ckpt["env"], ckpt["state_names"], ckpt["target_names"], ckpt["resolution"],
-                      ckpt.get("look"))
+                      ckpt.get("look"), ckpt.get("spp"))
     p.eval()
     for q in p.parameters():
         q.requires_grad_(False)

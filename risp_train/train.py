@@ -423,6 +423,8 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
             "env": shards.env, "state_names": list(env.state_names), "target_names": list(env.target_names),
             "psi_names": list(shards.psi_names), "resolution": shards.resolution, "manifest_hash": mhash,
             "look": shards.manifest.get("look"), "shards": os.path.abspath(cfg.shards), "seed": cfg.seed, "config": cfg.to_dict(),
+            # samples per pixel of the training images (what risp-task --primal-spp can match; docs/tasks.md §Primal spp)
+            "spp": shards.manifest.get("spp"),
             "model_config": model_cfg.to_dict(), "normalization": norm.to_dict(), "gamma": gamma,
             "gamma_start": gamma_start,
             "model": net.state_dict(), "optimizer": opt.state_dict(), "scheduler": sched.state_dict(),

@@ -105,6 +105,32 @@ def test_sequence_gradient_uses_each_frames_geometry(one_torch_thread):
     assert not torch.allclose(both.grad[0], both.grad[1], rtol=0.1)
 
 
+def test_primal_spp_sets_the_images_and_spp_the_gradient(one_torch_thread):
+    """primal_spp: the returned images are those of a renderer at that spp (the same seed: bitwise), while the
+    gradient pass keeps ``spp`` — for a loss linear in the image (∂L/∂I independent of I) the state gradient is
+    that of the renderer at ``spp`` (up to the order of the LLVM backend's parallel scatter-adds), not the one at
+    ``primal_spp``, and the images differ from the ``spp`` renderer's."""
+    from risp_data.diff_render import StateRenderer
+    from risp_data.errors import RispError
+
+    state = torch.tensor([[0.05, -0.03, 0.35, 0.4, 0.2, -0.1]], dtype=torch.float64)
+    w = _weights(16)
+    split = StateRenderer("cube", resolution=16, spp=2, primal_spp=8)
+    images, grads = [], []
+    for r in (split, StateRenderer("cube", resolution=16, spp=8), StateRenderer("cube", resolution=16, spp=2)):
+        s = state.clone().requires_grad_(True)
+        image = r(s, seed=3)
+        (image * w).sum().backward()
+        images.append(image.detach())
+        grads.append(s.grad.clone())
+    assert split.primal_spp == 8 * split.renderer.settings.spp_factor and split.spp == 2 * split.renderer.settings.spp_factor
+    assert torch.equal(images[0], images[1]) and not torch.equal(images[0], images[2])
+    assert torch.allclose(grads[0], grads[2], rtol=1e-4, atol=1e-4) and grads[0].abs().sum() > 0
+    assert (grads[0] - grads[1]).abs().max() > 100 * (grads[0] - grads[2]).abs().max() + 1e-3
+    with pytest.raises(RispError, match="primal_spp"):
+        StateRenderer("cube", resolution=8, spp=1, primal_spp=0)
+
+
 def test_images_match_the_data_renderer_in_expectation(one_torch_thread):
     """Same scene and look as risp_data.render.Renderer: mean images agree within Monte-Carlo noise."""
     from risp_data.psi import nominal_rendering

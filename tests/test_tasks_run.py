@@ -142,6 +142,8 @@ def test_render_losses_differentiate_through_renderer_and_network(quad, tmp_path
     assert np.isfinite(r["loss"]).all() and abs(r["loss"][1] - r["loss"][0]) > 1e-9 * abs(r["loss"][0]), r["loss"]
     assert r["final_loss"] == min(r["loss"] + [r["last_loss"]])
     assert r["timings"]["sections_s"]["rendering"] > 0
+    # the compared frames are rendered with --spp unless --primal-spp says otherwise; result.json records it
+    assert r["config"]["primal_spp"] == 1
     from risp_data.mitsuba_setup import init_mitsuba
 
     assert r["versions"]["mitsuba_variant"] == init_mitsuba()  # the backend that rendered is on record

@@ -75,7 +75,10 @@ class TaskConfig:
     # None: yes where the initial state is read from the video (quadrotor, cube, hand; the rod starts at rest)
     fit_initial_state: bool | None = None
     perceptual_weights: str | None = None  # local torchvision vgg16 state dict for --loss perceptual
-    spp: int = 4  # samples per pixel of the differentiable renderer (render/pixelwise losses)
+    spp: int = 4  # samples per pixel of the differentiable renderer's gradient pass (render/pixelwise losses)
+    # samples per pixel of the rendered frames the losses compare (the image N reads with --loss render); None: spp,
+    # resolved here so that result.json records it (docs/tasks.md §Primal spp)
+    primal_spp: int | None = None
     gradient: str = "flat"  # boundary term of the renderer's gradient: flat (risp_data.flat_projective) | mitsuba
     threads: int = 1
     progress: bool = True
@@ -87,6 +90,8 @@ class TaskConfig:
             raise RispError(f"unknown loss {self.loss!r}; choose one of: {', '.join(LOSSES)}")
         if self.residual is None:
             object.__setattr__(self, "residual", default_residual(self.task, self.loss))
+        if self.primal_spp is None:
+            object.__setattr__(self, "primal_spp", self.spp)
         if self.init not in INITS:
             raise RispError(f"unknown init {self.init!r}; choose one of: {', '.join(INITS)}")
         if self.residual not in RESIDUALS:
@@ -103,6 +108,7 @@ class TaskConfig:
                 ("--every", self.every, self.every >= 1, ">= 1"),
                 ("--horizon", self.horizon, self.horizon >= 1, ">= 1"),
                 ("--spp", self.spp, self.spp >= 1, ">= 1"),
+                ("--primal-spp", self.primal_spp, self.primal_spp >= 1, ">= 1"),
                 ("--fps", self.fps, self.fps is None or (math.isfinite(self.fps) and self.fps > 0),
                  "a finite number > 0"),
                 ("--source-fps", self.source_fps,

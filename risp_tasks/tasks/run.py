@@ -197,7 +197,7 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
         from risp_data.diff_render import StateRenderer, set_camera
         from risp_data.psi import nominal_rendering
 
-        renderer = StateRenderer(drawn, resolution=predictor.resolution, spp=cfg.spp,
+        renderer = StateRenderer(drawn, resolution=predictor.resolution, spp=cfg.spp, primal_spp=cfg.primal_spp,
                                  config=nominal_rendering(env_name, "train"), boundary=cfg.gradient)
         if camera is not None:
             set_camera(renderer.renderer, camera)
