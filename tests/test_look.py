@@ -99,7 +99,7 @@ def test_folder_from_before_looks_were_recorded_still_reads(tmp_path):
 
 def test_checkpoint_records_the_look_and_the_render_loss_warns_on_another(tmp_path_factory):
     from risp_tasks.tasks.inputs import load_model, look_note
-    from tests.tasks_helpers import shared_model
+    from tasks_helpers import shared_model  # the same module (and cache) as the task tests, not a second copy
 
     path = shared_model(tmp_path_factory, "cube")
     predictor = load_model(path, "cube")
