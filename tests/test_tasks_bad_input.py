@@ -763,3 +763,10 @@ def test_actions_t_column_must_follow_the_video_timeline(tmp_path):
     blank.write_text("t,f0,f1,f2,f3,,\n" + "".join(f"{k / 10},1,2,3,4,,\n" for k in range(4)))
     with pytest.raises(RispError, match=r"blank.csv: header column 6 has no name \(a trailing comma\?\)"):
         read_actions(str(blank), "quadrotor", 4, 10.0)
+
+
+def test_a_primal_spp_below_one_is_one_line(quad, tmp_path):
+    """--primal-spp (docs/tasks.md §Primal spp) 0 or negative: one line naming the option, no result folder."""
+    for value in ("0", "-3"):
+        line = _invoke(["sysid", quad[1], "--model", quad[0], "--loss", "render", "--primal-spp", value], tmp_path)
+        assert "--primal-spp must be >= 1" in line and value in line, line
