@@ -132,7 +132,7 @@ def _task_options(task: str):
         click.option("--fit-params/--no-fit-params", default=None, **shown("--fit-params"),
                      help="imitate: identify the physical parameters sysid would (quadrotor mass, hand stiffnesses, "
                           "rod log10 E) jointly with the actions, from the middle of their ranges or --params "
-                          "[default: yes for the hand and the rod unless --params gives them, no for the quadrotor] "
+                          "[default: yes for the hand and the rod unless --params is given, no for the quadrotor] "
                           "(docs/tasks.md §Unknown physical parameters)"),
         click.option("--seed", type=int, default=0, show_default=True),
         click.option("--every", type=int, default=1, show_default=True, **shown("--every"), help="keep every k-th frame (not control)"),
@@ -253,7 +253,7 @@ def control(target, **kw):
 
 @cli.command("make-video")
 @click.option("--env", type=click.Choice(ENV_NAMES), required=True)
-@click.option("--out", required=True, help="video file (.mp4/.avi) or folder of PNGs; ground truth beside it")
+@click.option("--out", required=True, help="video file (.mp4/.avi/.mov/.mkv) or folder of PNGs; ground truth beside it")
 @click.option("--frames", type=int, default=20, show_default=True)
 @click.option("--fps", type=float, default=10.0, show_default=True)
 @click.option("--resolution", "--res", "resolution", type=int, default=64, show_default=True,
@@ -291,7 +291,7 @@ def make_video(env, out, frames, fps, resolution, spp, domain, params, effect, c
 @click.option("--repeats", type=int, default=4, show_default=True, help="random looks / initial guesses per cell")
 @click.option("--quick", is_flag=True, help="smoke version: tiny data, 1 epoch, 3 iterations (minutes)")
 @click.option("--out", default="tables", show_default=True, help="folder of the tables, data sets and networks")
-@click.option("--envs", default=None, help="comma-separated environments (default: all)")
+@click.option("--envs", default=None, help="comma-separated environments (default: all; --table sampling: rod)")
 @click.option("--methods", default=None, help="comma-separated rows: methods / regularizers / sampling schemes "
               "(default: all; docs/tables.md)")
 @click.option("--reg", default=None, help="regularizer of `ours` [default: risp-train's, else surrogate]")
