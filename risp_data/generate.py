@@ -125,7 +125,9 @@ def memory_estimate(job: RenderJob, k: int) -> int:
 
 
 def available_memory() -> int | None:
-    """Bytes this process may still use: the smallest of MemAvailable, the cgroup limit and RLIMIT_AS."""
+    """Bytes this process may still use: the smallest of MemAvailable (where /proc/meminfo lacks it, the free
+    physical pages), the cgroup limit and RLIMIT_AS; None where none is known.  The one rule for rendering's
+    memory check, make-video's and risp-train's ``--cache auto``."""
     import resource
 
     limits = []
@@ -134,8 +136,13 @@ def available_memory() -> int | None:
             for line in f:
                 if line.startswith("MemAvailable:"):
                     limits.append(int(line.split()[1]) * 1024)
-    except OSError:
+    except (OSError, ValueError, IndexError):
         pass
+    if not limits:
+        try:
+            limits.append(int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE")))
+        except (ValueError, OSError, AttributeError):
+            pass
     for path in ("/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"):
         try:
             with open(path) as f:

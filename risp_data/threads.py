@@ -42,6 +42,22 @@ def set_torch_threads(threads: int | None, *, workers: int = 0, processes: int =
     return n
 
 
+def set_drjit_threads(threads: int | None) -> int:
+    """Set Dr.Jit's CPU (LLVM) worker threads to ``threads`` (``None`` or 0: the CPUs this process may use); return
+    it.  Call it once Mitsuba is set up (:func:`risp_data.mitsuba_setup.init_mitsuba`: the libLLVM check must come
+    before drjit is first imported).  Reverse-mode renders sum gradients with atomics whose order follows the
+    threads, so their last bits depend on this count: tasks record it in result.json."""
+    import drjit as dr
+
+    if threads is not None and threads < 0:
+        from .errors import RispError
+
+        raise RispError(f"--render-threads must be >= 0 (0: automatic), got {threads}")
+    n = threads or available_cpus()
+    dr.set_thread_count(n)
+    return n
+
+
 @contextlib.contextmanager
 def torch_threads(n: int) -> Iterator[None]:
     """Run the block with ``n`` torch intra-op threads, then restore the previous count (also on error)."""

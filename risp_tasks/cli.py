@@ -151,6 +151,9 @@ def _task_options(task: str):
                      help="boundary term of the renderer's gradient: risp's for flat-shaded meshes, or Mitsuba's own "
                           "(cheaper, biased at creases and shadows; docs/tasks.md §Render-mode gradients)"),
         click.option("--threads", type=int, default=1, show_default=True, help="torch threads (0: one per available CPU)"),
+        click.option("--render-threads", type=int, default=0, show_default=True,
+                     help="Dr.Jit's CPU threads where the task renders (0: one per available CPU); recorded in "
+                          "result.json timings.threads"),
         click.option("--no-plots", is_flag=True, help="skip the PNG plots"),
         click.option("--quiet", is_flag=True, help="no progress bar"),
     ]

@@ -25,6 +25,7 @@ from typing import Iterator
 import torch
 
 from risp_data.errors import RispError
+from risp_data.generate import available_memory  # one rule: MemAvailable, the cgroup limit, RLIMIT_AS
 
 from .data import ShardSet, WdsStream, ZarrSamples, _Collate, _WorkerInit, loader_generator, zarr_batches
 
@@ -66,21 +67,6 @@ def estimate_bytes(shards: ShardSet, need_jacobian: bool) -> int:
     k, s = len(shards.psi_names), len(shards.state_names)
     per = res * res * 3 * _F32 + (s + k) * _F64 + (k * res * res * 3 * _F32 if need_jacobian else 0)
     return n * per
-
-
-def available_memory() -> int | None:
-    """Bytes of memory available to new allocations now (Linux ``MemAvailable``; None where unknown)."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    try:
-        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
-    except (ValueError, OSError, AttributeError):
-        return None
 
 
 def resolve_cache(mode: str, shards: ShardSet, need_jacobian: bool, available: int | None = None) -> str:

@@ -650,7 +650,8 @@ def test_video_fps_above_its_own_rate_is_refused(quad, tmp_path):
 
 
 @pytest.mark.parametrize("args,words", [
-    (["--params", '{"mass": -3}'], "--params / --effect: mass must lie in"),
+    (["--params", '{"mass": -3}'], "--params: mass must lie in [1e-09, inf], got -3"),
+    (["--effect", "wind:nan,0,0"], "--effect 'wind:nan,0,0': values must be finite numbers"),  # was the renderer's NaN
     (["--resolution", "100000"], "--resolution 100000 is larger than the supported 8192 pixels"),
     (["--spp", "0"], "--spp must be >= 1, got 0"),
 ])
@@ -711,6 +712,7 @@ def test_bad_ground_truth_is_refused_before_any_work(quad, tmp_path, states, pro
     (dict(momentum=5.0), "--momentum must be in [0, 1)"),  # accepted, then the loss went NaN at iteration 6
     (dict(fps=0.0), "--fps must be a finite number > 0, got 0"),
     (dict(spp=0), "--spp must be >= 1, got 0"),
+    (dict(render_threads=-1), "--render-threads must be >= 0 (0: automatic), got -1"),
     (dict(init="track"), "--init track is imitate's"),
     (dict(task="control", init="track"), "--init track is imitate's"),
     (dict(task="imitate", actions="a.csv"), "--actions: imitate finds the actions itself"),
@@ -770,3 +772,127 @@ def test_a_primal_spp_below_one_is_one_line(quad, tmp_path):
     for value in ("0", "-3"):
         line = _invoke(["sysid", quad[1], "--model", quad[0], "--loss", "render", "--primal-spp", value], tmp_path)
         assert "--primal-spp must be >= 1" in line and value in line, line
+
+
+HUGE = 10 ** 400  # a JSON integer literal beyond float's range: float() raises OverflowError, not ValueError
+
+
+@pytest.mark.parametrize("params", ["3.0", None, [3.0], {"mass": HUGE}, {"mass": True}])
+def test_truth_with_bad_params_is_refused_before_any_work(quad, tmp_path, params):
+    """The truth's hidden parameters are what the errors are measured against: a string, null, a list or an
+    out-of-range number used to raise a TypeError after the whole optimisation (or drop the errors silently)."""
+    model, video = quad
+    truth = json.load(open(os.path.splitext(video)[0] + ".truth.json"))
+    truth["params"] = params if not isinstance(params, str) else {"mass": params}
+    path = tmp_path / "truth.json"
+    path.write_text(json.dumps(truth))
+    line = _invoke(["sysid", video, "--model", model, "--actions", _actions(video), "--truth", str(path)], tmp_path)
+    assert "truth.json" in line and "'params' must be an object of finite numbers" in line, line
+
+
+def test_integers_beyond_float_are_one_line(quad, tmp_path):
+    """Huge integer literals in the truth, camera and initial-state JSON: one line each, not an OverflowError."""
+    model, video = quad
+    truth = json.load(open(os.path.splitext(video)[0] + ".truth.json"))
+    truth["env_states"][0][0] = HUGE
+    (tmp_path / "truth.json").write_text(json.dumps(truth))
+    line = _invoke(["sysid", video, "--model", model, "--actions", _actions(video), "--truth",
+                    str(tmp_path / "truth.json")], tmp_path)
+    assert "truth.json" in line and "not a table of numbers" in line, line
+    camera = {"intrinsics": {"width": 64, "height": 64, "fx": HUGE},
+              "extrinsics": {"origin": [0, -2, 2], "target": [0, 0, 1], "up": [0, 0, 1]}}
+    (tmp_path / "camera.json").write_text(json.dumps(camera))
+    line = _invoke(["sysid", video, "--model", model, "--actions", _actions(video), "--loss", "render",
+                    "--camera", str(tmp_path / "camera.json")], tmp_path)
+    assert "camera.json" in line and "camera values must be numbers" in line, line
+    from PIL import Image
+
+    Image.new("RGB", (64, 64)).save(tmp_path / "goal.png")
+    (tmp_path / "s0.json").write_text(json.dumps({"env_state": [HUGE, 0, 1, 0, 0, 0]}))
+    line = _invoke(["control", str(tmp_path / "goal.png"), "--model", model, "--initial-state",
+                    str(tmp_path / "s0.json")], tmp_path)
+    assert "s0.json" in line and "must be a list of numbers" in line, line
+
+
+def test_an_actions_csv_the_csv_module_cannot_parse_is_one_line(quad, tmp_path):
+    model, video = quad
+    rows = open(_actions(video)).read().splitlines()
+    rows[2] += "x" * 200_000  # one field over the csv module's 128 KiB limit (an unclosed quote in a large file)
+    (tmp_path / "long.csv").write_text("\n".join(rows) + "\n")
+    line = _invoke(["sysid", video, "--model", model, "--actions", str(tmp_path / "long.csv")], tmp_path)
+    assert "long.csv" in line and "not a readable actions CSV" in line and "field limit" in line, line
+
+
+def test_the_frame_count_of_an_actions_mismatch_names_the_fps(quad, tmp_path):
+    """With --fps the timeline is the resampled one: '6 rows but 3 frames' alone read as if the video had 3."""
+    model, video = quad
+    line = _invoke(["sysid", video, "--model", model, "--actions", _actions(video), "--fps", "5"], tmp_path)
+    assert "6 action rows but the video has 3 frames at --fps 5" in line, line
+
+
+def test_rod_forces_the_simulator_would_clip_are_refused():
+    """The rod's centre force is clamped at ±500 N: a file in other units (mN) was clipped without a word."""
+    from risp_data.errors import RispError
+    from risp_tasks.sims import get_simulator
+    from risp_tasks.tasks.run import _check_action_range
+
+    rod = get_simulator("rod")
+    _check_action_range("ok.csv", rod, np.array([[-500.0], [499.0]]))  # the clamp's range is fine
+    with pytest.raises(RispError, match=r"big.csv: centre forces up to 2e\+04 N, above the 500 N the simulated rod"):
+        _check_action_range("big.csv", rod, np.array([[20000.0], [3.0]]))
+
+
+def test_params_out_of_physical_bounds_name_the_option():
+    from risp_data.errors import RispError
+    from risp_tasks.sims import get_simulator
+    from risp_tasks.tasks.simulate import read_params
+
+    quad = get_simulator("quadrotor")
+    assert read_params(quad, '{"mass": 3.1}') == {"mass": 3.1}
+    for given, words in (('{"mass": -3}', "--params: mass must lie in [1e-09, inf], got -3"),
+                         ('{"k_f": 0}', "--params: k_f must lie in")):
+        with pytest.raises(RispError, match=words.replace("[", r"\[").replace("]", r"\]")):
+            read_params(quad, given)
+
+
+def test_check_param_bounds_refuses_nan():
+    import torch
+
+    from risp_data.errors import RispError
+    from risp_tasks.sims import get_simulator
+
+    quad = get_simulator("quadrotor")
+    p = quad.default_params()
+    p[0, 0] = float("nan")
+    with pytest.raises(RispError, match="must lie in"):
+        quad.check_param_bounds(p)
+    quad.check_param_bounds(quad.default_params())
+    assert torch.isfinite(quad.default_params()).all()
+
+
+def test_out_under_a_file_is_refused_before_any_work(quad, tmp_path):
+    """--out v.mp4/res used to fail after the optimisation, with the operating system's 'File exists'."""
+    model, video = quad
+    from risp_tasks.cli import cli
+
+    (tmp_path / "a.txt").write_text("a file")
+    res = CliRunner().invoke(cli, ["sysid", video, "--model", model, "--actions", _actions(video), "--out",
+                                   str(tmp_path / "a.txt" / "res"), "--quiet", "--iterations", "1", "--no-plots"])
+    line = _error_line(res, skip="model: ")
+    assert "a.txt is a file, not a folder" in line, line
+
+
+def test_a_start_that_simulates_to_nan_points_at_the_inputs(quad, tmp_path, monkeypatch):
+    """A loss that is NaN before any step: the inputs diverge; --lr (the old advice) cannot help."""
+    import risp_tasks.tasks.run as run_mod
+
+    real = run_mod.make_loss
+
+    def nan_loss(*args, **kwargs):
+        loss = real(*args, **kwargs)
+        return lambda s, n=None: (loss(s) if n is None else loss(s, n)) * float("nan")
+
+    monkeypatch.setattr(run_mod, "make_loss", nan_loss)
+    model, video = quad
+    line = _invoke(["sysid", video, "--model", model, "--actions", _actions(video)], tmp_path)
+    assert "NaN/inf at the start, before any optimisation step" in line and "--actions" in line, line

@@ -63,7 +63,7 @@ def test_a_nan_loss_at_the_start_is_a_clear_error():
     from risp_data.errors import RispError
 
     x, problem, _ = _quadratic(20.0, 1.0)
-    with pytest.raises(RispError, match="NaN/inf at iteration 0, before any iterate could be kept"):
+    with pytest.raises(RispError, match="NaN/inf at the start, before any optimisation step"):
         optimize(problem, _blows_up_beyond(10.0), optimizer="sgd", lr=0.1, momentum=0.0, iterations=3, timer=Timer(),
                  progress=False)
 

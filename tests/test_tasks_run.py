@@ -130,6 +130,18 @@ def test_task_lowers_its_loss(quad, tmp_path, task, loss, extra):
         assert e["parameter_error_final"]["mass"] < e["parameter_error_initial"]["mass"]
 
 
+def test_random_guess_is_not_the_hidden_truth_of_a_video_with_the_same_seed(quad, tmp_path):
+    """make-video --seed 3 draws the hidden mass first from its stream; sysid --init random --seed 3 must not draw
+    the same number (until 2026-12-01 both were default_rng(seed), and the guess was the truth to the last bit)."""
+    model, video = quad
+    truth = json.load(open(_stem(video) + ".truth.json"))
+    assert truth["seed"] == 3
+    r = _run("sysid", video, tmp_path / "out", model=model, loss="state", iterations=0, init="random", seed=3,
+             actions=_stem(video) + ".actions.csv", plots=False)
+    guess = r["estimates"]["initial_parameters"]["mass"]
+    assert 2.8 <= guess < 3.2 and abs(guess - truth["params"]["mass"]) > 1e-3, (guess, truth["params"]["mass"])
+
+
 @pytest.mark.parametrize("loss", ["render", "pixelwise", "perceptual"])
 def test_render_losses_differentiate_through_renderer_and_network(quad, tmp_path, loss):
     """The image losses run end to end and their gradient reaches the actions: the renders are deterministic
@@ -147,6 +159,12 @@ def test_render_losses_differentiate_through_renderer_and_network(quad, tmp_path
     from risp_data.mitsuba_setup import init_mitsuba
 
     assert r["versions"]["mitsuba_variant"] == init_mitsuba()  # the backend that rendered is on record
+    import drjit as dr
+
+    from risp_data.threads import available_cpus
+
+    # the thread counts the arithmetic ran on (render-mode gradients' last bits follow Dr.Jit's): set and on record
+    assert r["timings"]["threads"] == {"torch": 1, "drjit": available_cpus()} and dr.thread_count() == available_cpus()
     view = r["view"]  # how much of the vehicle each compared frame shows, before and after (docs/tasks.md §Out of view)
     n = len(view["frames"])
     assert n == 6 and len(view["fraction_in_view_initial"]) == n == len(view["fraction_in_view_final"])

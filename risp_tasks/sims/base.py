@@ -146,8 +146,9 @@ class Simulator:
         ``option`` prefixes the message with where the value came from (``--params: ``)."""
         for i, (lo, hi) in enumerate(self.param_bounds):
             col = params[:, i]
-            if bool(((col < lo) | (col > hi)).any()):
-                bad = col[(col < lo) | (col > hi)][0].item()
+            outside = ~((col >= lo) & (col <= hi))  # written so that NaN (every comparison false) is outside too
+            if bool(outside.any()):
+                bad = col[outside][0].item()
                 where = f"{option}{self.param_names[i]}" if option else f"params[:, {i}] ({self.param_names[i]})"
                 raise RispError(f"{where} must lie in [{lo:g}, {hi:g}], got {bad:g}")
 

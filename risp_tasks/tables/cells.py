@@ -135,7 +135,7 @@ def _task_run(cfg, art: Artifacts, task: str, env_name: str, method: str, repeat
                           loss=loss, init=init, iterations=iterations, seed=repeat_seed(cfg.seed, repeat),
                           actions=ref["actions"] if task == "sysid" else None, truth=truth or ref["truth"],
                           perceptual_weights=cfg.perceptual_weights if m.loss == "perceptual" else None,
-                          spp=cfg.spp, residual=residual, plots=False, progress=False, **task_kw)
+                          spp=cfg.spp, residual=residual, plots=False, progress=False, render_threads=1, **task_kw)
         return run_task(tcfg, echo=lambda *_: None)
 
 

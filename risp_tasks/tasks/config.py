@@ -81,6 +81,7 @@ class TaskConfig:
     primal_spp: int | None = None
     gradient: str = "flat"  # boundary term of the renderer's gradient: flat (risp_data.flat_projective) | mitsuba
     threads: int = 1
+    render_threads: int = 0  # Dr.Jit's CPU threads where the task renders (0: the CPUs this process may use)
     progress: bool = True
     plots: bool = True
     overwrite: bool = False  # replace an existing result folder at --out (only a task's: it holds result.json)
@@ -109,6 +110,7 @@ class TaskConfig:
                 ("--horizon", self.horizon, self.horizon >= 1, ">= 1"),
                 ("--spp", self.spp, self.spp >= 1, ">= 1"),
                 ("--primal-spp", self.primal_spp, self.primal_spp >= 1, ">= 1"),
+                ("--render-threads", self.render_threads, self.render_threads >= 0, ">= 0 (0: automatic)"),
                 ("--fps", self.fps, self.fps is None or (math.isfinite(self.fps) and self.fps > 0),
                  "a finite number > 0"),
                 ("--source-fps", self.source_fps,

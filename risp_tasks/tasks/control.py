@@ -65,7 +65,7 @@ def _numbers(value, path: str, key: str) -> torch.Tensor:
     """A flat list of numbers as float64, or one error line (strings, nested or ragged lists)."""
     try:
         return torch.tensor(value, dtype=torch.float64)
-    except (TypeError, ValueError, RuntimeError):
+    except (TypeError, ValueError, RuntimeError, OverflowError):  # OverflowError: an integer beyond float's range
         raise RispError(f"{path}: {key!r} must be a list of numbers") from None
 
 

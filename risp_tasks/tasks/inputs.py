@@ -113,7 +113,7 @@ def action_columns(env: str) -> tuple[str, ...]:
     return {"quadrotor": ("f0", "f1", "f2", "f3"), "hand": tuple(f"u{i}" for i in range(5)), "rod": ("u0",)}.get(env, ())
 
 
-def read_actions(path: str, env: str, n_frames: int, fps: float | None = None) -> np.ndarray:
+def read_actions(path: str, env: str, n_frames: int, fps: float | None = None, timeline: str = "") -> np.ndarray:
     """(n_frames, A) actions in the CSV's units, one row per frame of the video's timeline.  With ``fps``, a numeric
     ``t`` column (optional; make-video writes k/fps) must follow that timeline: its steps within [0.5, 1.5]/fps (a
     row missing is a double step) and its mean step within 1 % of 1/fps (a file written at another rate) —
@@ -129,6 +129,8 @@ def read_actions(path: str, env: str, n_frames: int, fps: float | None = None) -
             rows = list(csv.reader(f))
     except (OSError, UnicodeDecodeError) as e:
         raise RispError(f"{path}: cannot read actions CSV ({type(e).__name__})") from None
+    except csv.Error as e:  # a field over the csv module's limit (an unclosed quote in a large file), a NUL in a quote
+        raise RispError(f"{path}: not a readable actions CSV ({e})") from None
     if not rows:
         raise RispError(f"{path}: empty actions file")
     header = [h.strip() for h in rows[0]]
@@ -166,7 +168,7 @@ def read_actions(path: str, env: str, n_frames: int, fps: float | None = None) -
         r, c = np.argwhere(bad)[0]
         raise RispError(f"{path}: column {cols[c]} has NaN/inf at line {lines[r]}")
     if len(a) != n_frames:
-        raise RispError(f"{path}: {len(a)} action rows but the video has {n_frames} frames (one row per frame)")
+        raise RispError(f"{path}: {len(a)} action rows but the video has {n_frames} frames{timeline} (one row per frame)")
     if t_col is not None and fps is not None and len(a) > 1:
         _check_times(path, times, lines, fps)
     return a
@@ -254,7 +256,7 @@ def read_camera(path: str, video_size: tuple[int, int] | None = None, notes: lis
         fy = number(intr["fy"]) if "fy" in intr else None
         distortion = [number(v) for v in intr.get("distortion") or []]
         vecs = {k: np.array([number(v) for v in extr[k]]) for k in ("origin", "target", "up")}
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an integer literal beyond float's range
         raise RispError(f"{path}: camera values must be numbers, not strings or true/false (width, height, fx, fy, cx, "
                         "cy; origin/target/up: 3 numbers each)") from None
     if fy is not None and not abs(fy - fx) <= 0.01 * abs(fx):
@@ -320,11 +322,26 @@ def read_truth(path: str, env: str | None = None, width: int | None = None, hint
         raise RispError(f"{path}: 'env_states' must be a non-empty list of state rows")
     try:
         table = np.asarray(rows, np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an integer literal beyond float's range
         raise RispError(f"{path}: 'env_states' is not a table of numbers (rows of different lengths?)") from None
     if table.ndim != 2 or (width is not None and table.shape[1] != width):
         raise RispError(f"{path}: 'env_states' must have {width if width is not None else 'the same number of'} "
                         f"columns per row, got shape {table.shape}")
     if not np.all(np.isfinite(table)):
         raise RispError(f"{path}: 'env_states' holds NaN or inf")
+    if "params" in data:  # the hidden parameters the errors are measured against: {name: finite number}
+        params = data["params"]
+        if not isinstance(params, dict) or not all(isinstance(k, str) and _finite_number(v) for k, v in params.items()):
+            raise RispError(f"{path}: 'params' must be an object of finite numbers, e.g. {{\"mass\": 3.0}}, "
+                            f"got {json.dumps(params)[:40]}")
     return data
+
+
+def _finite_number(value) -> bool:
+    """A JSON number that is finite as a float (not a bool, a string, or an integer beyond float's range)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    try:
+        return math.isfinite(float(value))
+    except OverflowError:
+        return False

@@ -189,6 +189,9 @@ def optimize(problem: Problem, loss: Callable, *, optimizer: str, lr: float, mom
         value = loss(states) if n is None else loss(states, n)
         if not torch.isfinite(value):
             if best_leaves is None:  # nothing comparable to keep yet: the start itself is non-finite
+                if it == 0:  # no step was taken: the inputs themselves simulate to NaN/inf, --lr cannot help
+                    raise RispError("the loss is NaN/inf at the start, before any optimisation step: the simulation "
+                                    "of the inputs diverges (check --actions, --params and the initial state)")
                 raise RispError(f"the loss became NaN/inf at iteration {it}, before any iterate could be kept "
                                 "(try a smaller --lr)")
             # a long run should not be thrown away by one bad step: stop here, keep the best iterate so far

@@ -22,6 +22,7 @@ import torch
 
 from risp_data.atomic import write_text_atomic
 from risp_data.errors import RispError
+from risp_data.threads import set_drjit_threads, set_torch_threads
 
 
 # The reference flights' controller: tracking_thrusts' PD law plus its integral term KI·∫e_p dt, as real flight
@@ -79,6 +80,8 @@ def _parse_effect(spec: str | None, sim_env: str):
             vals = [float(v) for v in values.split(",")]
         except ValueError:
             raise RispError(f"--effect {spec!r}: values must be numbers, e.g. wind:3,0,0") from None
+        if not all(math.isfinite(v) for v in vals):  # float() reads "nan" and "inf"
+            raise RispError(f"--effect {spec!r}: values must be finite numbers, e.g. wind:3,0,0")
     return name.strip(), vals
 
 
@@ -263,6 +266,7 @@ def make_reference(cfg: ReferenceConfig) -> dict:
         if held:
             raise RispError(f"{held[0]}: exists (a reference video's files: {', '.join(held)}); give another --out, "
                             f"or --overwrite to replace them")
+    torch_threads = set_torch_threads(1)  # the simulation is small: one torch thread, as the tasks' default
     drawn = render_environment(cfg.env, cfg.mesh)
     rng = np.random.default_rng(cfg.seed)
     effect, effect_values = _parse_effect(cfg.effect, cfg.env)
@@ -272,6 +276,7 @@ def make_reference(cfg: ReferenceConfig) -> dict:
     env_states = sim.to_env_state(full).numpy()
     look = sample_rendering(cfg.env, cfg.domain, rng)
     renderer = Renderer(drawn, cfg.domain, cfg.resolution, cfg.spp)
+    render_threads = set_drjit_threads(0)  # the CPUs this process may use, set (and recorded) rather than left implicit
     if cfg.camera:
         from risp_data.diff_render import set_camera
 
@@ -294,7 +299,7 @@ def make_reference(cfg: ReferenceConfig) -> dict:
              "sim_states": full.numpy().tolist() if len(sim.state_names) <= 64 else None,
              "actions": None if actions is None else np.asarray(actions).tolist(),
              "look": {"domain": cfg.domain, "psi": look.psi.tolist(), "aux": look.aux},
-             "frame_seeds": frame_seeds.tolist(),
+             "frame_seeds": frame_seeds.tolist(), "threads": {"torch": torch_threads, "drjit": render_threads},
              "outside_sampled_states": outside_sampled_states(cfg.env, env_states),
              "mesh": None if cfg.mesh is None else {"path": cfg.mesh, "sha256": sha256_file(cfg.mesh)}}
     if actions is not None:

@@ -25,6 +25,11 @@ def check_free(out: str, overwrite: bool = False) -> None:
     """``out`` may be written: it does not exist, or (``overwrite``) it is a task's result folder (it holds a
     result.json) — never an arbitrary folder or a file, which --overwrite does not delete."""
     if not os.path.exists(out):
+        parent = os.path.dirname(os.path.abspath(out))
+        while not os.path.exists(parent):  # the nearest existing ancestor must be a folder the result can go under
+            parent = os.path.dirname(parent)
+        if not os.path.isdir(parent):
+            raise RispError(f"{out}: {parent} is a file, not a folder: choose another --out")
         return
     if not overwrite:
         raise RispError(f"{out}: result folder exists; choose another --out, remove it, or give --overwrite")

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from risp_data.errors import RispError
-from risp_data.threads import set_torch_threads
+from risp_data.threads import set_drjit_threads, set_torch_threads
 from risp_train.checkpoint import model_file
 
 from . import TASKS
@@ -83,16 +83,24 @@ def _reference(cfg: TaskConfig, resolution: int):
     return ref.video.frames, ref.indices, ref.n_source, ref.source_fps, ref.sha256, ref
 
 
-def _check_thrusts(path: str, sim, file_actions: np.ndarray) -> None:
-    """Quadrotor thrusts [N] the simulator cannot apply (its commands are clamped at ±COMMAND_LIMIT): the file is in
-    other units (grams, RPM) — its commands would have been clipped without a word."""
+def _check_action_range(path: str, sim, file_actions: np.ndarray) -> None:
+    """Commands the simulator cannot apply: quadrotor thrusts [N] beyond its commands' clamp at ±COMMAND_LIMIT,
+    rod centre forces [N] beyond FORCE_LIMIT.  The file is in other units (grams, RPM, mN) — its commands would
+    have been clipped without a word.  (The hand's torques have no clamp in the model: nothing to check.)"""
+    worst = float(np.abs(file_actions).max()) if file_actions.size else 0.0
+    if sim.env == "rod":
+        from ..sims.rod import FORCE_LIMIT
+
+        if worst > FORCE_LIMIT:
+            raise RispError(f"{path}: centre forces up to {worst:.4g} N, above the {FORCE_LIMIT:g} N the simulated rod "
+                            f"takes: the column u0 is a force in newtons (docs/tasks.md §Actions CSV)")
+        return
     if sim.env != "quadrotor":
         return
     from ..sims.quadrotor import COMMAND_LIMIT
 
     k_f = float(sim.default_params()[0, sim.param_index("k_f")])
     limit = COMMAND_LIMIT * k_f
-    worst = float(np.abs(file_actions).max()) if file_actions.size else 0.0
     if worst > limit:
         raise RispError(f"{path}: rotor thrusts up to {worst:.4g} N, above the {limit:.4g} N the simulated rotors can "
                         f"give: the columns f0..f3 are thrusts in newtons per rotor (docs/tasks.md §Actions CSV)")
@@ -110,13 +118,23 @@ def _check_truth_timeline(cfg: TaskConfig, truth: dict, ref) -> None:
                         f"{ref.source_fps:g} fps: give the truth written beside this video")
 
 
+TASK_STREAM = 0x7A5C  # tags the tasks' random stream apart from make-video's (which is default_rng(seed))
+
+
+def task_rng(seed: int) -> np.random.Generator:
+    """The task's random draws (``--init random``): SeedSequence(seed, TASK_STREAM).  Until 2026-12-01 it was
+    default_rng(seed), the stream make-video draws a video's hidden parameters from first, so ``sysid --init random
+    --seed S`` on make-video's ``--seed S`` video started exactly at the true parameters."""
+    return np.random.default_rng(np.random.SeedSequence([int(seed), TASK_STREAM]))
+
+
 def run_task(cfg: TaskConfig, echo=print) -> dict:
     """Run ``cfg.task``; returns the result dict (also written to ``<out>/result.json``)."""
     if cfg.task not in TASKS:
         raise RispError(f"unknown task {cfg.task!r}; choose one of: {', '.join(TASKS)}")
     out = cfg.out or default_out(cfg)
     check_free(out, cfg.overwrite)
-    set_torch_threads(cfg.threads)  # one shared rule (risp_data.threads): 0 = the machine's CPUs
+    torch_threads = set_torch_threads(cfg.threads)  # one shared rule (risp_data.threads): 0 = the machine's CPUs
     started = time.perf_counter()
     model_path, model_line = resolve_model(cfg)
     echo(model_line)
@@ -162,8 +180,9 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
             f"the {env_name} has no actions to {cfg.task}; {cfg.task} works for: quadrotor, hand, rod"
         raise RispError(what + chosen)
     if cfg.actions is not None:
-        file_actions = read_actions(cfg.actions, env_name, n_source, fps)
-        _check_thrusts(cfg.actions, sim, file_actions)
+        file_actions = read_actions(cfg.actions, env_name, n_source, fps,
+                                    f" at --fps {cfg.fps:g}" if cfg.fps is not None else "")
+        _check_action_range(cfg.actions, sim, file_actions)
     truth = read_truth(cfg.truth, env_name, len(env.state_names), chosen) if cfg.truth else None
     if truth is not None and cfg.task != "control" and truth.get("video_sha256") not in (None, video_sha):
         raise RispError(f"{cfg.truth}: the ground truth of another video (its video_sha256 is not {cfg.video}'s); "
@@ -184,7 +203,7 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
                            + ("only the plots show it" if cfg.plots else "and --no-plots it changes nothing"))
     ctx = Context(cfg=cfg, env=env, sim=sim, predictor=predictor, frames=frames_t, keep=keep, n_source=n_source,
                   fps=fps, k=k, predicted=predicted.double(), predicted_targets=predicted_targets.double(),
-                  file_actions=file_actions, truth=truth, rng=np.random.default_rng(cfg.seed))
+                  file_actions=file_actions, truth=truth, rng=task_rng(cfg.seed))
     problem = importlib.import_module(f"{__package__}.{cfg.task}").build(ctx)
     warnings = problem.info.pop("warnings", [])  # the task's own (control's initial state), kept for result.json
     if cfg.fit_params is None and problem.info.get("fitted_parameters"):  # imitate's default for this environment
@@ -192,13 +211,14 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
              "(--params to give them, --no-fit-params for the nominal ones)")
     loss_frames = problem.frames if problem.frames is not None else keep
 
-    renderer = None
+    renderer, render_threads = None, None
     if cfg.loss in ("render", "pixelwise", "perceptual") or cfg.plots:
         from risp_data.diff_render import StateRenderer, set_camera
         from risp_data.psi import nominal_rendering
 
         renderer = StateRenderer(drawn, resolution=predictor.resolution, spp=cfg.spp, primal_spp=cfg.primal_spp,
                                  config=nominal_rendering(env_name, "train"), boundary=cfg.gradient)
+        render_threads = set_drjit_threads(cfg.render_threads)  # after the renderer: Mitsuba (and its LLVM) set up
         if camera is not None:
             set_camera(renderer.renderer, camera)
     truth_targets, truth_rows = None, None
@@ -241,7 +261,10 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
         "loss": history["loss"], "final_loss": history["final_loss"], "last_loss": history["last_loss"],
         "best_iteration": history["best_iteration"], **({"stopped": history["stopped"]} if "stopped" in history else {}),
         "timings": {"total_s": time.perf_counter() - started,
-                    "seconds_per_iteration": history["seconds_per_iteration"], "sections_s": timer.seconds},
+                    "seconds_per_iteration": history["seconds_per_iteration"], "sections_s": timer.seconds,
+                    # what the arithmetic ran on: render-mode gradients' last bits follow Dr.Jit's count (null:
+                    # nothing rendered)
+                    "threads": {"torch": torch_threads, "drjit": render_threads}},
         "versions": versions(), "info": problem.info,
         # the other inputs' checksums, as the model's and the video's: a result names every file it read
         "inputs": {name: {"path": path, "sha256": sha256_file(path)} for name, path in
