@@ -222,9 +222,13 @@ def jsonable(obj: Any) -> Any:
     return obj
 
 
-def render_sample(renderer, env, job: RenderJob, index: int) -> Sample:
-    """Render sample ``index``: image and (unless ``job.jacobian`` is off) its forward-mode Jacobian stack."""
+def render_sample(renderer, env, job: RenderJob, index: int, config=None) -> Sample:
+    """Render sample ``index``: image and (unless ``job.jacobian`` is off) its forward-mode Jacobian stack.
+    ``config``: a rendering configuration in place of the sample's own draw (risp-train ablation's ψ pool); the
+    state and render seed stay the sample's."""
     inp = sample_inputs(env, job.domain, job.seed, index)
+    if config is not None:
+        inp = dataclasses.replace(inp, config=config)
     if job.jacobian:
         image, jac = renderer.render(inp.state, inp.config, inp.render_seed, jacobian=True)
     else:  # image only: the domain's reference integrator (target domain: Mitsuba's `path`)

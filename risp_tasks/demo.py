@@ -25,6 +25,7 @@ from pathlib import Path
 
 import click
 
+from risp_data.atomic import write_text_atomic
 from risp_data.envs import ENV_NAMES
 from risp_data.errors import RispError
 
@@ -169,8 +170,9 @@ def _read_json(path: Path) -> dict | None:
 
 def _write_summary(out: Path, cfg: DemoConfig, log: list[dict]) -> None:
     total = sum(c["seconds"] for c in log)
-    (out / "demo.json").write_text(json.dumps({"config": asdict(cfg), "seed": cfg.seed, "commands": log,
-                                               "seconds": round(total, 1)}, indent=2))
+    # written whole or not at all (a killed demo leaves no half-written summary that looks complete)
+    write_text_atomic(str(out / "demo.json"), json.dumps({"config": asdict(cfg), "seed": cfg.seed, "commands": log,
+                                                          "seconds": round(total, 1)}, indent=2))
     env = cfg.env
     lines = [
         "# risp demo",
@@ -230,7 +232,7 @@ def _write_summary(out: Path, cfg: DemoConfig, log: list[dict]) -> None:
             lines.append("- held-out open-loop rollout error, 1 − extended/base (positive: the extended model is better): "
                          + ", ".join(f"{k} {100 * v:+.0f} %" for k, v in rollout.items()))
         lines.append("")
-    (out / "README.md").write_text("\n".join(lines))
+    write_text_atomic(str(out / "README.md"), "\n".join(lines))
 
 
 @click.command("demo")

@@ -117,9 +117,8 @@ def _render_pooled_locked(job, pool: list, variant: str, progress: bool) -> str:
     from tqdm.auto import tqdm
 
     from risp_data.envs import get_environment
-    from risp_data.generate import jsonable, make_renderer, prepare_folder, sample_inputs
+    from risp_data.generate import make_renderer, prepare_folder, render_sample
     from risp_data.shards.manifest import save_manifest
-    from risp_data.shards.sample import Sample
     from risp_data.shards.writer import write_shard
 
     manifest = prepare_folder(job, variant)
@@ -131,22 +130,15 @@ def _render_pooled_locked(job, pool: list, variant: str, progress: bool) -> str:
         return job.out
     env = get_environment(job.env)
     renderer = make_renderer(job)
-    psi_names = list(manifest["psi"]["names"])
     total = sum(job.shard_range(i)[1] - job.shard_range(i)[0] for i in todo)
     with tqdm(total=total, unit="sample", desc=f"render pool={len(pool)}", disable=not progress) as bar:
         for shard in todo:
             samples = []
             for i in range(*job.shard_range(shard)):
-                inp = sample_inputs(env, job.domain, job.seed, i)
-                config = pool[i % len(pool)]
-                image, jac = renderer.render(inp.state, config, inp.render_seed, jacobian=job.jacobian)
-                meta = {"env": job.env, "domain": job.domain, "index": i, "seed": job.seed,
-                        "render_seed": inp.render_seed, "state_names": list(env.state_names),
-                        "psi_names": psi_names, "aux": jsonable(config.aux), "resolution": job.resolution,
-                        "spp": job.spp, "jacobian": job.jacobian, "psi_pool_index": i % len(pool)}
-                samples.append(Sample(index=i, image=np.asarray(image, np.float32),
-                                      jacobian=None if jac is None else np.asarray(jac, np.float32),
-                                      state=inp.state, psi=np.asarray(config.psi, np.float64), meta=meta))
+                # risp-data's own sample renderer (its non-finite checks, its metadata) with the pool's look
+                sample = render_sample(renderer, env, job, i, config=pool[i % len(pool)])
+                sample.meta["psi_pool_index"] = i % len(pool)
+                samples.append(sample)
                 bar.update(1)
             rec = write_shard(job.out, job.formats, shard, samples)
             manifest["shards"] = [r for r in manifest["shards"] if r["index"] != shard] + [rec]

@@ -32,8 +32,12 @@ def test_ablation_tiny(tmp_path):
 
     m = load_manifest(str(out / "shards" / "train-pool-2"))
     assert m["psi_pool"]["size"] == 2
-    psis = [s["psi"] for s in iter_wds(str(out / "shards" / "train-pool-2"))]
+    pooled = list(iter_wds(str(out / "shards" / "train-pool-2")))
+    psis = [s["psi"] for s in pooled]
     assert len({tuple(p) for p in psis}) == 2 and np.array_equal(psis[0], psis[2])
+    # the pooled samples come from risp-data's own sample renderer: its metadata (variant, integrator), plus the pool
+    assert [s["meta"]["psi_pool_index"] for s in pooled[:4]] == [0, 1, 0, 1]
+    assert all(s["meta"]["variant"] and s["meta"]["integrator"] for s in pooled)
     per_sample = [s["psi"] for s in iter_wds(str(out / "shards" / "train-pool-per-sample"))]
     assert len({tuple(p) for p in per_sample}) == 16
     # run again: everything is reused (no re-render, no re-training), same numbers
