@@ -17,7 +17,7 @@ import click
 from risp_data.cli_util import RispGroup, run_cli
 from risp_data.errors import RispError
 
-from .config import DEFAULT_REG
+from .defaults import DEFAULT_REG
 
 
 @click.group(cls=RispGroup)

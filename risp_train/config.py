@@ -20,6 +20,7 @@ from dataclasses import asdict, dataclass, fields, replace
 
 from risp_data.errors import RispError
 
+from .defaults import DEFAULT_REG  # re-exported here (risp_train.config.DEFAULT_REG)
 from .model import STEM_FACTOR
 from .regularizers import REGULARIZERS
 
@@ -32,7 +33,6 @@ GAMMA_DEFAULTS = {"quadrotor": 0.3, "cube": 0.3, "hand": 0.05, "rod": 0.3}
 # `none`.  quadrotor 0.5: position −6 % and attitude −4 % against `none` (from the first step: −5 %, +8 %).  3 seeds
 # each at 10000 samples (docs/RESULTS.md §The regularizer's late start); hand and rod were not tried late.
 GAMMA_START_DEFAULTS = {"quadrotor": 0.5, "cube": 0.5}
-DEFAULT_REG = "stochastic"  # RISP's regularizer by default (docs/training.md §Calibrated regularizer)
 
 PRESETS: dict[str, dict] = {
     "paper": dict(epochs=100, batch_size=16, lr=1e-2, weight_decay=1e-6, width=64),

@@ -4,7 +4,9 @@
     >>> env = get_environment("cube")
 
 Unknown names raise :class:`risp_data.errors.RispError` listing the valid ones.  Environment modules
-are imported lazily (no work at import time).
+are imported lazily (no work at import time), and so is :mod:`.base` (torch) behind ``Camera``, ``Environment``
+and ``Mesh``: the command-line tools read ``ENV_NAMES`` for their ``--env`` choices, and their ``--help`` should
+not wait a second for torch.
 """
 
 from __future__ import annotations
@@ -12,10 +14,19 @@ from __future__ import annotations
 import importlib
 
 from ..errors import RispError
-from .base import Camera, Environment, Mesh
 
 ENV_NAMES: tuple[str, ...] = ("quadrotor", "cube", "hand", "rod")
-_CACHE: dict[str, Environment] = {}
+_CACHE: dict[str, "Environment"] = {}
+_LAZY = ("Camera", "Environment", "Mesh")  # defined in .base, which imports torch
+
+
+def __getattr__(name: str):
+    """``from risp_data.envs import Camera`` (PEP 562): import :mod:`.base` on first use."""
+    if name in _LAZY:
+        from . import base
+
+        return getattr(base, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def get_environment(name: str) -> Environment:
