@@ -254,6 +254,9 @@ def _check_constant_rate(path: Path, times: list) -> str | None:
     return None
 
 
+#: single still pictures: FFmpeg's image demuxer decodes one at a made-up 25 fps, so their rate is unknown (as a PNG
+#: folder's) and --source-fps gives it; animated formats (.gif, .webp, .apng) carry their own timing
+STILL_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".exr", ".ppm", ".pgm", ".tga", ".jp2")
 OTHER_IMAGE_SUFFIXES = (".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".exr", ".gif", ".avif", ".heic", ".heif",
                         ".jp2", ".jxl", ".ppm", ".pgm", ".tga")
 
@@ -385,6 +388,8 @@ def read_video(path: str | os.PathLike, resolution: int | None = None, every: in
         if p.stat().st_size == 0:
             raise RispError(f"{p}: empty file (0 bytes)")
         raw, rate, comment, size, notes = _decode_file(p, each)
+        if p.suffix.lower() in STILL_IMAGE_SUFFIXES:  # the demuxer's 25 fps is no property of the picture
+            rate = 0.0
         if source_fps is not None and rate and abs(source_fps - rate) > 1e-6 * rate:  # e.g. slow motion stored at 30
             notes.append(f"--source-fps {source_fps:g} replaces the {rate:g} fps written in {p.name}: its frames are "
                          f"taken {1 / source_fps:.4g} s apart")

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from risp_data.errors import RispError
-from risp_data.shards.manifest import package_versions, sha256_file
+from risp_data.shards.manifest import package_versions, risp_commit, sha256_file
 
 from .checkpoint import check_compatible, load_checkpoint, model_file
 from .data import iter_batches, manifest_hash, open_shards
@@ -162,7 +162,7 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
     result = {
         "env": shards.env, "shards": os.path.abspath(cfg.shards), "domain": shards.manifest.get("domain"),
         "manifest_hash": manifest_hash(shards.manifest), "model": os.path.abspath(cfg.model),
-        "model_sha256": sha256_file(model_file(cfg.model)), "versions": package_versions(),
+        "model_sha256": sha256_file(model_file(cfg.model)), "versions": {**package_versions(), "risp_commit": risp_commit()},
         "train_manifest_hash": ckpt.get("manifest_hash"), "reg": ckpt.get("config", {}).get("reg"),
         "metric": cfg.metric, "n": n, "seed": cfg.seed, "state_names": names,
         "results": {k: summarize(state_differences(v, true, names), cfg.metric) for k, v in estimates.items()},

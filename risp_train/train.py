@@ -37,7 +37,7 @@ from .model import ModelConfig, ResNet18, build_model, min_resolution, stem_for_
 from .normalization import Normalization, StatsAccumulator
 from .regularizers import gamma_at, psi_scale, risp_loss
 from risp_data.atomic import atomic_write, check_writable, remove_temporaries, write_text_atomic
-from risp_data.shards.manifest import package_versions
+from risp_data.shards.manifest import package_versions, risp_commit
 from risp_data.threads import set_torch_threads
 
 LAST = "last.pt"  # the resumable checkpoint, rewritten at each epoch end (and every N steps)
@@ -443,7 +443,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
                      "manifest_hash": mhash, "normalization": norm.to_dict(), "world_size": world,
                      "threads": threads, "cache": cache, "device": str(device), "steps_per_epoch": plan,
                      "samples": sample_counts(shards), "psi_std": psi_std.tolist(),
-                     "versions": package_versions()})
+                     "versions": {**package_versions(), "risp_commit": risp_commit()}})
     from tqdm.auto import tqdm
 
     bar = tqdm(total=total_steps, initial=step, disable=(not progress) or rank != 0, unit="step",

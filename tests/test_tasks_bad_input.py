@@ -896,3 +896,20 @@ def test_a_start_that_simulates_to_nan_points_at_the_inputs(quad, tmp_path, monk
     model, video = quad
     line = _invoke(["sysid", video, "--model", model, "--actions", _actions(video)], tmp_path)
     assert "NaN/inf at the start, before any optimisation step" in line and "--actions" in line, line
+
+
+def test_a_still_image_as_the_video_needs_its_frame_rate(quad, tmp_path):
+    """One PNG given as the video: FFmpeg's image demuxer reports a made-up 25 fps, which result.json recorded as
+    the video's rate; like a PNG folder, a still picture has none until --source-fps gives it."""
+    model, video = quad
+    from PIL import Image
+
+    Image.new("RGB", (64, 64), (90, 120, 150)).save(tmp_path / "still.png")
+    line = _invoke(["estimate", str(tmp_path / "still.png"), "--model", model], tmp_path)
+    assert "still.png" in line and "frame rate is unknown" in line and "--source-fps" in line, line
+    from risp_tasks.cli import cli
+
+    res = CliRunner().invoke(cli, ["estimate", str(tmp_path / "still.png"), "--model", model, "--source-fps", "10",
+                                   "--out", str(tmp_path / "est"), "--quiet", "--no-plots"])
+    assert res.exit_code == 0, res.output
+    assert json.load(open(tmp_path / "est" / "result.json"))["video"]["fps"] == 10

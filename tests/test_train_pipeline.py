@@ -123,6 +123,11 @@ def test_fit_lowers_held_out_error_and_writes_outputs(shards, tmp_path):
 
     assert res["model_sha256"] == sha256_file(path) and res["versions"]["risp"] == version("risp")
     assert json.load(open(os.path.join(os.path.dirname(path), "config.json")))["versions"]["torch"]
+    from risp_data.shards.manifest import risp_commit
+
+    # the checkout's commit, as task results record it (a run names the code that trained and evaluated it)
+    commit = json.load(open(os.path.join(os.path.dirname(path), "config.json")))["versions"]["risp_commit"]
+    assert commit == risp_commit() == res["versions"]["risp_commit"]
     # the run folder names its model.pt; the default results land beside it
     run = os.path.dirname(path)
     r = CliRunner().invoke(cli, ["eval", run, shards["held_out"], "--quiet", "--limit", "4"])

@@ -66,6 +66,18 @@ def package_versions() -> dict[str, str | None]:
     return out
 
 
+def risp_commit() -> str | None:
+    """The git commit of the risp checkout this code runs from (None outside a git checkout, e.g. a wheel)."""
+    import subprocess
+
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    try:
+        return subprocess.run(["git", "-C", root, "rev-parse", "HEAD"], capture_output=True, text=True,
+                              timeout=5).stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
 def utc_now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat()
 

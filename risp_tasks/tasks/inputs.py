@@ -103,7 +103,7 @@ def read_reference(path: str, resolution: int, every: int, fps: float | None, so
     video = read_video(path, resolution=resolution, every=every, fps=fps, source_fps=source_fps)
     rate = video.source_fps
     if not rate > 0:
-        raise RispError(f"{path}: the frame rate is unknown (a PNG folder): give --source-fps")
+        raise RispError(f"{path}: the frame rate is unknown (a PNG folder or a still image): give --source-fps")
     return Reference(video=video, sha256=sha256_file(path), source_fps=rate)
 
 

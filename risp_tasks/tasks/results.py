@@ -7,13 +7,12 @@ import json
 import os
 import platform
 import shutil
-import subprocess
-from pathlib import Path
 
 import numpy as np
 
 from risp_data.atomic import replace_folder, temp_folder
 from risp_data.errors import RispError
+from risp_data.shards.manifest import risp_commit
 
 from ..strict_json import strict_json
 
@@ -46,12 +45,7 @@ def versions() -> dict:
     out = {"python": platform.python_version(), "torch": torch.__version__, "mitsuba": mitsuba.__version__,
            "drjit": drjit.__version__, "numpy": np.__version__,
            "mitsuba_variant": mitsuba.variant()}  # None when the task rendered nothing (the state loss)
-    try:
-        root = Path(__file__).resolve().parents[2]
-        out["risp_commit"] = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True,
-                                            text=True, timeout=5).stdout.strip() or None
-    except (OSError, subprocess.SubprocessError):
-        out["risp_commit"] = None
+    out["risp_commit"] = risp_commit()
     return out
 
 
