@@ -527,9 +527,14 @@ def _worker_run(shard_index: int) -> dict:
 
 
 def _run_inline(job, todo, on_record, bar):
-    renderer = make_renderer(job)
-    for i in todo:
-        on_record(render_shard(job, i, renderer, on_sample=lambda: bar.update(1)))
+    """Render in this process: the CPUs this process may use, as the pool's workers share them (set, not Dr.Jit's
+    implicit default), and one torch thread, as each worker has (restored afterwards: a caller's count is its own)."""
+    from .threads import torch_threads
+
+    with torch_threads(1):
+        renderer = make_renderer(job, available_cpus())
+        for i in todo:
+            on_record(render_shard(job, i, renderer, on_sample=lambda: bar.update(1)))
 
 
 def _run_pool(job, todo, on_record, bar):

@@ -140,7 +140,9 @@ def verify_folder(cfg: VerifyConfig) -> VerifyReport:
     env = get_environment(m["env"])
     job = RenderJob(env=m["env"], n=m["n"], out=cfg.folder, domain=m["domain"], resolution=m["resolution"],
                     spp=m["spp"], seed=m["seed"], shard_size=m["shard_size"], variant=m["variant"])
-    renderer = make_renderer(job)
+    from .threads import available_cpus
+
+    renderer = make_renderer(job, available_cpus())  # Dr.Jit's threads set, not left to its implicit default
     low, high = np.asarray(m["psi"]["low"]), np.asarray(m["psi"]["high"])
     h = cfg.eps * (high - low)
     k = len(h)

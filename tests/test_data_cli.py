@@ -400,3 +400,25 @@ def test_image_size_counts_the_domains_samples_per_pass():
         check_image_size(8192, 16, "target")
     with pytest.raises(RispError, match=r"--resolution 9000 is larger than the supported 8192 pixels"):
         check_image_size(9000, 1, "train", "--resolution")
+
+
+def test_an_in_process_render_sets_drjit_threads_and_keeps_the_callers_torch_threads(tmp_path, monkeypatch):
+    """workers=1 renders in this process: Dr.Jit's threads are set to the CPUs it may use (here made 1), not left to
+    Dr.Jit's default of the machine's cores; torch runs one thread meanwhile and the caller's count comes back."""
+    import drjit as dr
+    import torch
+
+    import risp_data.generate as gen
+    from risp_data.generate import RenderJob, run_job
+
+    before_dr, before_torch = dr.thread_count(), torch.get_num_threads()
+    monkeypatch.setattr(gen, "available_cpus", lambda: 1)
+    torch.set_num_threads(2)
+    dr.set_thread_count(2)  # a count the render must change (the old code left Dr.Jit's as it found it)
+    try:
+        job = RenderJob(env="cube", n=2, out=str(tmp_path / "c"), resolution=8, spp=1, seed=0, shard_size=2, workers=1)
+        run_job(job, progress=False, log=lambda *_: None)
+        assert dr.thread_count() == 1 and torch.get_num_threads() == 2
+    finally:
+        dr.set_thread_count(before_dr)
+        torch.set_num_threads(before_torch)
