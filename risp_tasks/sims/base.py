@@ -128,6 +128,14 @@ class Simulator:
         except ValueError:
             raise RispError(f"unknown parameter {name!r}; parameters are: {', '.join(self.param_names)}") from None
 
+    def effect_params(self, params: torch.Tensor, name: str) -> torch.Tensor | None:
+        """(B, n) columns of effect ``name``'s parameters in ``params`` (B, P), or None when the effect is off."""
+        if name not in self.effects:
+            return None
+        names = self.spec.available_effects[name].param_names
+        i = self.param_index(f"{name}.{names[0]}")
+        return params[:, i:i + len(names)]
+
     # -- dynamics -----------------------------------------------------------------------------------
     def step(self, params: torch.Tensor, state: torch.Tensor, action: torch.Tensor | None, t: int) -> torch.Tensor:
         raise NotImplementedError

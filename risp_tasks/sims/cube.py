@@ -173,10 +173,7 @@ class CubeSimulator(Simulator):
         form = rotation_form(corners)
 
         def eff(name):
-            if name not in self.effects:
-                return None
-            i = self.param_index(f"{name}.{EFFECTS[name].param_names[0]}")
-            return params[:, i:i + 1]
+            return self.effect_params(params, name)
 
         k = torch.pow(10.0, params[:, 0:1])
 

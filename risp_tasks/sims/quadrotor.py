@@ -216,10 +216,7 @@ class QuadrotorSimulator(Simulator):
                                   [ROTOR_HEIGHT] * 4], dtype=like.dtype, device=like.device)
 
         def eff(name):
-            if name not in self.effects:
-                return None
-            i = self.param_index(f"{name}.{EFFECTS[name].param_names[0]}")
-            return params[:, i:i + len(EFFECTS[name].param_names)]
+            return self.effect_params(params, name)
 
         tau = eff("motor_lag")
         return _Consts(
@@ -371,37 +368,31 @@ class QuadrotorTranslational(Simulator):
     def to_env_state(self, states: torch.Tensor) -> torch.Tensor:
         raise RispError("the translational quadrotor model has no attitude state to render")
 
-    def _eff(self, params, name):
-        if name not in self.effects:
-            return None
-        i = self.param_index(f"{name}.{EFFECTS[name].param_names[0]}")
-        return params[:, i:i + len(EFFECTS[name].param_names)]
-
     def step(self, params: torch.Tensor, state: torch.Tensor, action: torch.Tensor | None, t: int) -> torch.Tensor:
         h = self.dt
         p, v = state[:, 0:3], state[:, 3:6]
         cmd = params[:, 1:2] * action[:, 0:1]
         q = normalize_quat(action[:, 1:5])
         qq = quat_outer(q)
-        tau = self._eff(params, "motor_lag")
+        tau = self.effect_params(params, "motor_lag")
         if tau is not None:
             f = state[:, 6:7] + (-torch.expm1(-h / tau)) * (cmd - state[:, 6:7])
         else:
             f = cmd
         thrust = f
-        k_ge = self._eff(params, "ground_effect_centre")
+        k_ge = self.effect_params(params, "ground_effect_centre")
         if k_ge is not None:
             thrust = thrust * ground_factor(k_ge, p[:, 2:3])
         force = thrust * (qq @ const("R_col2", q))
-        drag = self._eff(params, "rotor_drag")
+        drag = self.effect_params(params, "rotor_drag")
         if drag is not None:
             R = (qq @ const("R", q)).unflatten(-1, (3, 3))
             v_body = (v.unsqueeze(1) @ R).squeeze(1)
             force = force - (R @ (drag * v_body).unsqueeze(-1)).squeeze(-1)
-        c = self._eff(params, "air_drag")
+        c = self.effect_params(params, "air_drag")
         if c is not None:
             force = force - c * torch.sqrt((v * v).sum(1, keepdim=True) + AIR_DRAG_EPS**2) * v
-        wind = self._eff(params, "wind")
+        wind = self.effect_params(params, "wind")
         if wind is not None:
             force = force + wind
         g = torch.tensor([0.0, 0.0, -GRAVITY], dtype=v.dtype, device=v.device)
