@@ -461,6 +461,17 @@ def test_a_damaged_cell_file_is_computed_again(cache, tmp_path):
         assert "0 of 1 cells done, 1 to run" in lines[0], lines
         assert report["cells"]["cube"]["average"]["mean"] == first
         assert json.load(open(path))["value"] == first
+    # a JSON object that cannot be this cell — edited or copied by hand — is computed again too, never averaged:
+    # a NaN, a string, a negative error, an integer beyond float, no value, a per-group Infinity, another cell's
+    good = json.load(open(path))
+    for edit in ({"value": float("nan")}, {"value": "0.5"}, {"value": -7.0}, {"value": 10 ** 400}, {"value": None},
+                 {"groups": {"position": {"mean": float("inf"), "std": 0.0}}}, {"method": "ours"}, {"repeat": 3}):
+        with open(path, "w") as f:
+            json.dump({k: v for k, v in {**good, **edit}.items() if v is not None}, f)
+        lines = []
+        report = run_table(cfg, cache=cache, echo=lines.append)
+        assert "0 of 1 cells done, 1 to run" in lines[0], (edit, lines)
+        assert report["cells"]["cube"]["average"]["mean"] == first and json.load(open(path))["value"] == first
 
 
 def test_a_damaged_cached_network_ends_the_run_with_one_line(cache, tmp_path):

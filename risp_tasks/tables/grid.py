@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import time
 import traceback
@@ -262,7 +263,43 @@ def _load_cell(path: str) -> dict | None:
                 "unreadable": True}
     if not isinstance(result, dict):
         return {"na": f"unreadable cell file {path}: not a JSON object", "unreadable": True}
+    damage = _cell_damage(path, result)
+    if damage:
+        return {"na": f"damaged cell file {path}: {damage}", "unreadable": True}
     return result
+
+
+def _finite_number(value) -> bool:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    try:
+        return math.isfinite(float(value))
+    except OverflowError:  # a JSON integer beyond float's range
+        return False
+
+
+def _cell_damage(path: str, result: dict) -> str | None:
+    """Why a cell file's content cannot be the cell at ``path`` (None: it can): the runner writes every cell as one
+    atomic file whose env, method and repeat are its path's and whose value is a finite error ≥ 0 (every table's
+    metric is one), or a N/A with its reason; anything else was edited or copied by hand and is computed again."""
+    parts = os.path.normpath(path).split(os.sep)
+    if len(parts) >= 3 and parts[-1].startswith("r") and parts[-1].endswith(".json"):
+        own = {"env": parts[-3], "method": parts[-2], "repeat": parts[-1][1:-5]}
+        for key, want in own.items():
+            if key in result and str(result[key]) != want:
+                return f"holds the cell {key}={result[key]!r}, not {want!r}"
+    if "na" in result or result.get("failed"):
+        return None
+    if "value" not in result:
+        return "no value"
+    value = result["value"]
+    if not _finite_number(value) or value < 0:
+        return f"value {str(value)[:30]} is not a finite error >= 0"
+    groups = result.get("groups") or {}  # estimation's per-group errors: {group: {mean, std, n, unit}}
+    for name, group in (groups.items() if isinstance(groups, dict) else [("groups", groups)]):
+        if not isinstance(group, dict) or not all(_finite_number(group.get(k)) for k in ("mean", "std") if k in group):
+            return f"group {name!r} holds a non-finite number"
+    return None
 
 
 def _failed(folder: str, cell: Cell) -> dict:
