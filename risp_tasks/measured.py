@@ -16,6 +16,7 @@ import csv
 import json
 import math
 import os
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -200,7 +201,7 @@ def find_sidecar(csv_path: Path, env: str, overrides: dict | None = None) -> Sid
         if cand.is_file():
             try:
                 values = json.loads(cand.read_text(encoding="utf-8-sig"))  # a BOM, as the CSVs may carry
-            except (OSError, json.JSONDecodeError) as e:
+            except (OSError, ValueError) as e:  # ValueError: JSONDecodeError, or an integer of over 4300 digits
                 raise RispError(f"{cand}: sidecar is not valid JSON ({e})") from None
             if not isinstance(values, dict):
                 raise RispError(f"{cand}: sidecar must be a JSON object")
@@ -226,6 +227,16 @@ def find_sidecar(csv_path: Path, env: str, overrides: dict | None = None) -> Sid
     return Sidecar(env=env, values=values, source=source)
 
 
+def _finite_number(v) -> bool:
+    """A JSON number (not a bool) that is finite as a float; an integer beyond float's range is not."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return False
+    try:
+        return math.isfinite(float(v))
+    except OverflowError:
+        return False
+
+
 def _check_sidecar(values: dict, env: str, source: str) -> None:
     for key in REQUIRED_SIDECAR_KEYS.get(env, ()):
         if key not in values:
@@ -233,18 +244,18 @@ def _check_sidecar(values: dict, env: str, source: str) -> None:
     for key, allowed in CHOICES.items():
         if key in values and str(values[key]).lower() not in allowed:
             raise RispError(f"{source}: sidecar key {key!r} = {values[key]!r}; choose one of {', '.join(allowed)}")
-    for key, check in (("rotor_angles_deg", lambda v: isinstance(v, (int, float)) and math.isfinite(v)),
-                       ("rotor_spin", lambda v: v in (1, -1))):
+    for key, check in (("rotor_angles_deg", _finite_number),
+                       ("rotor_spin", lambda v: not isinstance(v, bool) and v in (1, -1))):
         if key in values and not (isinstance(values[key], list) and len(values[key]) == 4 and all(map(check, values[key]))):
             raise RispError(f"{source}: sidecar key {key!r} must be a list of 4 {'numbers' if key.endswith('deg') else '+1/-1 signs'}, "
                             f"got {values[key]!r}")
     noise = values.get("measurement_noise")
     if noise is not None and not (isinstance(noise, dict) and noise and all(
-            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0 for v in noise.values())):
+            _finite_number(v) and v > 0 for v in noise.values())):
         raise RispError(f"{source}: sidecar key 'measurement_noise' must map channel groups (position, attitude, velocity, "
                         f"angular velocity; hand/rod: coordinate, rate) to positive standard deviations in SI units, got {noise!r}")
     phi = values.get("measurement_noise_correlation", 0.0)
-    if not (isinstance(phi, (int, float)) and 0.0 <= phi < 1.0):
+    if not (_finite_number(phi) and 0.0 <= phi < 1.0):
         raise RispError(f"{source}: sidecar key 'measurement_noise_correlation' must lie in [0, 1), got {phi!r}")
     actuator = str(values.get("actuator", "thrust")).lower()
     if str(values.get("thrust_map", "linear")).lower() == "quadratic" and actuator not in ("normalized", "pwm"):
@@ -269,13 +280,28 @@ def _check_sidecar(values: dict, env: str, source: str) -> None:
             raise RispError(f"{source}: sidecar key {key!r} must be a number, got {raw!r}")
         vals = raw if isinstance(raw, list) else [raw]
         for v in vals:
-            if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v):
-                raise RispError(f"{source}: sidecar key {key!r} must be a finite number, got {raw!r}")
+            if not _finite_number(v):
+                raise RispError(f"{source}: sidecar key {key!r} must be a finite number, got {str(raw)[:40]}")
             if not lo <= v <= hi:
                 raise RispError(
                     f"{source}: sidecar key {key!r} = {v} is outside the plausible range [{lo}, {hi}] "
                     f"in SI units (check the unit)"
                 )
+    # keys that are simulator parameter names (k_f, Ixx, log10_kn, …) go to the simulator as they are: checked here,
+    # naming the file, rather than by the simulator's own input check (or a NaN's disagreement with itself)
+    from risp_tasks.sims import get_simulator
+
+    sim = get_simulator(env)
+    for key, (lo, hi) in zip(sim.param_names, sim.param_bounds):
+        if key not in values or key in SIDECAR_RANGES.get(env, {}):
+            continue
+        v = values[key]
+        if not _finite_number(v):
+            raise RispError(f"{source}: sidecar key {key!r} (a {env} simulator parameter) must be a finite number, "
+                            f"got {str(v)[:40]}")
+        if not lo <= v <= hi:
+            raise RispError(f"{source}: sidecar key {key!r} = {v:g} must lie in [{lo:g}, {hi:g}] (the simulator's "
+                            f"physical bounds)")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -341,7 +367,9 @@ def _fast_rows(fh, ncols: int, path: Path, progress: bool) -> np.ndarray:
     with tqdm(unit=" rows", unit_scale=True, desc=f"reading {path.name} ({size / 1e6:.0f} MB)", leave=False,
               disable=not progress or size < 20_000_000) as bar:
         while True:
-            block = np.loadtxt(fh, delimiter=",", dtype=np.float64, ndmin=2, max_rows=CHUNK_ROWS, comments=None)
+            with warnings.catch_warnings():  # a trailing blank line: numpy warns, the rows are read all the same
+                warnings.filterwarnings("ignore", message=".*contained no data")
+                block = np.loadtxt(fh, delimiter=",", dtype=np.float64, ndmin=2, max_rows=CHUNK_ROWS, comments=None)
             if block.size == 0:
                 break
             if block.shape[1] != ncols:

@@ -52,7 +52,10 @@ def test_disk_full_while_writing_the_report(flights, tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("extra,words", [(["--max-segments", "0"], "--max-segments"),
                                          (["--rollout-horizon", "0"], "--rollout-horizon"),
-                                         (["--seed", "-1"], "--seed must be >= 0")])
+                                         (["--seed", "-1"], "--seed must be in [0, 2**63)"),
+                                         (["--seed", str(2 ** 64)], "--seed must be in [0, 2**63)"),  # was torch's
+                                         (["--pairs-top", "-1"], "--pairs-top must be >= 0"),  # was "all but the last"
+                                         (["--max-iters", "0"], "--max-iters must be >= 1")])  # named an unfitted cause
 def test_out_of_range_counts_and_seed_are_one_line_and_leave_no_report(flights, tmp_path, extra, words):
     line = _one_error_line(_run(flights, tmp_path / "report", *extra))
     assert words in line
@@ -188,3 +191,22 @@ def test_a_symlinked_out_is_written_through_and_a_file_browsers_ds_store_is_no_o
     (out / ".DS_Store").write_bytes(b"\0")
     assert _run(flights, out, "--no-plots", "--seed", "2").exit_code == 0
     assert '"seed": 2' in (out / "report.json").read_text()
+
+
+def test_a_given_floor_offset_is_checked():
+    """--floor-offset nan reached the simulator ('s0 contains NaN/inf'); 1e6 sank the cube 1000 km below the floor
+    and a report was written.  NaN is refused with the options, a given offset by the reader's own rule."""
+    from pathlib import Path
+
+    from risp_data.errors import RispError
+    from risp_tasks.diagnose.adapter import calibrate_floor
+    from risp_tasks.diagnose.run import DiagnoseConfig, diagnose
+    from risp_tasks.measured import load_measured
+
+    tosses = Path(__file__).resolve().parents[1] / "risp_tasks" / "data" / "cube_tosses"
+    with pytest.raises(RispError, match=r"--floor-offset must be 'auto' or a finite number of metres, got nan"):
+        diagnose(DiagnoseConfig(data=(str(tosses),), env="cube", out=None, seed=0, floor_offset=float("nan")))
+    trajs = load_measured([str(tosses)], "cube", limit=1)
+    assert calibrate_floor(trajs, 0.001)[1] == {"applied": True, "mode": "given", "floor_offset_m": 0.001}
+    with pytest.raises(RispError, match=r"--floor-offset 1e\+06: .* would go 1e\+06 m below the floor, more than a side"):
+        calibrate_floor(trajs, 1e6)

@@ -441,3 +441,41 @@ def test_an_estimate_missing_state_columns_gets_no_actions_hint(tmp_path):
     with pytest.raises(RispError, match="missing column") as e:
         read_trajectory(path, "hand")
     assert "without --actions" not in str(e.value)
+
+
+@pytest.mark.parametrize("mass, message", [
+    ("9" * 400, "sidecar key 'mass' must be a finite number"),  # float() overflows: was an OverflowError traceback
+    ("9" * 5000, "sidecar is not valid JSON"),  # beyond int's 4300-digit string limit: was a ValueError traceback
+])
+def test_sidecar_integers_beyond_float_are_one_line(tmp_path, mass, message):
+    cols, _ = _quad_cols()
+    p = _write(tmp_path, cols, sidecar={"env": "quadrotor", "mass": 3.0})
+    p.with_suffix(".json").write_text('{"env": "quadrotor", "mass": %s}' % mass)
+    with pytest.raises(RispError, match=re.escape(message)):
+        load_measured([str(p)], "quadrotor")
+
+
+@pytest.mark.parametrize("extra, message", [
+    ({"k_f": -5}, "sidecar key 'k_f' = -5 must lie in [1e-09, inf]"),
+    ({"k_f": float("nan")}, "sidecar key 'k_f' (a quadrotor simulator parameter) must be a finite number"),
+    ({"Ixx": "big"}, "sidecar key 'Ixx' (a quadrotor simulator parameter) must be a finite number"),
+    ({"rotor_spin": [True, -1, True, -1]}, "sidecar key 'rotor_spin' must be a list of 4 +1/-1 signs"),
+])
+def test_sidecar_keys_that_are_simulator_parameters_are_checked_naming_the_file(tmp_path, extra, message):
+    """Such keys go to the simulator as they are: a negative k_f was refused by the simulator without naming the file,
+    a NaN made two identical files 'disagree' (NaN ≠ NaN)."""
+    cols, _ = _quad_cols()
+    p = _write(tmp_path, cols, sidecar={"env": "quadrotor", "mass": 3.0, **extra})
+    with pytest.raises(RispError, match=re.escape(message)) as info:
+        load_measured([str(p)], "quadrotor")
+    assert str(p.with_suffix(".json")) in str(info.value)
+
+
+def test_a_trailing_blank_line_reads_without_numpy_warnings(tmp_path, recwarn):
+    cols, _ = _quad_cols()
+    p = _write(tmp_path, cols, sidecar={"env": "quadrotor", "mass": 3.0, "angular_velocity_frame": "body"})
+    expected = load_measured([str(p)], "quadrotor")[0].pos
+    with open(p, "a") as f:
+        f.write("\n\n")
+    assert np.array_equal(load_measured([str(p)], "quadrotor")[0].pos, expected)
+    assert not [w for w in recwarn.list if "contained no data" in str(w.message)], [str(w.message) for w in recwarn.list]

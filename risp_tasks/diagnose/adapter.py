@@ -236,6 +236,11 @@ def calibrate_floor(trajs: list[Trajectory], offset: float | str = "auto",
         pos = tr.pos.copy()
         pos[:, 2] -= value
         out.append(dataclasses.replace(tr, pos=pos))
+        if info["mode"] == "given":  # the reader's own check, after the shift: a cube sunk in the floor is a wrong offset
+            side, low = float(tr.sidecar.get("side")), float(lowest_corner_height(out[-1]).min())
+            if low < -side:
+                raise RispError(f"--floor-offset {value:g}: {tr.path} would go {-low:g} m below the floor, more than a "
+                                f"side ({side:g} m): the offset is the floor's height in the data's frame [m]")
     return out, info
 
 

@@ -6,6 +6,7 @@ Method, statistics and thresholds: docs/diagnose.md.
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from dataclasses import asdict, dataclass
@@ -165,8 +166,15 @@ def diagnose(cfg: DiagnoseConfig) -> dict:
     Runs single-threaded: the simulators' many tiny batched ops are 10–100× slower with intra-op
     threads on a loaded 2-core machine (thread hand-off dominates); the previous setting is restored.
     """
-    if int(cfg.seed) < 0:
-        raise RispError(f"--seed must be >= 0, got {cfg.seed}")
+    if not 0 <= int(cfg.seed) < 2**63:  # torch.manual_seed takes a signed 64-bit integer
+        raise RispError(f"--seed must be in [0, 2**63), got {cfg.seed}")
+    if cfg.pairs_top < 0:
+        raise RispError(f"--pairs-top must be >= 0 (0: no effect pairs), got {cfg.pairs_top}")
+    if cfg.max_iters < 1:
+        raise RispError(f"--max-iters must be >= 1, got {cfg.max_iters}")
+    if cfg.floor_offset != "auto" and not (isinstance(cfg.floor_offset, (int, float))
+                                           and math.isfinite(cfg.floor_offset)):
+        raise RispError(f"--floor-offset must be 'auto' or a finite number of metres, got {cfg.floor_offset!r}")
     if cfg.max_segments < 1 or (cfg.rollout_horizon is not None and cfg.rollout_horizon < 1):
         raise RispError("--max-segments and --rollout-horizon must be >= 1")
     from risp_data.threads import torch_threads
