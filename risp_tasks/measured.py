@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import csv
 import json
-import math
 import os
 import warnings
 from dataclasses import dataclass, field
@@ -23,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from risp_data.errors import RispError
+from risp_data.numbers import is_finite_number
 from risp_data.atomic import atomic_write, write_text_atomic
 
 POSE_COLUMNS = ("t", "x", "y", "z", "qw", "qx", "qy", "qz")
@@ -227,16 +227,6 @@ def find_sidecar(csv_path: Path, env: str, overrides: dict | None = None) -> Sid
     return Sidecar(env=env, values=values, source=source)
 
 
-def _finite_number(v) -> bool:
-    """A JSON number (not a bool) that is finite as a float; an integer beyond float's range is not."""
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        return False
-    try:
-        return math.isfinite(float(v))
-    except OverflowError:
-        return False
-
-
 def _check_sidecar(values: dict, env: str, source: str) -> None:
     for key in REQUIRED_SIDECAR_KEYS.get(env, ()):
         if key not in values:
@@ -244,18 +234,18 @@ def _check_sidecar(values: dict, env: str, source: str) -> None:
     for key, allowed in CHOICES.items():
         if key in values and str(values[key]).lower() not in allowed:
             raise RispError(f"{source}: sidecar key {key!r} = {values[key]!r}; choose one of {', '.join(allowed)}")
-    for key, check in (("rotor_angles_deg", _finite_number),
+    for key, check in (("rotor_angles_deg", is_finite_number),
                        ("rotor_spin", lambda v: not isinstance(v, bool) and v in (1, -1))):
         if key in values and not (isinstance(values[key], list) and len(values[key]) == 4 and all(map(check, values[key]))):
             raise RispError(f"{source}: sidecar key {key!r} must be a list of 4 {'numbers' if key.endswith('deg') else '+1/-1 signs'}, "
                             f"got {values[key]!r}")
     noise = values.get("measurement_noise")
     if noise is not None and not (isinstance(noise, dict) and noise and all(
-            _finite_number(v) and v > 0 for v in noise.values())):
+            is_finite_number(v) and v > 0 for v in noise.values())):
         raise RispError(f"{source}: sidecar key 'measurement_noise' must map channel groups (position, attitude, velocity, "
                         f"angular velocity; hand/rod: coordinate, rate) to positive standard deviations in SI units, got {noise!r}")
     phi = values.get("measurement_noise_correlation", 0.0)
-    if not (_finite_number(phi) and 0.0 <= phi < 1.0):
+    if not (is_finite_number(phi) and 0.0 <= phi < 1.0):
         raise RispError(f"{source}: sidecar key 'measurement_noise_correlation' must lie in [0, 1), got {phi!r}")
     actuator = str(values.get("actuator", "thrust")).lower()
     if str(values.get("thrust_map", "linear")).lower() == "quadratic" and actuator not in ("normalized", "pwm"):
@@ -280,7 +270,7 @@ def _check_sidecar(values: dict, env: str, source: str) -> None:
             raise RispError(f"{source}: sidecar key {key!r} must be a number, got {raw!r}")
         vals = raw if isinstance(raw, list) else [raw]
         for v in vals:
-            if not _finite_number(v):
+            if not is_finite_number(v):
                 raise RispError(f"{source}: sidecar key {key!r} must be a finite number, got {str(raw)[:40]}")
             if not lo <= v <= hi:
                 raise RispError(
@@ -296,7 +286,7 @@ def _check_sidecar(values: dict, env: str, source: str) -> None:
         if key not in values or key in SIDECAR_RANGES.get(env, {}):
             continue
         v = values[key]
-        if not _finite_number(v):
+        if not is_finite_number(v):
             raise RispError(f"{source}: sidecar key {key!r} (a {env} simulator parameter) must be a finite number, "
                             f"got {str(v)[:40]}")
         if not lo <= v <= hi:

@@ -113,21 +113,27 @@ def find_dataset(folder: str, need_jacobian: bool) -> str:
     subfolder, or, among several, its one train-domain set (with Jacobians when ``need_jacobian``)."""
     import json
 
+    if os.path.isfile(folder):
+        raise RispError(f"{folder} is a file, not a shard folder; give the folder risp-data render wrote")
     if not os.path.isdir(folder):
         raise RispError(f"shard folder {folder} does not exist; render one with `risp-data render --env ENV --n N`")
     if os.path.exists(os.path.join(folder, "manifest.json")):
         return folder
-    sets = {}
+    sets, unreadable = {}, []
     for name in sorted(os.listdir(folder)):
         path = os.path.join(folder, name, "manifest.json")
         if os.path.isfile(path):
             try:
                 with open(path) as f:
                     manifest = json.load(f)
-            except (OSError, ValueError):
-                continue  # an unreadable manifest is not a data set to offer
-            if isinstance(manifest, dict):  # valid JSON that is not an object is not a manifest either
+            except (OSError, ValueError) as e:
+                unreadable.append(f"{path} ({type(e).__name__})")
+                continue
+            if isinstance(manifest, dict):  # valid JSON that is not an object is another tool's file: passed over
                 sets[os.path.join(folder, name)] = manifest
+    if unreadable:  # a damaged data set (risp writes manifests atomically) is not silently passed over for another
+        raise RispError(f"{folder}: unreadable manifest {unreadable[0]}; repair it (`risp-data render` with the same "
+                        "options resumes a folder) or move that folder away")
     if len(sets) == 1:
         return next(iter(sets))
     usable = [p for p, m in sets.items() if m.get("domain") == "train" and (m.get("jacobian") or not need_jacobian)]

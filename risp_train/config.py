@@ -122,8 +122,8 @@ def validate(cfg: TrainConfig) -> None:
         raise RispError(f"--gamma-ramp must be in [0, 1], got {cfg.gamma_ramp}")
     if cfg.gamma_start is not None and not 0 <= cfg.gamma_start < 1:
         raise RispError(f"--gamma-start must be in [0, 1), got {cfg.gamma_start}")
-    if cfg.seed < 0:
-        raise RispError(f"--seed must be >= 0, got {cfg.seed}")
+    if not 0 <= cfg.seed < 2**63:  # torch.manual_seed (the network's initialisation) takes a signed 64-bit integer
+        raise RispError(f"--seed must be in [0, 2**63), got {cfg.seed}")
     if cfg.workers < 0 or cfg.checkpoint_every < 0 or cfg.threads < 0:
         raise RispError("--workers, --threads and --checkpoint-every must be >= 0")
     if cfg.cache not in ("auto", "memory", "stream"):
@@ -137,6 +137,10 @@ def resolved_gamma(cfg: TrainConfig, env: str) -> float:
         return 0.0
     if cfg.gamma is not None:
         return float(cfg.gamma)
+    if env not in GAMMA_DEFAULTS:  # a manifest naming no known environment: the registry's own line
+        from risp_data.envs import get_environment
+
+        get_environment(env)
     return float(GAMMA_DEFAULTS[env])
 
 

@@ -268,15 +268,26 @@ def zarr_batches(n: int, seed: int, epoch: int, batch_size: int, rank: int, worl
     return [mine[b * batch_size:(b + 1) * batch_size].tolist() for b in range(nb)]
 
 
-def collate(samples: list[dict], state_dim: int | None = None) -> dict:
-    """Stack decoded samples: image (B,H,W,3) f32, jacobian (B,K,H,W,3) f32 or None, state (B,S) f64."""
+def collate(samples: list[dict], state_dim: int | None = None, resolution: int | None = None,
+            psi_dim: int | None = None) -> dict:
+    """Stack decoded samples: image (B,H,W,3) f32, jacobian (B,K,H,W,3) f32 or None, state (B,S) f64.  With
+    ``resolution`` / ``psi_dim`` (the manifest's) every sample is checked against them, so that the message names
+    the sample that is off (not its neighbour in the batch) and a manifest that misstates them is caught."""
     first = samples[0]
     for s in samples:
+        where = f"sample {s['key']} in {s.get('url', '?')}"
         if state_dim is not None and s["state"].shape != (state_dim,):
-            raise RispError(
-                f"sample {s['key']} in {s.get('url', '?')}: state has shape {tuple(s['state'].shape)}, "
-                f"expected ({state_dim},)"
-            )
+            raise RispError(f"{where}: state has shape {tuple(s['state'].shape)}, expected ({state_dim},)")
+        if resolution is not None and s["image"].shape != (resolution, resolution, 3):
+            raise RispError(f"{where}: image has shape {tuple(s['image'].shape)}, but the manifest says "
+                            f"{resolution}×{resolution} pixels")
+        if psi_dim is not None and s["psi"] is not None and tuple(s["psi"].shape) != (psi_dim,):
+            raise RispError(f"{where}: psi has shape {tuple(s['psi'].shape)}, but the manifest names {psi_dim} "
+                            "rendering parameters")
+        if (psi_dim is not None and resolution is not None and s["jacobian"] is not None
+                and tuple(s["jacobian"].shape) != (psi_dim, resolution, resolution, 3)):
+            raise RispError(f"{where}: jacobian has shape {tuple(s['jacobian'].shape)}, expected "
+                            f"({psi_dim}, {resolution}, {resolution}, 3) from the manifest")
         if s["image"].shape != first["image"].shape:
             raise RispError(f"sample {s['key']} in {s.get('url', '?')}: image shape {s['image'].shape} differs "
                             f"from {first['image'].shape}")
@@ -296,13 +307,13 @@ def collate(samples: list[dict], state_dim: int | None = None) -> dict:
 
 
 class _Collate:
-    """Picklable collate function bound to the expected state dimension."""
+    """Picklable collate function bound to the expected state dimension and the manifest's resolution and ψ count."""
 
-    def __init__(self, state_dim: int | None):
-        self.state_dim = state_dim
+    def __init__(self, state_dim: int | None, resolution: int | None = None, psi_dim: int | None = None):
+        self.state_dim, self.resolution, self.psi_dim = state_dim, resolution, psi_dim
 
     def __call__(self, samples: list[dict]) -> dict:
-        return collate(samples, self.state_dim)
+        return collate(samples, self.state_dim, self.resolution, self.psi_dim)
 
 
 class _WorkerInit:
@@ -336,7 +347,7 @@ def make_loader(shards: ShardSet, *, seed: int, epoch: int, batch_size: int, wor
     if need_jacobian and not shards.has_jacobian:
         raise RispError(f"shard folder {shards.folder} was rendered without Jacobians (--no-jacobian); "
                         "the regularizers need them: use --reg none or render with Jacobians")
-    fn = _Collate(state_dim)
+    fn = _Collate(state_dim, shards.resolution, len(shards.psi_names))
     if shards.format == "wds":
         nw = effective_workers(len(shards.urls), world_size, workers)
         ds = WdsStream(shards.urls, seed, epoch, shuffle_buffer, need_jacobian, rank)
@@ -370,7 +381,7 @@ def iter_batches(shards: ShardSet, batch_size: int, need_jacobian: bool = False,
         buf.append(s)
         seen += 1
         if len(buf) == batch_size:
-            yield collate(buf, state_dim)
+            yield collate(buf, state_dim, shards.resolution, len(shards.psi_names))
             buf = []
     if buf:
-        yield collate(buf, state_dim)
+        yield collate(buf, state_dim, shards.resolution, len(shards.psi_names))

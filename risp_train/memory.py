@@ -111,7 +111,7 @@ def load_memory_set(shards: ShardSet, *, need_jacobian: bool, workers: int = 0, 
     psi = torch.empty((n, k), dtype=torch.float64)
     jac = torch.empty((n, k, res, res, 3), dtype=torch.float32) if need_jacobian else None
     keys: list[str | None] = [None] * n
-    fn = _Collate(state_dim)
+    fn = _Collate(state_dim, res, k)
     if shards.format == "wds":  # each worker decodes whole shards; every rank holds every sample
         ds = WdsStream(shards.urls, 0, 0, 0, need_jacobian, rank=0, shuffle=False, split=True, split_nodes=False)
         nw = max(0, min(workers, len(shards.urls)))

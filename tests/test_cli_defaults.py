@@ -101,3 +101,16 @@ def test_help_does_not_import_torch_or_mitsuba():
     from risp_data.envs import Camera, Environment, Mesh  # the lazy names still resolve
 
     assert Camera.__name__ == "Camera" and Environment.__name__ == "Environment" and Mesh.__name__ == "Mesh"
+
+
+def test_find_dataset_names_a_damaged_manifest_instead_of_passing_it_over(tmp_path):
+    """A truncated manifest.json beside a target set: the folder counted as holding the target set alone, and fit
+    trained on that; a file given as the folder was 'does not exist'."""
+    _dataset(tmp_path / "a" / "cube-target", domain="target", jacobian=False)
+    os.makedirs(tmp_path / "a" / "cube-train")
+    (tmp_path / "a" / "cube-train" / "manifest.json").write_text('{"env": "cube", "dom')
+    with pytest.raises(RispError, match=r"unreadable manifest .*cube-train/manifest.json \(JSONDecodeError\)"):
+        find_dataset(str(tmp_path / "a"), need_jacobian=False)
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(RispError, match="is a file, not a shard folder"):
+        find_dataset(str(tmp_path / "f"), need_jacobian=False)

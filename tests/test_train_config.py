@@ -28,6 +28,8 @@ def test_default_preset_follows_the_hardware(monkeypatch):
 def test_explicit_gamma_wins_and_none_regularizer_has_no_weight():
     assert resolved_gamma(make_config("s", "o", preset="cpu", reg="exact", gamma=3.0), "cube") == 3.0
     assert resolved_gamma(make_config("s", "o", preset="paper", reg="none"), "cube") == 0.0
+    with pytest.raises(RispError, match="unknown environment 'nosuch'; choose one of"):  # was a KeyError traceback
+        resolved_gamma(make_config("s", "o", preset="cpu", reg="stochastic"), "nosuch")
 
 
 @pytest.mark.parametrize("kw, words", [(dict(preset="huge"), "unknown --preset 'huge'"), (dict(reg="l2"), "unknown --reg 'l2'"),
@@ -35,7 +37,9 @@ def test_explicit_gamma_wins_and_none_regularizer_has_no_weight():
                                        (dict(gamma_start=1.0), "--gamma-start must be in [0, 1), got 1.0"),
                                        (dict(gamma_start=-0.1), "--gamma-start must be in [0, 1), got -0.1"),
                                        (dict(gamma_ramp=1.5), "--gamma-ramp must be in [0, 1]"),
-                                       (dict(stem="resnet"), "unknown stem 'resnet'"), (dict(seed=-1), "--seed must be >= 0")])
+                                       (dict(stem="resnet"), "unknown stem 'resnet'"),
+                                       (dict(seed=-1), "--seed must be in [0, 2**63)"),
+                                       (dict(seed=2 ** 64), "--seed must be in [0, 2**63)")])  # was torch's traceback
 def test_bad_configuration_is_a_clear_error(kw, words):
     """Each bad setting is refused by a line that names it (not some other rule's error)."""
     with pytest.raises(RispError) as info:

@@ -250,3 +250,24 @@ def test_a_non_finite_value_in_any_stored_array_is_one_error(field):
     bad[field].flat[0] = np.nan
     with pytest.raises(RispError, match=f"sample s1 in shard-000000.tar: {field} contains NaN or inf"):
         collate([good, bad], state_dim=3)
+
+
+def test_collate_checks_every_sample_against_the_manifests_shapes():
+    """An 8×8 sample among 16×16 ones was blamed on its neighbour (the batch's first image was the reference), and
+    a manifest that misstated the resolution or the ψ count trained a model recording the wrong one."""
+    import numpy as np
+    import pytest
+
+    from risp_data.errors import RispError
+    from risp_train.data import collate
+
+    def sample(key, res=16, k=8):
+        return {"key": key, "url": "shard-000000.tar", "image": np.zeros((res, res, 3), np.float32),
+                "state": np.zeros(6), "psi": np.zeros(k), "jacobian": np.zeros((k, res, res, 3), np.float32)}
+
+    assert collate([sample("s0"), sample("s1")], 6, 16, 8)["image"].shape == (2, 16, 16, 3)
+    with pytest.raises(RispError, match=r"sample s0 in shard-000000.tar: image has shape \(8, 8, 3\), but the "
+                                        r"manifest says 16×16 pixels"):
+        collate([sample("s0", res=8), sample("s1")], 6, 16, 8)
+    with pytest.raises(RispError, match=r"sample s1 .*: psi has shape \(7,\), but the manifest names 8"):
+        collate([sample("s0"), sample("s1", k=7)], 6, 16, 8)

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import math
 import os
 import time
 import traceback
@@ -22,6 +21,7 @@ from typing import Callable
 
 from risp_data.atomic import write_text_atomic
 from risp_data.errors import RispError
+from risp_data.numbers import is_finite_number
 from risp_data.processes import end_pool_workers
 from risp_data.ray_support import ray_errors, require_ray
 from risp_data.shards.manifest import sha256_file
@@ -269,15 +269,6 @@ def _load_cell(path: str) -> dict | None:
     return result
 
 
-def _finite_number(value) -> bool:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return False
-    try:
-        return math.isfinite(float(value))
-    except OverflowError:  # a JSON integer beyond float's range
-        return False
-
-
 def _cell_damage(path: str, result: dict) -> str | None:
     """Why a cell file's content cannot be the cell at ``path`` (None: it can): the runner writes every cell as one
     atomic file whose env, method and repeat are its path's and whose value is a finite error ≥ 0 (every table's
@@ -293,11 +284,11 @@ def _cell_damage(path: str, result: dict) -> str | None:
     if "value" not in result:
         return "no value"
     value = result["value"]
-    if not _finite_number(value) or value < 0:
+    if not is_finite_number(value) or value < 0:
         return f"value {str(value)[:30]} is not a finite error >= 0"
     groups = result.get("groups") or {}  # estimation's per-group errors: {group: {mean, std, n, unit}}
     for name, group in (groups.items() if isinstance(groups, dict) else [("groups", groups)]):
-        if not isinstance(group, dict) or not all(_finite_number(group.get(k)) for k in ("mean", "std") if k in group):
+        if not isinstance(group, dict) or not all(is_finite_number(group.get(k)) for k in ("mean", "std") if k in group):
             return f"group {name!r} holds a non-finite number"
     return None
 

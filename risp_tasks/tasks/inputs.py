@@ -14,6 +14,7 @@ import numpy as np
 
 from risp_data.envs import Camera
 from risp_data.errors import RispError
+from risp_data.numbers import is_finite_number
 
 from ..video import Video, read_video, sha256_file
 
@@ -331,17 +332,8 @@ def read_truth(path: str, env: str | None = None, width: int | None = None, hint
         raise RispError(f"{path}: 'env_states' holds NaN or inf")
     if "params" in data:  # the hidden parameters the errors are measured against: {name: finite number}
         params = data["params"]
-        if not isinstance(params, dict) or not all(isinstance(k, str) and _finite_number(v) for k, v in params.items()):
+        if not isinstance(params, dict) or not all(isinstance(k, str) and is_finite_number(v) for k, v in params.items()):
             raise RispError(f"{path}: 'params' must be an object of finite numbers, e.g. {{\"mass\": 3.0}}, "
                             f"got {json.dumps(params)[:40]}")
     return data
 
-
-def _finite_number(value) -> bool:
-    """A JSON number that is finite as a float (not a bool, a string, or an integer beyond float's range)."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return False
-    try:
-        return math.isfinite(float(value))
-    except OverflowError:
-        return False
