@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import tempfile
 from typing import IO, Iterator
@@ -23,6 +24,9 @@ def atomic_write(path: "str | os.PathLike", mode: str = "wb", suffix: str = "") 
         os.makedirs(folder, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=TEMP_PREFIX, suffix=suffix, dir=folder)
     except OSError as e:  # name the file being written, not a temporary name the user never chose
+        blocker = _file_in_the_way(folder)
+        if blocker:  # makedirs says "File exists" of a file where a folder must go: say which and why
+            raise NotADirectoryError(errno.ENOTDIR, f"{blocker} is a file, not a folder", os.fspath(path)) from None
         raise OSError(e.errno, e.strerror or str(e), os.fspath(path)) from None
     try:
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the file the usual permissions
@@ -40,6 +44,14 @@ def atomic_write(path: "str | os.PathLike", mode: str = "wb", suffix: str = "") 
 
 
 TEMP_PREFIX = ".tmp-"
+
+
+def _file_in_the_way(folder: str) -> str | None:
+    """The nearest existing ancestor of ``folder`` (itself included) when it is a file, else None."""
+    p = os.path.abspath(folder)
+    while not os.path.exists(p) and os.path.dirname(p) != p:
+        p = os.path.dirname(p)
+    return p if os.path.exists(p) and not os.path.isdir(p) else None
 
 
 def probe_writable(folder: "str | os.PathLike") -> None:

@@ -91,7 +91,11 @@ def user_error_line(e: BaseException) -> str | None:
         return ("a worker process died unexpectedly (killed, or out of memory); completed shards are kept: "
                 "rerun the same command to resume, with fewer --workers or a smaller --res if memory is short")
     if isinstance(e, MemoryError):
-        return "out of memory; use a smaller --res, --batch-size or fewer --workers"
+        return "out of memory; use a smaller --res or fewer --workers (risp-train: a smaller --batch-size)"
+    if isinstance(e, ImportError) and e.name and not e.name.startswith(("risp_data", "risp_train", "risp_tasks")):
+        # a dependency missing or broken in this environment (not one of risp's own modules: that is a bug)
+        return (f"the library {e.name!r} cannot be imported ({str(e).splitlines()[0] if str(e) else 'ImportError'}): "
+                "install risp's dependencies (bash scripts/setup.sh, or pip install -e .)")
     if isinstance(e, (ConnectionError, EOFError)) and _raised_in(e, "torch/utils/data"):
         return _DATALOADER_DIED  # the pipe of a worker killed mid-batch
     if isinstance(e, OSError):

@@ -93,6 +93,12 @@ def validate_job(job: RenderJob) -> None:
         value = getattr(job, name)
         if not isinstance(value, int) or value <= 0:
             raise RispError(f"{option} must be a positive integer, got {value!r}")
+    # before anything is written: a huge --n looped for minutes over its shard markers after creating the folder,
+    # and a --shard-size beyond --n made zarr allocate the whole shard
+    if job.n > MAX_SAMPLES:
+        raise RispError(f"--n {job.n} is more than the {MAX_SAMPLES:,} samples one data set may hold")
+    if job.shard_size > max(job.n, RenderJob.shard_size):  # the default (256) stays fine for a small --n
+        raise RispError(f"--shard-size {job.shard_size} is larger than --n {job.n}: a shard holds at most --n samples")
     if not isinstance(job.seed, int) or job.seed < 0:
         raise RispError(f"--seed must be a non-negative integer, got {job.seed!r}")
     if not job.formats or any(f not in FORMATS for f in job.formats):
@@ -109,6 +115,7 @@ def validate_job(job: RenderJob) -> None:
 # ------------------------------------------------------------------------------------ size limits
 
 MAX_RESOLUTION = 8192
+MAX_SAMPLES = 10**9  # per data set: far beyond any run, short of what the shard bookkeeping can loop over
 MITSUBA_MAX_SAMPLES = 2**32  # Mitsuba's sampler counts samples of one render pass in a uint32
 
 
@@ -340,10 +347,20 @@ def _check_writable(folder: str) -> None:
 
 
 def _zarr_store_ok(folder: str, manifest: dict[str, Any]) -> bool:
-    shapes = manifest_shapes(manifest, n=1, resolution=1)
-    return all(os.path.exists(os.path.join(folder, ZARR_DIR, name, "zarr.json")) for name in shapes) and os.path.exists(
-        os.path.join(folder, ZARR_DIR, "zarr.json")
-    )
+    """The store's metadata is there and readable: its root group and every array the manifest's job has, each of
+    the job's shape (a deleted, truncated or hand-edited zarr.json is a damaged store, not a complete one)."""
+    shapes = manifest_shapes(manifest)
+    store = os.path.join(folder, ZARR_DIR)
+    if not (os.path.exists(os.path.join(store, "zarr.json"))
+            and all(os.path.exists(os.path.join(store, name, "zarr.json")) for name in shapes)):
+        return False
+    try:
+        import zarr
+
+        root = zarr.open_group(store, mode="r")
+        return all(tuple(root[name].shape) == tuple(shape) for name, shape in shapes.items())
+    except Exception:  # noqa: BLE001 - whatever zarr raises on damaged metadata (JSON, validation, key errors)
+        return False
 
 
 def _remove_temporaries(folder: str) -> None:
@@ -460,8 +477,15 @@ def prepare_folder(job: RenderJob, variant: str, log: Callable[[str], None] = pr
             create_store(out, manifest)
     _remove_temporaries(out)
     if "zarr" in job.formats and not _zarr_store_ok(out, manifest):
-        if manifest["shards"]:
-            raise RispError(f"zarr store {os.path.join(out, ZARR_DIR)} is damaged although shards are complete")
+        if manifest["shards"]:  # the store holds every shard's samples: made anew, they are all rendered again
+            log(f"zarr store {os.path.join(out, ZARR_DIR)} is damaged (its metadata is missing or unreadable): "
+                f"making it anew and rendering its {len(manifest['shards'])} complete shard(s) again")
+            manifest["shards"] = []
+            save_manifest(out, manifest)
+            for i in range(job.num_shards):  # their markers name zarr chunks that are gone
+                marker = marker_path(out, i)
+                if os.path.exists(marker):
+                    os.remove(marker)
         create_store(out, manifest)
     # shards whose marker was written but whose manifest update was lost (killed in between)
     done = {r["index"] for r in manifest["shards"]}

@@ -86,13 +86,17 @@ def _storage_line(m: dict) -> str:
 
 def summarize(folder: str, m: dict) -> str:
     """Human-readable manifest summary (one fact per line)."""
-    c = m["counts"]
+    # the counts as the shard records give them (the manifest's own "counts"/"complete" are derived from those, and a
+    # hand-edited manifest may lack them)
+    done = sum(r["stop"] - r["start"] for r in m["shards"])
+    c = {"complete_samples": done, "complete_shards": len(m["shards"])}
+    complete = len(m["shards"]) == m["num_shards"]
     lines = [
         f"folder       {folder}  ({_folder_bytes(folder) / 2**20:.1f} MiB)",
         f"environment  {m['env']}   domain {m['domain']}   variant {m['variant']}   look {m.get('look', 'unrecorded')}",
         f"images       {m['resolution']}x{m['resolution']}, {m['spp']} spp, jacobian {'yes' if m['jacobian'] else 'no'}",
         f"samples      {c['complete_samples']}/{m['n']} complete in {c['complete_shards']}/{m['num_shards']} shards "
-        f"of {m['shard_size']}{'' if m['complete'] else '  (INCOMPLETE: rerun render to resume)'}",
+        f"of {m['shard_size']}{'' if complete else '  (INCOMPLETE: rerun render to resume)'}",
         f"formats      {', '.join(m['formats'])}",
         f"J storage    {_storage_line(m)}",
         f"seed         {m['seed']}",

@@ -422,3 +422,97 @@ def test_an_in_process_render_sets_drjit_threads_and_keeps_the_callers_torch_thr
     finally:
         dr.set_thread_count(before_dr)
         torch.set_num_threads(before_torch)
+
+
+@pytest.mark.parametrize("damage", ["delete-array-metadata", "invalid-array-metadata", "garbage-root", "delete-store"])
+def test_a_damaged_zarr_store_is_made_anew_and_rendered_again(rendered, tmp_path, damage):
+    """A deleted, hand-edited or garbled data.zarr metadata file left the folder stuck ('damaged although shards are
+    complete', also for verify --repair), reported complete though unreadable, or a JSONDecodeError traceback."""
+    import json
+    import shutil
+
+    out = tmp_path / "cube"
+    shutil.copytree(rendered, out)
+    store = out / "data.zarr"
+    if damage == "delete-array-metadata":
+        (store / "images" / "zarr.json").unlink()
+    elif damage == "invalid-array-metadata":
+        (store / "psi" / "zarr.json").write_text(json.dumps({"zarr_format": 3}))
+    elif damage == "garbage-root":
+        (store / "zarr.json").write_text("garbage")
+    else:
+        shutil.rmtree(store)
+    if damage != "delete-store":  # reading it: one line naming the store and the repair command
+        _error_line(CliRunner().invoke(cli, ["inspect", str(out), "--png", str(tmp_path / "c.png")]), "corrupt zarr")
+    _ok(_render(out, n=5))
+    _assert_same(_samples(out), _samples(rendered))  # both readers, the same samples as the undamaged folder
+    _ok(CliRunner().invoke(cli, ["inspect", str(out), "--png", str(tmp_path / "c.png")]))
+
+
+def test_a_marker_left_by_hand_is_ignored_and_its_shard_rendered(rendered, tmp_path):
+    import json
+    import shutil
+
+    out = tmp_path / "cube"
+    shutil.copytree(rendered, out)
+    m = json.load(open(out / "manifest.json"))
+    m["shards"] = [r for r in m["shards"] if r["index"] != 2]
+    (out / "manifest.json").write_text(json.dumps(m))
+    (out / "complete" / "shard-000002.json").write_text(json.dumps({"index": 2, "start": 4, "stop": 5, "files": []}))
+    _ok(_render(out, n=5))  # was an AttributeError traceback ('list' object has no attribute 'items')
+    _assert_same(_samples(out), _samples(rendered))
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--n", str(10 ** 20)], "is more than the 1,000,000,000 samples one data set may hold"),  # looped for minutes
+    (["--n", "2", "--shard-size", str(10 ** 20)], "is larger than --n 2"),  # zarr allocated the whole shard
+])
+def test_sizes_beyond_any_data_set_are_refused_before_the_folder(tmp_path, args, words):
+    out = tmp_path / "big"
+    res = CliRunner().invoke(cli, ["render", *TINY, "--out", str(out), *args])
+    _error_line(res, words)
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("edit, words", [
+    (lambda m: m.pop("counts"), None),  # inspect derives the counts from the shard records (was a KeyError)
+    (lambda m: m["psi"].update(names="abc"), "field psi.names is not a list of names"),
+    (lambda m: m["psi"].update(nominal=m["psi"]["nominal"][:-1]), "field psi.nominal is not a list of 8 finite"),
+    (lambda m: m["psi"].update(high=["x"] * 8), "field psi.high is not a list of 8 finite numbers"),
+    (lambda m: m.update(state_names=[1, 2]), "field state_names is not a list of names"),
+    (lambda m: m.update(versions=[1]), "field versions is not an object"),
+    (lambda m: m.update(resolution=10 ** 30), "field resolution"),
+    (lambda m: m["shards"][0].update(files="abc"), "a record of field shards is malformed"),
+    (lambda m: m["shards"][0].update(start=-2), "a record of field shards is malformed"),
+    (lambda m: m["shards"][0].update(stop=10 ** 15), "a record of field shards is malformed"),
+])
+def test_a_hand_edited_manifest_is_one_line_for_inspect(rendered, tmp_path, edit, words):
+    import json
+    import shutil
+
+    out = tmp_path / "cube"
+    shutil.copytree(rendered, out)
+    m = json.load(open(out / "manifest.json"))
+    edit(m)
+    (out / "manifest.json").write_text(json.dumps(m))
+    res = CliRunner().invoke(cli, ["inspect", str(out), "--png", str(tmp_path / "c.png")])
+    if words is None:
+        _ok(res)
+    else:
+        _error_line(res, "corrupt manifest")
+        assert words in res.output, res.output
+
+
+def test_a_contact_sheet_under_a_file_names_the_file(rendered, tmp_path):
+    (tmp_path / "afile").write_text("x")
+    res = CliRunner().invoke(cli, ["inspect", str(rendered), "--png", str(tmp_path / "afile" / "x.png")])
+    _error_line(res, "afile is a file, not a folder")
+
+
+def test_a_missing_dependency_is_one_line():
+    from risp_data.cli_util import user_error_line
+
+    line = user_error_line(ImportError("No module named 'zarr'", name="zarr"))
+    assert "the library 'zarr' cannot be imported" in line and "scripts/setup.sh" in line
+    assert user_error_line(ImportError("bug", name="risp_train.nosuch")) is None  # risp's own: a bug, traceback
+    assert "--batch-size" not in user_error_line(MemoryError()).split("(")[0]

@@ -23,6 +23,7 @@ from importlib import metadata as _md
 from typing import Any
 
 from ..errors import RispError
+from ..numbers import is_finite_number
 from ..atomic import atomic_write
 
 MANIFEST = "manifest.json"
@@ -181,13 +182,39 @@ def _wrong_types(m: dict[str, Any]) -> str | None:
         return "field formats is not a list of names"
     if not isinstance(m["psi"], dict) or not isinstance(m["state_names"], list):
         return "field psi is not an object" if not isinstance(m["psi"], dict) else "field state_names is not a list"
+    if not all(isinstance(n, str) for n in m["state_names"]):
+        return "field state_names is not a list of names"
+    names = m["psi"].get("names")
+    if not (isinstance(names, list) and names and all(isinstance(n, str) for n in names)):
+        return "field psi.names is not a list of names"
+    for k in ("low", "high", "nominal"):  # the ψ box: inspect prints it, verify steps through it
+        v = m["psi"].get(k)
+        if not (isinstance(v, list) and len(v) == len(names) and all(is_finite_number(x) for x in v)):
+            return f"field psi.{k} is not a list of {len(names)} finite numbers (one per psi name)"
+    if not _is_int(m.get("num_shards")):
+        return "field num_shards is missing"
+    if "resolution" in m and m["resolution"] > _MAX_RESOLUTION:
+        return f"field resolution {m['resolution']} is larger than the supported {_MAX_RESOLUTION} pixels"
+    for k, kind in (("counts", dict), ("versions", dict)):
+        if k in m and not isinstance(m[k], kind):
+            return f"field {k} is not an object"
+    if "complete" in m and not isinstance(m["complete"], bool):
+        return f"field complete is not true or false ({m['complete']!r})"
     if not isinstance(m["shards"], list):
         return "field shards is not a list"
+    n = m.get("n")
     for rec in m["shards"]:
         if not (isinstance(rec, dict) and all(_is_int(rec.get(k)) for k in ("index", "start", "stop"))
-                and isinstance(rec.get("files"), dict)):
+                and isinstance(rec.get("files"), dict)
+                and all(isinstance(f, dict) and _is_int(f.get("bytes")) and isinstance(f.get("sha256"), str)
+                        for f in rec["files"].values())
+                and 0 <= rec["start"] < rec["stop"] and (not _is_int(n) or rec["stop"] <= n)):
             return f"a record of field shards is malformed ({str(rec)[:60]})"
     return None
+
+
+_MAX_RESOLUTION = 8192  # risp_data.generate.MAX_RESOLUTION (not imported: generate imports this module)
+
 
 
 def save_manifest(folder: str, manifest: dict[str, Any]) -> None:
@@ -239,10 +266,12 @@ def read_marker(folder: str, shard_index: int) -> dict[str, Any] | None:
         return None
     try:
         rec = _read_json(path, "shard marker")
+        if not isinstance(rec, dict) or not isinstance(rec.get("files"), dict):  # a marker edited or left by hand
+            return None
         for rel, info in rec["files"].items():
             if os.path.getsize(os.path.join(folder, rel)) != info["bytes"]:
                 return None
-    except (RispError, OSError, KeyError, TypeError):
+    except (RispError, OSError, KeyError, TypeError, AttributeError):
         return None
     return rec
 

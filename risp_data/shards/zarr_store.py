@@ -143,7 +143,11 @@ def mark_complete_shards(folder: str, manifest: dict[str, Any]) -> None:
     the parent process only, atomically by zarr), where plain zarr readers can see which samples to trust."""
     import zarr
 
-    group = zarr.open_group(os.path.join(folder, ZARR_DIR), mode="r+")
+    try:
+        group = zarr.open_group(os.path.join(folder, ZARR_DIR), mode="r+")
+    except Exception as e:  # noqa: BLE001 - damaged root metadata (rendering checks the store before: a race)
+        raise RispError(f"corrupt zarr store {os.path.join(folder, ZARR_DIR)}: {type(e).__name__}"
+                        f"{repair_hint(folder)}") from None
     done = sorted(int(r["index"]) for r in manifest["shards"])
     if list(group.attrs.get(COMPLETE_ATTR, [])) != done:
         group.attrs[COMPLETE_ATTR] = done
@@ -187,9 +191,14 @@ class ZarrDataset:
         path = os.path.join(self.folder, ZARR_DIR)
         try:
             group = zarr.open_group(path, mode="r")
-            return {name: group[name] for name in _DIMS if name in group}
+            arrays = {name: group[name] for name in _DIMS if name in group}
         except Exception as e:
-            raise RispError(f"corrupt zarr store {path}: {type(e).__name__}: {e}") from None
+            raise RispError(f"corrupt zarr store {path}: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
+                            f"{repair_hint(self.folder)}") from None
+        missing = [name for name in manifest_shapes(self.manifest) if name not in arrays]
+        if missing:  # an array's zarr.json deleted: the array is not there for zarr (it was a KeyError)
+            raise RispError(f"corrupt zarr store {path}: the array {missing[0]} is missing{repair_hint(self.folder)}")
+        return arrays
 
     def __getstate__(self) -> dict:
         # DataLoader workers get a copy without open zarr handles and reopen the store themselves
@@ -224,12 +233,13 @@ class ZarrDataset:
             except Exception as e:
                 rel = shard_file(self.folder, name, shard, arr.ndim)
                 raise RispError(
-                    f"corrupt zarr shard file {os.path.join(self.folder, rel)}: {type(e).__name__}: {e}"
+                    f"corrupt zarr shard file {os.path.join(self.folder, rel)}: {type(e).__name__}: "
+                    f"{str(e).splitlines()[0] if str(e) else ''}{repair_hint(self.folder)}"
                 ) from None
         if not np.isfinite(out["states"]).all():  # listed but unwritten (NaN fill): never hand it out as data
             rel = shard_file(self.folder, "states", shard, 2)
             raise RispError(f"zarr shard file {os.path.join(self.folder, rel)}: sample {g} is unwritten (NaN) "
-                            "although the manifest lists its shard; rerun the render command to repair it")
+                            f"although the manifest lists its shard{repair_hint(self.folder)}")
         if "jacobian_planes" in out:  # own-channel layout: the stored planes (+ the rest where not exact)
             planes = [(out.pop(n), list(self._arrays[n].attrs["planes"])) for n in PLANE_ARRAYS if n in out]
             out["jacobians"] = from_planes(planes, self.psi_names)
