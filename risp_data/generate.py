@@ -101,6 +101,8 @@ def validate_job(job: RenderJob) -> None:
         raise RispError(f"--shard-size {job.shard_size} is larger than --n {job.n}: a shard holds at most --n samples")
     if not isinstance(job.seed, int) or job.seed < 0:
         raise RispError(f"--seed must be a non-negative integer, got {job.seed!r}")
+    if not str(job.out).strip():  # "" read as "output folder  is not writable"
+        raise RispError("--out is empty: give the folder to write the shards to (or leave --out out for the default)")
     if not job.formats or any(f not in FORMATS for f in job.formats):
         raise RispError(f"--format must be one of wds, zarr, both; got {','.join(job.formats) or 'nothing'}")
     if job.executor not in EXECUTORS:

@@ -516,3 +516,8 @@ def test_a_missing_dependency_is_one_line():
     assert "the library 'zarr' cannot be imported" in line and "scripts/setup.sh" in line
     assert user_error_line(ImportError("bug", name="risp_train.nosuch")) is None  # risp's own: a bug, traceback
     assert "--batch-size" not in user_error_line(MemoryError()).split("(")[0]
+
+
+def test_an_empty_out_is_named():
+    res = CliRunner().invoke(cli, ["render", *TINY, "--n", "2", "--out", ""])
+    _error_line(res, "--out is empty")  # was "output folder  is not writable: No such file or directory"

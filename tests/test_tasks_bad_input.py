@@ -713,6 +713,7 @@ def test_bad_ground_truth_is_refused_before_any_work(quad, tmp_path, states, pro
     (dict(fps=0.0), "--fps must be a finite number > 0, got 0"),
     (dict(spp=0), "--spp must be >= 1, got 0"),
     (dict(render_threads=-1), "--render-threads must be >= 0 (0: automatic), got -1"),
+    (dict(out=""), "--out is empty"),  # silently wrote to the default folder
     (dict(init="track"), "--init track is imitate's"),
     (dict(task="control", init="track"), "--init track is imitate's"),
     (dict(task="imitate", actions="a.csv"), "--actions: imitate finds the actions itself"),

@@ -126,6 +126,8 @@ class TaskConfig:
                             "known physical parameters to imitate with --params)")
         if self.seed < 0:
             raise RispError(f"--seed must be >= 0, got {self.seed}")
+        if self.out is not None and not str(self.out).strip():  # "" silently meant the default folder
+            raise RispError("--out is empty: give the result folder (or leave --out out for the default)")
         if self.grow_horizon < 0:
             raise RispError(f"--grow-horizon must be >= 0, got {self.grow_horizon}")
         if self.grow_horizon and self.task not in ("sysid", "imitate"):
