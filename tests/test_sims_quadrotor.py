@@ -300,3 +300,27 @@ def test_translational_mode_closed_form_and_gradient():
     assert torch.allclose(S[0, 1, 3:6], 0.002 * a, rtol=1e-9, atol=1e-12)
     p.requires_grad_(True)
     assert gradcheck(lambda pp: sim.rollout(pp, s0, act, 3), (p,), eps=1e-6, atol=1e-6)
+
+
+def test_hover_with_a_quadratic_thrust_map_stays_put():
+    """hover_actions ignored k_f2, so with thrust_quadratic a level vehicle at its 'hover' command climbed."""
+    from risp_tasks.sims.quadrotor import make_simulator
+
+    sim = make_simulator(thrust_quadratic=True)
+    p = sim.default_params(3)
+    p[:, 6] = torch.tensor([0.0, 1e-4, -5e-5], dtype=p.dtype)  # k_f2: none, lifting more, lifting less
+    s0 = sim.default_state(3)
+    a = sim.hover_actions(p, 100)
+    f = p[:, 4] * a[:, 0, 0] + p[:, 6] * a[:, 0, 0] ** 2
+    assert torch.allclose(f, p[:, 0] * G / 4, rtol=1e-12)
+    assert a[0, 0, 0].item() == pytest.approx(MASS * G / (4 * K_F))
+    S = sim.rollout(p, s0, a, 100)
+    assert (S[:, :, :3] - s0[:, None, :3]).abs().max() < 1e-9
+
+
+def test_translational_mode_refuses_options_it_would_ignore():
+    from risp_tasks.sims.quadrotor import make_simulator
+
+    assert make_simulator(mode="translational", dt=0.02).dt == pytest.approx(0.02)
+    with pytest.raises(RispError, match="the translational quadrotor model takes only dt; arm_length would be ignored"):
+        make_simulator(mode="translational", arm_length=0.2)

@@ -188,8 +188,15 @@ class QuadrotorSimulator(Simulator):
         return torch.tensor(s, dtype=dtype).expand(batch, -1).clone()
 
     def hover_actions(self, params: torch.Tensor, steps: int) -> torch.Tensor:
-        """(B, steps, 4) hover commands u_h = m g / (4 k_f) for each batch row of ``params``."""
-        u = hover_command(params[:, 0], params[:, self.param_index("k_f")])
+        """(B, steps, 4) hover commands for each batch row of ``params``: u_h = m g / (4 k_f), or with
+        ``thrust_quadratic`` the root of k_f u + k_f2 u² = m g / 4 nearest to it (docs §2.2)."""
+        m, k_f = params[:, 0], params[:, self.param_index("k_f")]
+        u = hover_command(m, k_f)
+        if self.thrust_quadratic:
+            k2 = params[:, 6]
+            # 2c / (b + sqrt(b² + 4ac)): the same root as (−b + sqrt(…)) / (2a), stable as k_f2 → 0 (then m g / 4k_f)
+            quarter = m * GRAVITY / 4
+            u = 2 * quarter / (k_f + torch.sqrt(k_f * k_f + 4 * k2 * quarter))
         return u[:, None, None].expand(-1, steps, 4).clone()
 
     def check_state(self, s0: torch.Tensor) -> None:
@@ -320,6 +327,9 @@ def make_simulator(effects: tuple[str, ...] = (), mode: str = "full", **options)
     """The quadrotor simulator with the named effects; ``options``: dt (s), arm_length (m), layout ("+"/"x"),
     rotor_angles (rad), spin (±1 each).  ``mode="translational"``: :class:`QuadrotorTranslational` (dt only)."""
     if mode == "translational":
+        ignored = sorted(set(options) - {"dt"})
+        if ignored:  # the vehicle's geometry does not enter the translational model: say so, not ignore it
+            raise RispError(f"the translational quadrotor model takes only dt; {', '.join(ignored)} would be ignored")
         return QuadrotorTranslational(effects, dt=options.get("dt", DT))
     if mode != "full":
         raise RispError(f"quadrotor mode {mode!r} is not known; choose 'full' or 'translational'")
