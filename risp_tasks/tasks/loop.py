@@ -3,7 +3,7 @@
     L_render(θ)    = mean_t ‖N(R(s_t(θ))) − N(I_t)‖²   the paper's loss (target space of the network)
     L_state(θ)     = mean_t ‖τ(s_t(θ)) − N(I_t)‖²      no rendering in the loop (the paper's real-world pipeline)
     L_oracle(θ)    = mean_t ‖τ(s_t(θ)) − τ(s*_t)‖²     ground-truth states (evaluation only)
-    L_pixelwise(θ) = mean_t ‖R(s_t(θ)) − I_t‖²         ∇Sim's image loss (a baseline)
+    L_pixelwise(θ) = mean over t, pixels, channels of (R(s_t(θ)) − I_t)²   ∇Sim's image loss (a baseline)
     L_perceptual(θ) = mean_t ‖F(R(s_t(θ))) − F(I_t)‖²   a feature loss (a baseline; F: risp_tasks.tasks.features)
 
 With ``--grow-horizon G`` the sums run over the first n(i) compared frames at iteration i (a horizon curriculum,
