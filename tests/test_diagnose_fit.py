@@ -325,3 +325,24 @@ def test_a_report_rewritten_without_plots_links_none_and_keeps_no_old_ones(quad_
     text = (out / "report.md").read_text()
     assert "none (run with --no-plots)" in text and "![" not in text
     assert not any((out / fn).exists() for fn in PLOTS.values())
+
+
+def test_held_out_errors_convert_thrusts_at_the_models_own_k_f(quad_data):
+    """one_step and rollout_error turned measured thrusts into commands at the simulator's default k_f while the
+    model simulated with its own (a sidecar may fix k_f): a model with another k_f was scored with the wrong thrust.
+    At the model's own k_f the simulated thrust is the measured one, so the scores barely move with k_f (measured:
+    +3 % one-step RMS, +5 % rollout for k_f × 1.5; with the default k_f's conversion ×2.0 and ×2.4)."""
+    from risp_tasks.diagnose.residuals import one_step, rollout_error
+
+    d, _ = quad_data
+    trajs = load_measured([str(d)], "quadrotor")
+    assert trajs[0].thrust is not None  # a thrust log: the case that is converted
+    model, k = cands.build_model("quadrotor", (), trajs[0].sidecar, trajs[0].dt)
+    obs = Observer(model.sim)
+    p = model.base.clone()
+    q = p.clone()
+    q[model.sim.param_index("k_f")] *= 1.5
+    rms = [float(np.sqrt((one_step(model.sim, obs, x, trajs, k, seed=0).error ** 2).mean())) for x in (p, q)]
+    assert rms[1] < 1.2 * rms[0], rms
+    roll = [rollout_error(model.sim, obs, x, trajs, k, 10, seed=0)["normalized"] for x in (p, q)]
+    assert roll[1] < 1.2 * roll[0], roll

@@ -754,6 +754,10 @@ def test_perceptual_weights_are_keyed_by_their_contents(tmp_path):
     assert folder(b) == first
     a.write_bytes(b"weights two")
     assert folder(a) != first
+    # tables without a perceptual row: the file does not move them to a new folder (it did, against UNUSED_BY)
+    for table in ("regularizers", "sampling"):
+        assert run_folder(make_config(table, out=str(tmp_path), perceptual_weights=str(a))) == \
+            run_folder(make_config(table, out=str(tmp_path)))
 
 
 def test_a_data_set_or_network_that_cannot_be_made_ends_a_serial_run(cache, tmp_path, monkeypatch):

@@ -93,7 +93,9 @@ def one_step(sim, obs: Observer, params: torch.Tensor, trajs: list[Trajectory], 
              max_samples: int | None = None, seed: int = 0) -> OneStep:
     """One-step prediction errors from every measured sample (SI units); at most ``max_samples`` (a seeded
     subset, the same for every model of one run) so that scoring a huge log stays bounded."""
-    seg = make_segments(sim, trajs, horizon=1, k=k, stride=1, max_segments=max_samples, rng=_rng(seed, 0))
+    # params: measured thrusts become commands at the model's own k_f (a sidecar may fix it), as in the fit
+    seg = make_segments(sim, trajs, horizon=1, k=k, stride=1, max_segments=max_samples, rng=_rng(seed, 0),
+                        params=params.reshape(-1))
     with torch.no_grad():
         pred = predict(sim, params, seg)
         err = obs.error(pred[:, 1], seg.meas[:, 1]).numpy()
@@ -133,7 +135,7 @@ def rollout_error(sim, obs: Observer, params: torch.Tensor, trajs: list[Trajecto
     ``max_segments``, a seeded subset): RMS per group (SI units, ``groups``) and the RMS over all channels
     in units of each channel's noise σ (``normalized``)."""
     seg = make_segments(sim, trajs, horizon=horizon, k=k, stride=horizon, max_segments=max_segments,
-                        rng=_rng(seed, 1))
+                        rng=_rng(seed, 1), params=params.reshape(-1))
     with torch.no_grad():
         pred = predict(sim, params, seg)
         err = obs.error(pred[:, -1], seg.meas[:, -1]).numpy()

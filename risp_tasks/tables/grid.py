@@ -77,7 +77,8 @@ def run_folder(cfg: TableConfig) -> str:
         from risp_tasks.tasks.config import TaskConfig
 
         settings["task_defaults"] = {f.name: f.default for f in fields(TaskConfig) if f.name in TASK_DEFAULTS}
-    if cfg.perceptual_weights and os.path.isfile(cfg.perceptual_weights):  # the file's contents, not its name:
+    if (cfg.perceptual_weights and os.path.isfile(cfg.perceptual_weights)  # the file's contents, not its name,
+            and "perceptual_weights" not in skip):  # where the table has a perceptual row at all
         settings["perceptual_weights"] = sha256_file(cfg.perceptual_weights)  # a replaced file is another F
     key = checksum(settings)
     return os.path.join(cfg.out, f"{cfg.table}-{cfg.preset}{'-quick' if cfg.quick else ''}-{key}")
