@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import os
 import warnings
 from dataclasses import dataclass, field
@@ -197,6 +198,12 @@ def find_sidecar(csv_path: Path, env: str, overrides: dict | None = None) -> Sid
     Overrides always win over file values.
     """
     overrides = {k: v for k, v in (overrides or {}).items() if v is not None}
+    for key, v in overrides.items():  # the command line's values are named as options, not blamed on a sidecar file
+        lo, hi = SIDECAR_RANGES.get(env, {}).get(key, (-math.inf, math.inf))
+        if not is_finite_number(v):
+            raise RispError(f"--{key} {v!r}: must be a finite number")
+        if not lo <= v <= hi:
+            raise RispError(f"--{key} {v!r}: outside the plausible range [{lo:g}, {hi:g}] in SI units (check the unit)")
     for cand in (csv_path.with_suffix(".json"), csv_path.parent / "sidecar.json"):
         if cand.is_file():
             try:

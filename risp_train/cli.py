@@ -62,9 +62,12 @@ def fit(shards, out, reg, gamma, gamma_ramp, gamma_start, preset, epochs, batch_
     from .train import fit as run_fit
 
     rank0 = int(os.environ.get("RANK", "0")) == 0
-    if reg == "none" and (gamma is not None or gamma_start is not None):  # would be ignored without a word
-        raise RispError("--gamma and --gamma-start set the regularizer's weight; --reg none trains without one "
-                        "(leave them out, or choose a regularizer)")
+    from click.core import ParameterSource
+
+    ramp_given = click.get_current_context().get_parameter_source("gamma_ramp") == ParameterSource.COMMANDLINE
+    if reg == "none" and (gamma is not None or gamma_start is not None or ramp_given):  # would be ignored silently
+        raise RispError("--gamma, --gamma-start and --gamma-ramp set the regularizer's weight; --reg none trains "
+                        "without one (leave them out, or choose a regularizer)")
     shards = find_dataset(shards, need_jacobian=reg != "none")
     why = "--preset"
     if preset is None:

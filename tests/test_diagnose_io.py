@@ -55,7 +55,8 @@ def test_disk_full_while_writing_the_report(flights, tmp_path, monkeypatch):
                                          (["--seed", "-1"], "--seed must be in [0, 2**63)"),
                                          (["--seed", str(2 ** 64)], "--seed must be in [0, 2**63)"),  # was torch's
                                          (["--pairs-top", "-1"], "--pairs-top must be >= 0"),  # was "all but the last"
-                                         (["--max-iters", "0"], "--max-iters must be >= 1")])  # named an unfitted cause
+                                         (["--max-iters", "0"], "--max-iters must be >= 1"),  # named an unfitted cause
+                                         (["--effects", ","], "--effects names no effect")])  # ran the base model alone
 def test_out_of_range_counts_and_seed_are_one_line_and_leave_no_report(flights, tmp_path, extra, words):
     line = _one_error_line(_run(flights, tmp_path / "report", *extra))
     assert words in line

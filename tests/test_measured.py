@@ -60,7 +60,7 @@ def test_real_cube_tosses_load_with_default_sidecar():
 def test_side_override_and_unit_mistake():
     trajs = load_measured([str(CUBE_TOSSES / "toss_000.csv")], "cube", overrides={"side": 0.105, "mass": 0.4})
     assert trajs[0].sidecar.values["side"] == 0.105
-    with pytest.raises(RispError, match=r"'side' = 104.8 .*unit"):
+    with pytest.raises(RispError, match=r"--side 104.8: .*unit"):  # the option, not the file's key
         load_measured([str(CUBE_TOSSES / "toss_000.csv")], "cube", overrides={"side": 104.8})
 
 
@@ -479,3 +479,11 @@ def test_a_trailing_blank_line_reads_without_numpy_warnings(tmp_path, recwarn):
         f.write("\n\n")
     assert np.array_equal(load_measured([str(p)], "quadrotor")[0].pos, expected)
     assert not [w for w in recwarn.list if "contained no data" in str(w.message)], [str(w.message) for w in recwarn.list]
+
+
+def test_command_line_overrides_are_named_as_options():
+    """--side inf was reported as the bundled sidecar.json's 'side' key, a value the file does not hold."""
+    for side, words in ((float("inf"), "--side inf: must be a finite number"),
+                        (104.8, "--side 104.8: outside the plausible range [0.005, 2] in SI units")):
+        with pytest.raises(RispError, match=re.escape(words)):
+            load_measured([str(CUBE_TOSSES)], "cube", limit=1, overrides={"side": side})

@@ -64,7 +64,7 @@ def test_every_stem_of_the_model_is_accepted():
 
 
 
-@pytest.mark.parametrize("extra", [["--gamma", "0.5"], ["--gamma-start", "0.9"]])
+@pytest.mark.parametrize("extra", [["--gamma", "0.5"], ["--gamma-start", "0.9"], ["--gamma-ramp", "0.3"]])
 def test_gamma_with_no_regularizer_is_refused(tmp_path, extra):
     """`risp-train fit --reg none --gamma 0.5` used to train without a regularizer and say nothing of the weight."""
     from click.testing import CliRunner

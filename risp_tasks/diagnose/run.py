@@ -172,6 +172,8 @@ def diagnose(cfg: DiagnoseConfig) -> dict:
         raise RispError(f"--pairs-top must be >= 0 (0: no effect pairs), got {cfg.pairs_top}")
     if cfg.max_iters < 1:
         raise RispError(f"--max-iters must be >= 1, got {cfg.max_iters}")
+    if cfg.effects is not None and not cfg.effects:  # "--effects ," ran the base model alone without a word
+        raise RispError("--effects names no effect; leave it out to try the whole library")
     if cfg.floor_offset != "auto" and not (isinstance(cfg.floor_offset, (int, float))
                                            and math.isfinite(cfg.floor_offset)):
         raise RispError(f"--floor-offset must be 'auto' or a finite number of metres, got {cfg.floor_offset!r}")
