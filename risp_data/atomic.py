@@ -24,7 +24,7 @@ def atomic_write(path: "str | os.PathLike", mode: str = "wb", suffix: str = "") 
         os.makedirs(folder, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=TEMP_PREFIX, suffix=suffix, dir=folder)
     except OSError as e:  # name the file being written, not a temporary name the user never chose
-        blocker = _file_in_the_way(folder)
+        blocker = file_in_the_way(folder)
         if blocker:  # makedirs says "File exists" of a file where a folder must go: say which and why
             raise NotADirectoryError(errno.ENOTDIR, f"{blocker} is a file, not a folder", os.fspath(path)) from None
         raise OSError(e.errno, e.strerror or str(e), os.fspath(path)) from None
@@ -46,7 +46,7 @@ def atomic_write(path: "str | os.PathLike", mode: str = "wb", suffix: str = "") 
 TEMP_PREFIX = ".tmp-"
 
 
-def _file_in_the_way(folder: str) -> str | None:
+def file_in_the_way(folder: str) -> str | None:
     """The nearest existing ancestor of ``folder`` (itself included) when it is a file, else None."""
     p = os.path.abspath(folder)
     while not os.path.exists(p) and os.path.dirname(p) != p:

@@ -13,7 +13,7 @@ import sys
 
 import click
 
-from .errors import RispError
+from .errors import RispError, message_line
 
 # ------------------------------------------------------------------------------ known errors → one line
 
@@ -94,7 +94,7 @@ def user_error_line(e: BaseException) -> str | None:
         return "out of memory; use a smaller --res or fewer --workers (risp-train: a smaller --batch-size)"
     if isinstance(e, ImportError) and e.name and not e.name.startswith(("risp_data", "risp_train", "risp_tasks")):
         # a dependency missing or broken in this environment (not one of risp's own modules: that is a bug)
-        return (f"the library {e.name!r} cannot be imported ({str(e).splitlines()[0] if str(e) else 'ImportError'}): "
+        return (f"the library {e.name!r} cannot be imported ({message_line(e, 'ImportError')}): "
                 "install risp's dependencies (bash scripts/setup.sh, or pip install -e .)")
     if isinstance(e, (ConnectionError, EOFError)) and _raised_in(e, "torch/utils/data"):
         return _DATALOADER_DIED  # the pipe of a worker killed mid-batch

@@ -8,3 +8,9 @@ wrong shapes, corrupt files, missing libraries.  Programming errors stay ordinar
 
 class RispError(Exception):
     """A user-facing error whose message fits on one line and names the offending input."""
+
+
+def message_line(error: BaseException, default: str = "") -> str:
+    """The first non-empty line of ``error``'s message (``default`` when it has none): a library's multi-line
+    message quoted inside one error line."""
+    return next((line for line in str(error).splitlines() if line.strip()), default)

@@ -281,9 +281,9 @@ def make_renderer(job: RenderJob, threads: int | None = None):
 
     init_mitsuba(job.variant)
     if threads is not None:
-        import drjit as dr
+        from .threads import set_drjit_threads
 
-        dr.set_thread_count(threads)
+        set_drjit_threads(threads)
     get_environment(job.env)
     return Renderer(job.env, domain=job.domain, resolution=job.resolution, spp=job.spp, variant=job.variant,
                     jacobian_path=job.jacobian_path)
@@ -484,10 +484,7 @@ def prepare_folder(job: RenderJob, variant: str, log: Callable[[str], None] = pr
                 f"making it anew and rendering its {len(manifest['shards'])} complete shard(s) again")
             manifest["shards"] = []
             save_manifest(out, manifest)
-            for i in range(job.num_shards):  # their markers name zarr chunks that are gone
-                marker = marker_path(out, i)
-                if os.path.exists(marker):
-                    os.remove(marker)
+            _drop_unlisted_shards(out, manifest)  # their files and markers: every shard is unlisted now
         create_store(out, manifest)
     # shards whose marker was written but whose manifest update was lost (killed in between)
     done = {r["index"] for r in manifest["shards"]}

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from risp_data.atomic import atomic_write
-from risp_data.errors import RispError
+from risp_data.errors import RispError, message_line
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv")
 CODECS = {".mp4": "libx264", ".mkv": "libx264", ".mov": "libx264", ".avi": "mpeg4"}
@@ -124,7 +124,7 @@ def _decode_file(path: Path, each=lambda img: img) -> tuple[list[np.ndarray], fl
     except _Converting as e:
         raise e.__cause__ from None
     except Exception as e:  # noqa: BLE001 - PyAV raises many error types (InvalidDataError, …)
-        raise RispError(f"{path}: cannot decode as a video ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
+        raise RispError(f"{path}: cannot decode as a video ({type(e).__name__}: {message_line(e)})") from None
     _check_complete(path, frames, times, announced)
     note = _check_constant_rate(path, times)
     notes = [note] if note else []

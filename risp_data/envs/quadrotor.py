@@ -22,7 +22,7 @@ from functools import lru_cache  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from ..errors import RispError  # noqa: E402
+from ..errors import RispError, message_line  # noqa: E402
 from .base import Camera, Environment, Mesh  # noqa: E402
 from .meshes import (  # noqa: E402
     RIGID_STATE_NAMES,
@@ -81,7 +81,7 @@ def _load(path: str):
     try:
         return trimesh.load(path, process=False, **split)
     except Exception as e:  # noqa: BLE001 - trimesh raises many kinds
-        raise RispError(f"{path}: cannot read the mesh ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})") from None
+        raise RispError(f"{path}: cannot read the mesh ({type(e).__name__}: {message_line(e)})") from None
 
 
 def _one_mesh(mesh, path: str) -> tuple[np.ndarray, np.ndarray]:

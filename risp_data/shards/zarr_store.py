@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import RispError
+from ..errors import RispError, message_line
 from .layout import channel_map, from_planes, is_compact, plane_lists, to_planes
 from .manifest import load_manifest, repair_hint
 
@@ -193,7 +193,7 @@ class ZarrDataset:
             group = zarr.open_group(path, mode="r")
             arrays = {name: group[name] for name in _DIMS if name in group}
         except Exception as e:
-            raise RispError(f"corrupt zarr store {path}: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"
+            raise RispError(f"corrupt zarr store {path}: {type(e).__name__}: {message_line(e)}"
                             f"{repair_hint(self.folder)}") from None
         missing = [name for name in manifest_shapes(self.manifest) if name not in arrays]
         if missing:  # an array's zarr.json deleted: the array is not there for zarr (it was a KeyError)
@@ -234,7 +234,7 @@ class ZarrDataset:
                 rel = shard_file(self.folder, name, shard, arr.ndim)
                 raise RispError(
                     f"corrupt zarr shard file {os.path.join(self.folder, rel)}: {type(e).__name__}: "
-                    f"{str(e).splitlines()[0] if str(e) else ''}{repair_hint(self.folder)}"
+                    f"{message_line(e)}{repair_hint(self.folder)}"
                 ) from None
         if not np.isfinite(out["states"]).all():  # listed but unwritten (NaN fill): never hand it out as data
             rel = shard_file(self.folder, "states", shard, 2)

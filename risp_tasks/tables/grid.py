@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 from typing import Callable
 
 from risp_data.atomic import write_text_atomic
-from risp_data.errors import RispError
+from risp_data.errors import RispError, message_line
 from risp_data.numbers import is_finite_number
 from risp_data.processes import end_pool_workers
 from risp_data.ray_support import ray_errors, require_ray
@@ -161,7 +161,7 @@ def compute_cell(cfg: TableConfig, cell: Cell, folder: str, cache: str | None) -
 
         if caused_by_interrupt(e):  # Ctrl-C inside Dr.Jit comes back wrapped: it stops the run, not the cell
             raise KeyboardInterrupt from e
-        line = str(e).splitlines()[0] if str(e) else ""
+        line = message_line(e)
         result = {"na": f"failed: {type(e).__name__}: {line}", "failed": True,
                   "traceback": traceback.format_exc(limit=8)}
     result.update({"table": cfg.table, "env": cell.env, "look": cell_look(cell, cfg.table),
@@ -260,7 +260,7 @@ def _load_cell(path: str) -> dict | None:
         with open(path) as f:
             result = json.load(f)
     except (OSError, ValueError) as e:
-        return {"na": f"unreadable cell file {path}: {str(e).splitlines()[0] if str(e) else type(e).__name__}",
+        return {"na": f"unreadable cell file {path}: {message_line(e, type(e).__name__)}",
                 "unreadable": True}
     if not isinstance(result, dict):
         return {"na": f"unreadable cell file {path}: not a JSON object", "unreadable": True}

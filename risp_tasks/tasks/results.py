@@ -10,7 +10,7 @@ import shutil
 
 import numpy as np
 
-from risp_data.atomic import replace_folder, temp_folder
+from risp_data.atomic import file_in_the_way, replace_folder, temp_folder
 from risp_data.errors import RispError
 from risp_data.shards.manifest import risp_commit
 
@@ -24,11 +24,9 @@ def check_free(out: str, overwrite: bool = False) -> None:
     """``out`` may be written: it does not exist, or (``overwrite``) it is a task's result folder (it holds a
     result.json) — never an arbitrary folder or a file, which --overwrite does not delete."""
     if not os.path.exists(out):
-        parent = os.path.dirname(os.path.abspath(out))
-        while not os.path.exists(parent):  # the nearest existing ancestor must be a folder the result can go under
-            parent = os.path.dirname(parent)
-        if not os.path.isdir(parent):
-            raise RispError(f"{out}: {parent} is a file, not a folder: choose another --out")
+        blocker = file_in_the_way(os.path.dirname(os.path.abspath(out)))  # the result must go under a folder
+        if blocker:
+            raise RispError(f"{out}: {blocker} is a file, not a folder: choose another --out")
         return
     if not overwrite:
         raise RispError(f"{out}: result folder exists; choose another --out, remove it, or give --overwrite")

@@ -119,10 +119,9 @@ def read_params(sim, given: str, option: str = "--params") -> dict[str, float]:
             ok = False
         if not ok:
             raise RispError(f"{at}{option}: {name!r} must be a finite number, got {str(value)[:40]!r}")
-        lo, hi = sim.param_bounds[sim.param_index(name)]
-        if not lo <= float(value) <= hi:  # a negative mass: one line naming the option, not the simulator's own
-            raise RispError(f"{at}{option}: {name} must lie in [{lo:g}, {hi:g}], got {float(value):g}")
         values[name] = float(value)
+    # a negative mass: one line naming the option (the defaults around the given values are within bounds)
+    sim.check_param_bounds(with_params(sim, sim.default_params(), values), f"{at}{option}: ")
     return values
 
 
