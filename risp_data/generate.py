@@ -550,12 +550,15 @@ def _worker_run(shard_index: int) -> dict:
 
 
 def _run_inline(job, todo, on_record, bar):
-    """Render in this process: the CPUs this process may use, as the pool's workers share them (set, not Dr.Jit's
-    implicit default), and one torch thread, as each worker has (restored afterwards: a caller's count is its own)."""
-    from .threads import torch_threads
+    """Render in this process: Dr.Jit on the CPUs this process may use, as the pool's workers share them (set, not
+    Dr.Jit's implicit default), and one torch thread, as each worker has — both restored afterwards: a caller's
+    counts are its own (a table run renders its test sets in process between cells that run on one thread)."""
+    from .mitsuba_setup import init_mitsuba
+    from .threads import drjit_threads, torch_threads
 
-    with torch_threads(1):
-        renderer = make_renderer(job, available_cpus())
+    init_mitsuba(job.variant)  # the libLLVM check comes before drjit is first imported
+    with torch_threads(1), drjit_threads(available_cpus()):
+        renderer = make_renderer(job)
         for i in todo:
             on_record(render_shard(job, i, renderer, on_sample=lambda: bar.update(1)))
 

@@ -59,6 +59,20 @@ def set_drjit_threads(threads: int | None) -> int:
 
 
 @contextlib.contextmanager
+def drjit_threads(n: int) -> Iterator[None]:
+    """Run the block with ``n`` Dr.Jit CPU threads, then restore the previous count (also on error); Mitsuba must
+    be set up first (:func:`set_drjit_threads`)."""
+    import drjit as dr
+
+    before = dr.thread_count()
+    dr.set_thread_count(n)
+    try:
+        yield
+    finally:
+        dr.set_thread_count(before)
+
+
+@contextlib.contextmanager
 def torch_threads(n: int) -> Iterator[None]:
     """Run the block with ``n`` torch intra-op threads, then restore the previous count (also on error)."""
     import torch

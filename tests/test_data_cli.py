@@ -404,7 +404,8 @@ def test_image_size_counts_the_domains_samples_per_pass():
 
 def test_an_in_process_render_sets_drjit_threads_and_keeps_the_callers_torch_threads(tmp_path, monkeypatch):
     """workers=1 renders in this process: Dr.Jit's threads are set to the CPUs it may use (here made 1), not left to
-    Dr.Jit's default of the machine's cores; torch runs one thread meanwhile and the caller's count comes back."""
+    Dr.Jit's default of the machine's cores; torch runs one thread meanwhile, and both of the caller's counts come
+    back (a table run that renders a test set in process between its one-thread cells had them changed)."""
     import drjit as dr
     import torch
 
@@ -417,8 +418,14 @@ def test_an_in_process_render_sets_drjit_threads_and_keeps_the_callers_torch_thr
     dr.set_thread_count(2)  # a count the render must change (the old code left Dr.Jit's as it found it)
     try:
         job = RenderJob(env="cube", n=2, out=str(tmp_path / "c"), resolution=8, spp=1, seed=0, shard_size=2, workers=1)
+        seen = []
+        real = gen.render_shard
+        monkeypatch.setattr(gen, "render_shard", lambda *a, **k: (seen.append((dr.thread_count(),
+                                                                                torch.get_num_threads())),
+                                                                   real(*a, **k))[1])
         run_job(job, progress=False, log=lambda *_: None)
-        assert dr.thread_count() == 1 and torch.get_num_threads() == 2
+        assert seen and all(s == (1, 1) for s in seen), seen
+        assert dr.thread_count() == 2 and torch.get_num_threads() == 2
     finally:
         dr.set_thread_count(before_dr)
         torch.set_num_threads(before_torch)
