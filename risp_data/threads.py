@@ -59,27 +59,26 @@ def set_drjit_threads(threads: int | None) -> int:
 
 
 @contextlib.contextmanager
-def drjit_threads(n: int) -> Iterator[None]:
+def _count_set_to(get, set_, n: int) -> Iterator[None]:
+    """Run the block with a thread count ``set_(n)``, then restore ``get()``'s value from before (also on error)."""
+    before = get()
+    set_(n)
+    try:
+        yield
+    finally:
+        set_(before)
+
+
+def drjit_threads(n: int):
     """Run the block with ``n`` Dr.Jit CPU threads, then restore the previous count (also on error); Mitsuba must
     be set up first (:func:`set_drjit_threads`)."""
     import drjit as dr
 
-    before = dr.thread_count()
-    dr.set_thread_count(n)
-    try:
-        yield
-    finally:
-        dr.set_thread_count(before)
+    return _count_set_to(dr.thread_count, dr.set_thread_count, n)
 
 
-@contextlib.contextmanager
-def torch_threads(n: int) -> Iterator[None]:
+def torch_threads(n: int):
     """Run the block with ``n`` torch intra-op threads, then restore the previous count (also on error)."""
     import torch
 
-    before = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
+    return _count_set_to(torch.get_num_threads, torch.set_num_threads, n)
