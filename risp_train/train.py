@@ -217,6 +217,35 @@ def option_changes(stored_config: dict, cfg: TrainConfig, env: str, used: dict |
     return [f"{k}={stored.get(k)!r}→{now[k]!r}" for k in RESUME_FIELDS if stored.get(k) != now[k]]
 
 
+def val_record(val, cfg: TrainConfig) -> dict | None:
+    """What a run's held-out curve is measured on: the --val shards' manifest hash and the samples taken from them
+    (None without --val).  Stored in the checkpoint, so that a resumed run's ``val_error`` column stays one curve."""
+    if val is None:
+        return None
+    return {"manifest_hash": manifest_hash(val.manifest), "samples": int(cfg.val_samples),
+            "folder": os.path.abspath(val.folder)}
+
+
+def check_resume_val(state: dict, val, cfg: TrainConfig, path: str) -> None:
+    """Refuse to resume with another held-out set than the run began with: the history's ``val_error`` would
+    switch data sets half-way and the loss plot would join two curves.  Checkpoints from before the record
+    (no ``val`` key) are not compared."""
+    if "val" not in state:
+        return
+    was, now = state["val"], val_record(val, cfg)
+    if was is None and now is None:
+        return
+    if was is None:
+        raise RispError(f"cannot resume {path} with --val {cfg.val}: it was trained without a held-out set "
+                        "(its loss history has no val_error); resume it without --val")
+    if now is None:
+        raise RispError(f"cannot resume {path} without --val: it was trained with --val {was.get('folder')}; "
+                        "pass the same --val (its val_error curve continues on the same images)")
+    if was.get("manifest_hash") != now["manifest_hash"]:
+        raise RispError(f"cannot resume {path} with --val {cfg.val}: it was validated on other shards "
+                        f"({was.get('folder')}; manifest hash differs); pass the same --val")
+
+
 def helper_workers(shards, cache: str, world: int, workers: int) -> int:
     """The data-worker processes that run beside each training process: streaming webdataset shards, each worker
     needs a shard of its own, so ``--workers`` beyond the shards per rank start no process (``effective_workers``)
@@ -339,6 +368,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
         changes = option_changes(state["config"], cfg, shards.env, used=state)  # before the data set is decoded below
         if changes:
             raise RispError(f"cannot resume {last_path} with different options: {', '.join(changes)}")
+        check_resume_val(state, val, cfg, last_path)
         final = os.path.join(cfg.out, MODEL)
         if state["progress"].get("complete") and os.path.isfile(final):
             # nothing left to train: the finished run's model.pt stays as it is (rewriting it changed its checksum,
@@ -433,7 +463,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
             "history": history, "world_size": world, "workers": cfg.workers, "threads": threads, "cache": cache,
             "device": str(device), "torch_version": torch.__version__, "psi_std": psi_std.tolist(),
             "epoch_sums": [float(v) for v in sums] if batch > 0 else [0.0, 0.0, 0.0],
-            "samples": sample_counts(shards),
+            "samples": sample_counts(shards), "val": val_record(val, cfg),
         }
 
     if rank == 0:

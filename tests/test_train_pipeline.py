@@ -417,6 +417,28 @@ def test_resume_compares_resolved_options(shards, tmp_path):
     assert os.path.isfile(fit(same, resume=True, progress=False))
 
 
+def test_resume_refuses_another_held_out_set(shards, tmp_path):
+    """The history's val_error is one curve: a run begun with --val resumes only with the same held-out shards
+    (not with others, not without), and a run begun without --val does not resume with one."""
+    other = _render(tmp_path / "other_val", 32, 16, 12, ("--format", "wds", "--no-jacobian"))
+    kw = dict(reg="none", epochs=2, batch_size=8, checkpoint_every=3)
+    with pytest.raises(TrainingStopped):
+        fit(_cfg(shards, tmp_path / "v", val=shards["held_out"], **kw), progress=False, stop_after_step=5)
+    with pytest.raises(RispError, match="validated on other shards"):
+        fit(_cfg(shards, tmp_path / "v", val=other, **kw), resume=True, progress=False)
+    with pytest.raises(RispError, match="without --val: it was trained with --val"):
+        fit(_cfg(shards, tmp_path / "v", **kw), resume=True, progress=False)
+    assert os.path.isfile(fit(_cfg(shards, tmp_path / "v", val=shards["held_out"], **kw), resume=True,
+                              progress=False))
+    vals = [h["val_error"] for h in json.load(open(tmp_path / "v" / "history.json")) if "val_error" in h]
+    assert len(vals) == 3  # before training and after each of the two epochs, all on the same images
+
+    with pytest.raises(TrainingStopped):
+        fit(_cfg(shards, tmp_path / "n", **kw), progress=False, stop_after_step=5)
+    with pytest.raises(RispError, match="trained without a held-out set"):
+        fit(_cfg(shards, tmp_path / "n", val=shards["held_out"], **kw), resume=True, progress=False)
+
+
 def test_resume_of_a_finished_run_trains_nothing_and_keeps_model_pt(shards, tmp_path):
     """--resume of a complete run: a note says so, and model.pt keeps its bytes (it used to be written again, with
     a new checksum that no longer matched the task results recording it); more epochs are another run."""
