@@ -111,8 +111,8 @@ def run_cli(group: click.Group, argv: list[str] | None = None) -> None:
     """Run a click group; user errors become ``Error: <message>`` on stderr and exit status 1."""
     try:
         group.main(args=argv, standalone_mode=False)
-    except click.exceptions.Abort:
-        click.echo("Error: aborted", err=True)
+    except click.exceptions.Abort:  # click's name for a Ctrl-C it caught: the same line as KeyboardInterrupt's
+        click.echo("Error: interrupted", err=True)
         sys.exit(130)
     except click.BadParameter as e:
         if isinstance(e, click.MissingParameter):  # a usage error: click's usage lines and status 2
@@ -149,7 +149,7 @@ class RispGroup(click.Group):
         except click.ClickException:
             raise
         except Exception as e:
-            if caused_by_interrupt(e):  # click turns it into Abort: "Error: aborted", exit 130
+            if caused_by_interrupt(e):  # click turns it into Abort: "Error: interrupted", exit 130
                 raise KeyboardInterrupt from None
             line = user_error_line(e)
             if line is None:

@@ -70,7 +70,7 @@ def test_command_interrupted_in_native_code_exits_130(raiser, capsys):
         run_cli(group, ["work"])
     assert info.value.code == 130
     err = capsys.readouterr().err
-    assert "Error: aborted" in err
+    assert "Error: interrupted" in err
     assert "Mitsuba" not in err and "Traceback" not in err
 
 

@@ -395,7 +395,7 @@ def test_jobs_workers_end_when_the_table_process_is_killed(tmp_path):
 @pytest.mark.skipif(not os.path.isdir("/proc"), reason="reads /proc")
 def test_ctrl_c_ends_a_jobs_table_at_once_with_one_line(tmp_path):
     """Ctrl-C (SIGINT to the terminal's process group) on a `--jobs 2` table: the workers stop now, not after the
-    cells they compute (minutes each), no worker prints a traceback, and the command says `aborted` (exit 130)."""
+    cells they compute (minutes each), no worker prints a traceback, and the command says `interrupted` (exit 130)."""
     import signal
     import subprocess
     import sys
@@ -412,7 +412,7 @@ def test_ctrl_c_ends_a_jobs_table_at_once_with_one_line(tmp_path):
         os.killpg(proc.pid, signal.SIGINT)
         out, err = proc.communicate(timeout=30)
         assert proc.returncode == 130, (proc.returncode, err)
-        assert "Traceback" not in err and "Error: aborted" in err.splitlines(), err
+        assert "Traceback" not in err and "Error: interrupted" in err.splitlines(), err
         assert not _still_running(workers, 15), "workers went on after Ctrl-C"
     finally:
         if proc.poll() is None:
