@@ -94,6 +94,14 @@ def replace_folder(tmp: "str | os.PathLike", dest: "str | os.PathLike") -> None:
     import shutil
 
     dest = os.fspath(dest)
+    if os.path.islink(dest):  # a link the user made to the folder: replace the folder it points to, keep the link
+        target = os.path.realpath(dest)
+        if os.path.dirname(target) != os.path.dirname(os.path.realpath(tmp)):  # rename() cannot cross into it
+            moved = temp_folder(os.path.dirname(target))
+            os.rmdir(moved)
+            shutil.move(os.fspath(tmp), moved)
+            tmp = moved
+        dest = target
     old = None
     if os.path.exists(dest):
         old = temp_folder(os.path.dirname(os.path.abspath(dest)))
@@ -106,16 +114,29 @@ def replace_folder(tmp: "str | os.PathLike", dest: "str | os.PathLike") -> None:
             os.replace(old, dest)
         raise
     if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
+        try:
+            shutil.rmtree(old)
+        except OSError as e:  # the new folder is in place: say what is left, do not fail the finished job
+            import sys
+
+            print(f"note: the replaced folder's old contents could not be deleted ({e}); remove {old} by hand",
+                  file=sys.stderr)
 
 
 def remove_temporaries(folder: "str | os.PathLike") -> None:
-    """Delete the temporaries (``.tmp-*``) a killed :func:`atomic_write` left in ``folder``: never visible
-    to readers under their final names, safe to drop before a job resumes."""
+    """Delete the temporaries (``.tmp-*``) a killed job left in ``folder``: the files of :func:`atomic_write` and
+    the folders of :func:`temp_folder` (a killed task or make-video whose ``--out`` lies inside ``folder``).  Never
+    visible to readers under their final names, safe to drop before a job resumes; a link is removed, not followed."""
+    import shutil
+
     if os.path.isdir(folder):
         for name in os.listdir(folder):
             if name.startswith(TEMP_PREFIX):
-                os.unlink(os.path.join(folder, name))
+                path = os.path.join(folder, name)
+                if os.path.isdir(path) and not os.path.islink(path):
+                    shutil.rmtree(path)
+                else:
+                    os.unlink(path)
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:

@@ -183,6 +183,46 @@ def test_atomic_write_names_the_file_it_could_not_write(tmp_path):
     assert e.value.filename == str(target)
 
 
+def test_a_killed_tasks_temporary_folder_in_a_run_folder_does_not_stop_fit(data, model, tmp_path):
+    """A task or make-video killed while writing its --out inside a run folder leaves a `.tmp-*` folder there
+    (temp_folder); `fit --overwrite` deleted the old run and then stopped at it ("Is a directory"), leaving
+    neither run.  Temporaries are files and folders alike, and a link among them is removed, not followed."""
+    run = tmp_path / "run"
+    r = CliRunner().invoke(train_cli, ["fit", data["train"], "--out", str(run), *_TINY, "--epochs", "1"])
+    assert r.exit_code == 0, r.output
+    (run / ".tmp-k1lled" / "frames").mkdir(parents=True)
+    (run / ".tmp-k1lled" / "frames" / "0000.png").write_bytes(b"half")
+    keep = tmp_path / "elsewhere"
+    keep.mkdir()
+    (keep / "mine.txt").write_text("mine")
+    os.symlink(keep, run / ".tmp-link")
+    r = CliRunner().invoke(train_cli, ["fit", data["train"], "--out", str(run), *_TINY, "--epochs", "1",
+                                       "--overwrite", "--seed", "3"])
+    assert r.exit_code == 0, r.output
+    assert (run / "model.pt").is_file() and not [n for n in os.listdir(run) if n.startswith(".tmp-")]
+    assert (keep / "mine.txt").read_text() == "mine"
+
+
+def test_replace_folder_writes_through_a_link_the_user_made(tmp_path):
+    """--overwrite of a result folder that is a symlink: the folder it points to is replaced and the link kept
+    (the link used to be replaced by a real folder, and the old one left as a hidden `.tmp-*` link)."""
+    from risp_data.atomic import replace_folder, temp_folder
+
+    real = tmp_path / "disk" / "real"
+    real.mkdir(parents=True)
+    (real / "old.json").write_text("old")
+    (tmp_path / "runs").mkdir()
+    link = tmp_path / "runs" / "link"
+    os.symlink(real, link)
+    tmp = temp_folder(tmp_path / "runs")
+    with open(os.path.join(tmp, "new.json"), "w") as f:
+        f.write("new")
+    replace_folder(tmp, link)
+    assert link.is_symlink() and os.path.realpath(link) == str(real)
+    assert os.listdir(real) == ["new.json"]
+    assert not [n for d in (tmp_path / "runs", tmp_path / "disk") for n in os.listdir(d) if n.startswith(".tmp-")]
+
+
 # ---------------------------------------------------------------------------- 2. model overwritten
 
 
