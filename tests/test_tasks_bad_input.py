@@ -414,6 +414,54 @@ def test_make_video_does_not_replace_a_video_unasked(tmp_path):
     assert json.load(open(tmp_path / "v.truth.json"))["env"] == "cube" and not (tmp_path / "v.actions.csv").exists()
 
 
+def _deny_writes_in(monkeypatch, folder):
+    """os.access says no write permission on ``folder`` (as a read-only mount would; the tests may run as root,
+    for whom chmod does not take writing away)."""
+    import risp_data.atomic as atomic
+
+    real = os.access
+    monkeypatch.setattr(atomic.os, "access", lambda p, mode, **k: False if (os.path.abspath(p) == str(folder)
+                                                                            and mode & os.W_OK) else real(p, mode, **k))
+
+
+def test_an_out_that_cannot_be_written_is_refused_before_the_work(quad, tmp_path, monkeypatch):
+    """A task and make-video whose --out lies in a folder they cannot write say so at once, naming --out — they
+    used to optimise (render) everything and then fail naming a `.tmp-*` folder."""
+    import risp_tasks.tasks.run as run_mod
+    from risp_tasks.cli import cli
+
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    _deny_writes_in(monkeypatch, locked)
+    monkeypatch.setattr(run_mod, "optimize", lambda *a, **k: pytest.fail("optimised before checking --out"))
+    res = CliRunner().invoke(cli, ["estimate", quad[1], "--model", quad[0], "--out", str(locked / "res"), "--quiet"])
+    line = _error_line(res, skip="model: ")
+    assert f"--out {locked / 'res'}: its folder" in line and "no write permission" in line, line
+    import risp_data.render as render_mod
+
+    monkeypatch.setattr(render_mod, "Renderer", lambda *a, **k: pytest.fail("rendered before checking --out"))
+    for out in ("v.mp4", "frames"):
+        res = CliRunner().invoke(cli, ["make-video", "--env", "quadrotor", "--frames", "2", "--quiet",
+                                       "--out", str(locked / out)])
+        assert "no write permission" in _error_line(res)
+    assert os.listdir(locked) == []
+
+
+def test_make_video_refuses_a_truth_path_that_is_a_folder_before_rendering(tmp_path, monkeypatch):
+    """The truth and actions files are written after the video: a folder in their place is refused before any
+    rendering (the new video was written and then no truth could be, leaving a video without its truth)."""
+    import risp_data.render as render_mod
+    from risp_tasks.cli import cli
+
+    (tmp_path / "y.truth.json").mkdir()
+    monkeypatch.setattr(render_mod, "Renderer", lambda *a, **k: pytest.fail("rendered before checking"))
+    res = CliRunner().invoke(cli, ["make-video", "--env", "quadrotor", "--frames", "2", "--quiet", "--overwrite",
+                                   "--out", str(tmp_path / "y.mp4")])
+    line = _error_line(res)
+    assert "y.truth.json: exists and is not a file (the video's ground truth file goes there)" in line, line
+    assert sorted(os.listdir(tmp_path)) == ["y.truth.json"]
+
+
 def test_make_video_refuses_a_suffix_it_cannot_write(tmp_path):
     """--out v.gif is one line before any rendering, not a folder of PNGs named v.gif."""
     from risp_tasks.cli import cli

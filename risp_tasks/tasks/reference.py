@@ -20,7 +20,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
-from risp_data.atomic import write_text_atomic
+from risp_data.atomic import check_writable, write_text_atomic
 from risp_data.errors import RispError
 from risp_data.threads import set_drjit_threads, set_torch_threads
 
@@ -261,6 +261,12 @@ def make_reference(cfg: ReferenceConfig) -> dict:
             raise RispError(f"{rule}, got {value}")
     check_video_size(cfg)
     check_video_path(cfg.out, cfg.overwrite)  # before the render: a .gif or a folder of other files fail here
+    check_writable(os.path.dirname(os.path.abspath(cfg.out)), f"--out {cfg.out}: its folder")
+    for side in (truth_path(cfg.out), actions_path(cfg.out)):  # written after the video: refuse now what would fail
+        if os.path.lexists(side) and not os.path.isfile(side):
+            what = "ground truth" if side == truth_path(cfg.out) else "actions"
+            raise RispError(f"{side}: exists and is not a file (the video's {what} file goes there); move it away "
+                            "or give another --out")
     if not cfg.overwrite:  # a video's ground truth and actions belong to it: never replace them unasked
         held = [p for p in (cfg.out, truth_path(cfg.out), actions_path(cfg.out)) if os.path.exists(p)]
         if held:

@@ -10,7 +10,7 @@ import shutil
 
 import numpy as np
 
-from risp_data.atomic import file_in_the_way, replace_folder, temp_folder
+from risp_data.atomic import check_writable, file_in_the_way, replace_folder, temp_folder
 from risp_data.errors import RispError
 from risp_data.shards.manifest import risp_commit
 
@@ -27,12 +27,15 @@ def check_free(out: str, overwrite: bool = False) -> None:
         blocker = file_in_the_way(os.path.dirname(os.path.abspath(out)))  # the result must go under a folder
         if blocker:
             raise RispError(f"{out}: {blocker} is a file, not a folder: choose another --out")
+        # the folder is written beside out (a temporary sibling renamed into place): say now, not after the work
+        check_writable(os.path.dirname(os.path.abspath(out)), f"--out {out}: its folder")
         return
     if not overwrite:
         raise RispError(f"{out}: result folder exists; choose another --out, remove it, or give --overwrite")
     if not (os.path.isdir(out) and os.path.isfile(os.path.join(out, RESULT_FILE))):
         raise RispError(f"{out}: exists and is not a task's result folder (no {RESULT_FILE}); --overwrite replaces "
                         f"only those: choose another --out")
+    check_writable(os.path.dirname(os.path.realpath(out)), f"--out {out}: its folder")
 
 
 def versions() -> dict:
