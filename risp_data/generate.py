@@ -447,30 +447,51 @@ def _holds_no_samples(folder: str) -> bool:
     return not load_manifest(folder)["shards"] and not (os.path.isdir(markers) and os.listdir(markers))
 
 
-def check_folder(job: RenderJob, variant: str) -> None:
-    """Refuse, without touching anything, a folder that holds another job or foreign files."""
+def check_folder(job: RenderJob, variant: str, psi_pool: dict | None = None) -> None:
+    """Refuse, without touching anything, a folder that holds another job or foreign files.
+
+    ``psi_pool``: the manifest record of a pool of looks (risp-train ablation: sample i renders with pool[i mod
+    P]) the caller renders with.  A folder rendered with a pool is resumed only with the same pool — risp-data
+    render, verify --repair and a plain resume would give its missing samples their own looks."""
     out = job.out
     if os.path.exists(out) and not os.path.isdir(out):
         raise RispError(f"output path {out} exists and is not a folder")
     if not os.path.isdir(out):
         return
     if os.path.exists(os.path.join(out, MANIFEST)):
-        diffs = identity_mismatch(load_manifest(out), new_manifest(job, variant))
+        manifest = load_manifest(out)
+        diffs = identity_mismatch(manifest, new_manifest(job, variant))
         if diffs and not _holds_no_samples(out):
             raise RispError(f"output folder {out} holds another job ({'; '.join(diffs)}); give a new folder with --out "
                             f"(or remove {out})")
+        held = manifest.get("psi_pool")
+        if not _holds_no_samples(out) and not _same_pool(held, psi_pool):
+            if psi_pool is None:
+                raise RispError(f"{out} was rendered by risp-train ablation with a pool of {held.get('size')} "
+                                "look(s) (manifest psi_pool): risp-data cannot re-render its samples (they would get "
+                                "looks of their own); run that ablation command again, which resumes the folder")
+            raise RispError(f"output folder {out} holds samples rendered with another pool of looks; give a new "
+                            f"folder with --out (or remove {out})")
     elif not _is_fresh(out):
         raise RispError(f"output folder {out} is not empty and has no {MANIFEST}; use an empty or new folder")
 
 
-def prepare_folder(job: RenderJob, variant: str, log: Callable[[str], None] = print) -> dict[str, Any]:
+def _same_pool(held: dict | None, pool: dict | None) -> bool:
+    """Whether two ``psi_pool`` records name the same looks (both None: no pool)."""
+    if held is None or pool is None:
+        return held is None and pool is None
+    return held.get("size") == pool.get("size") and held.get("psi") == pool.get("psi")
+
+
+def prepare_folder(job: RenderJob, variant: str, log: Callable[[str], None] = print,
+                   psi_pool: dict | None = None) -> dict[str, Any]:
     """Open (resume) or create the output folder; returns its manifest with marker-only shards merged and
     damaged shards (a listed file missing, truncated or with another sha256) dropped for re-rendering.
 
     Call with the folder lock held, after :func:`check_folder`.
     """
     out = job.out
-    check_folder(job, variant)
+    check_folder(job, variant, psi_pool)
     manifest = load_manifest(out) if os.path.exists(os.path.join(out, MANIFEST)) else None
     if manifest is None or identity_mismatch(manifest, new_manifest(job, variant)):  # new, or an empty job's
         manifest = new_manifest(job, variant)

@@ -61,6 +61,7 @@ class VerifyReport:
     failures: list[str] = field(default_factory=list)
     repaired: int | None = None  # samples re-rendered by --repair (None: no repair asked for)
     jacobian: bool = True  # False: a --no-jacobian folder, whose repair and checksums were all there was to do
+    compared: list[int] | None = None  # the samples whose Jacobians were compared (None: all of ``indices``)
 
     def raise_if_failed(self) -> None:
         if self.failures:
@@ -72,8 +73,11 @@ def format_report(r: VerifyReport) -> str:
     lines.append(f"checksums: {r.files_checked} shard files ok" if r.files_checked else "checksums: skipped")
     if not r.jacobian:
         return "\n".join(lines + ["no Jacobians to verify: the folder was rendered with --no-jacobian"])
+    compared = r.indices if r.compared is None else r.compared
+    if not compared:  # every chosen sample failed before its Jacobian was compared: no ψ line can say "ok"
+        return "\n".join(lines + [f"chosen samples {r.indices}: none compared (see the failures below)"])
     lines += [
-        f"re-rendered samples {r.indices}; primal vs stored image: max rel. difference {r.image_error:.2e}",
+        f"re-rendered samples {compared}; primal vs stored image: max rel. difference {r.image_error:.2e}",
         f"{'psi':<18} {'rel.error':>10} {'worst sample':>13}   (tolerance {r.tol:g})",
     ]
     for name, e, w in zip(r.psi_names, r.rel_error, r.max_sample_error):
@@ -100,6 +104,20 @@ def repair_folder(folder: str, progress: bool = True, log=print) -> int:
     stats: dict = {}
     run_job(RenderJob(**args), progress=progress, log=log, stats=stats)
     return int(stats.get("rendered_samples", 0))
+
+
+def _pool_configs(m: dict) -> list | None:
+    """The looks of a folder risp-train ablation rendered with a pool (manifest ``psi_pool``), else None; a record
+    without the looks' aux (written before 2026-12-02) cannot be re-rendered: one line says so."""
+    from .psi import RenderConfig
+
+    rec = m.get("psi_pool")
+    if rec is None:
+        return None
+    if "aux" not in rec:
+        raise RispError(f"{m.get('out', 'the folder')} was rendered with a pool of looks whose record lacks their aux "
+                        "(an older risp-train ablation): its samples cannot be re-rendered; render the ablation again")
+    return [RenderConfig(psi=np.asarray(p, dtype=np.float64), aux=a) for p, a in zip(rec["psi"], rec["aux"])]
 
 
 def _nan_max(a: float, b: float) -> float:
@@ -143,6 +161,7 @@ def verify_folder(cfg: VerifyConfig) -> VerifyReport:
     from .threads import available_cpus
 
     renderer = make_renderer(job, available_cpus())  # Dr.Jit's threads set, not left to its implicit default
+    pool = _pool_configs(m)
     low, high = np.asarray(m["psi"]["low"]), np.asarray(m["psi"]["high"])
     h = cfg.eps * (high - low)
     k = len(h)
@@ -151,15 +170,20 @@ def verify_folder(cfg: VerifyConfig) -> VerifyReport:
     worst = np.zeros(k)
     image_err = 0.0
     failures = []
+    skipped: set[int] = set()  # samples that failed before their Jacobian was compared
     for i in tqdm(chosen, desc="verify", unit="sample", disable=not cfg.progress):
         s = stored[i]
         inp = sample_inputs(env, m["domain"], m["seed"], i)
+        if pool is not None:  # risp-train ablation's pool of looks: sample i rendered with pool[i mod P]
+            inp = dataclasses.replace(inp, config=pool[i % len(pool)])
         if not (np.array_equal(inp.state, s["state"]) and np.array_equal(np.asarray(inp.config.psi), s["psi"])):
             failures.append(f"sample {i}: stored state/psi differ from the ones its seed gives")
+            skipped.add(i)
             continue
         image, _ = renderer.render(inp.state, inp.config, inp.render_seed, jacobian=False)
         if not (np.all(np.isfinite(s["image"])) and np.all(np.isfinite(s["jacobian"]))):
             failures.append(f"sample {i}: the stored image or Jacobian holds NaN or inf")
+            skipped.add(i)
             continue
         scale = max(float(np.abs(s["image"]).max()), 1e-12)
         err = float(np.abs(np.asarray(image) - s["image"]).max()) / scale
@@ -181,10 +205,11 @@ def verify_folder(cfg: VerifyConfig) -> VerifyReport:
             worst[j] = _nan_max(worst[j], err_j)
     rel = np.sqrt(num / np.maximum(den, 1e-30))
     names = list(m["psi"]["names"])
+    compared = [i for i in chosen if i not in skipped]
     # "not <=": a NaN (a re-render or finite difference gone non-finite) fails instead of passing every comparison
     bad = [f"{names[j]} rel. error {rel[j]:.3g} > {cfg.tol:g}" for j in range(k) if not rel[j] <= cfg.tol]
     failures.extend(bad)
     if not np.isfinite(image_err):
         failures.append("a re-rendered image holds NaN or inf")
     return VerifyReport(cfg.folder, chosen, names, rel.tolist(), worst.tolist(), image_err, files, cfg.tol, failures,
-                        repaired=repaired)
+                        repaired=repaired, compared=compared)

@@ -100,6 +100,15 @@ def config_pool(env: str, size: int, seed: int) -> list:
     return [sample_rendering(env, "train", rng) for _ in range(size)]
 
 
+def pool_record(pool: list) -> dict:
+    """The manifest's ``psi_pool``: every look of the pool (ψ and aux), so that risp-data verify re-renders a sample
+    with its own look and risp-data refuses to resume the folder without it."""
+    from risp_data.generate import jsonable
+
+    return {"size": len(pool), "rule": "sample i uses pool[i % size]",
+            "psi": [np.asarray(c.psi).tolist() for c in pool], "aux": [jsonable(c.aux) for c in pool]}
+
+
 def render_pooled(job, pool: list, progress: bool = True) -> str:
     """Render ``job`` with sample i's configuration = pool[i mod P] (states/seeds as in the plain job)."""
     from risp_data.generate import check_folder, folder_lock, validate_job
@@ -107,7 +116,7 @@ def render_pooled(job, pool: list, progress: bool = True) -> str:
 
     validate_job(job)
     variant = init_mitsuba(job.variant)
-    check_folder(job, variant)  # refuses another job's folder, as risp-data render does
+    check_folder(job, variant, pool_record(pool))  # refuses another job's or another pool's folder
     os.makedirs(job.out, exist_ok=True)
     with folder_lock(job.out):
         return _render_pooled_locked(job, pool, variant, progress)
@@ -121,9 +130,8 @@ def _render_pooled_locked(job, pool: list, variant: str, progress: bool) -> str:
     from risp_data.shards.manifest import save_manifest
     from risp_data.shards.writer import write_shard
 
-    manifest = prepare_folder(job, variant)
-    manifest["psi_pool"] = {"size": len(pool), "rule": "sample i uses pool[i % size]",
-                            "psi": [np.asarray(c.psi).tolist() for c in pool]}
+    manifest = prepare_folder(job, variant, psi_pool=pool_record(pool))
+    manifest["psi_pool"] = pool_record(pool)
     done = {r["index"] for r in manifest["shards"]}
     todo = [i for i in range(job.num_shards) if i not in done]
     if not todo:

@@ -151,6 +151,13 @@ def test_verify_passes_then_fails_on_tampered_jacobian(tmp_path):
     save_manifest(str(out), m)
     r = CliRunner().invoke(cli, ["verify", str(out), "--samples", "2"])
     assert r.exit_code == 1 and "sample 0: the stored image or Jacobian holds NaN or inf" in r.output, r.output
+    # both samples unusable: no ψ line may say "ok" of Jacobians that were never compared
+    rel = scale_stored_jacobian(str(out), [1], "light_intensity", float("nan"))
+    rec["files"] = {r_: file_record(str(out), r_) for r_ in rec["files"]}
+    save_manifest(str(out), m)
+    r = CliRunner().invoke(cli, ["verify", str(out), "--samples", "2"])
+    assert r.exit_code == 1 and "chosen samples [0, 1]: none compared" in r.output, r.output
+    assert " ok" not in r.output.replace("shard files ok", "")
 
 
 @pytest.mark.parametrize("fmt", ["wds", "zarr"])

@@ -59,3 +59,36 @@ def test_ablation_tiny(tmp_path):
     bad = CliRunner().invoke(cli, ["ablation", "--env", "cube", "--out", str(tmp_path / "x"), "--pools", "0"])
     assert bad.exit_code != 0 and "--pools" in bad.output
     assert not os.path.exists(tmp_path / "x" / "ablation.json")
+
+
+def test_a_pooled_folder_is_verified_with_its_looks_and_resumed_only_by_the_ablation(tmp_path):
+    """A pooled set (sample i rendered with pool[i mod P]): risp-data verify re-renders each sample with its pool
+    look (it reported every sample as not the one its seed gives), and risp-data render / verify --repair refuse
+    to re-render its shards (they gave the missing samples looks of their own under the pool's manifest); the
+    ablation's own render resumes it with the pool."""
+    from risp_data.cli import cli as data_cli
+    from risp_data.generate import RenderJob
+    from risp_data.shards import iter_wds
+    from risp_train.ablation import config_pool, render_pooled
+
+    out = str(tmp_path / "pooled")
+    job = RenderJob(env="cube", n=4, out=out, domain="train", formats=("wds",), resolution=16, spp=2, seed=0,
+                    workers=1, shard_size=2, jacobian=True)
+    pool = config_pool("cube", 1, 0)
+    render_pooled(job, pool, progress=False)
+    r = CliRunner().invoke(data_cli, ["verify", out, "--samples", "4"])
+    assert r.exit_code == 0, r.output
+    shard = os.path.join(out, "wds", sorted(os.listdir(os.path.join(out, "wds")))[1])
+    os.remove(shard)
+    for args in (["verify", out, "--samples", "2", "--repair"],
+                 ["render", "--env", "cube", "--n", "4", "--out", out, "--res", "16", "--spp", "2", "--seed", "0",
+                  "--shard-size", "2", "--format", "wds", "--quiet"]):
+        r = CliRunner().invoke(data_cli, args)
+        assert r.exit_code == 1 and "rendered by risp-train ablation with a pool of 1 look(s)" in r.output, r.output
+        assert not os.path.exists(shard)
+    render_pooled(job, pool, progress=False)  # the ablation resumes it: every sample with the pool's one look
+    psis = {tuple(s["psi"]) for s in iter_wds(out)}
+    assert psis == {tuple(np.asarray(pool[0].psi).tolist())}
+    other = config_pool("cube", 1, 5)
+    with pytest.raises(Exception, match="another pool of looks"):
+        render_pooled(job, other, progress=False)
