@@ -38,8 +38,10 @@ def atomic_write(path: "str | os.PathLike", mode: str = "wb", suffix: str = "") 
     except BaseException as e:
         if os.path.exists(tmp):
             os.unlink(tmp)
-        if isinstance(e, OSError) and not e.filename:  # a failed write (disk full) names no file: name ours
-            raise OSError(e.errno, e.strerror or str(e), os.fspath(path)) from e
+        if isinstance(e, OSError) and (not e.filename or e.filename == tmp):
+            # a failed write (disk full) names no file, a failed rename (a folder where the file goes) the
+            # temporary: name the file being written
+            raise OSError(e.errno, e.strerror or str(e), os.fspath(path)) from None
         raise
 
 

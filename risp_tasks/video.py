@@ -268,9 +268,19 @@ def frame_order(path: Path) -> tuple:
     return tuple((0, int(x), x) if x.isdigit() else (1, 0, x) for x in parts), path.name
 
 
+#: files that mark a folder as risp's own output, not a sequence of frames (its PNGs are plots)
+_NOT_FRAMES = {"model.pt": "a risp-train run folder", "last.pt": "a risp-train run folder",
+               "result.json": "a risp-task result folder", "report.json": "a risp-task diagnose report",
+               "manifest.json": "a risp-data shard folder"}
+
+
 def png_frames(folder: Path) -> list[Path]:
     """A PNG folder's frames in the numeric order of their names (:func:`frame_order`; ``.png`` in any case);
-    RispError if it also holds other images, which would otherwise go missing from the sequence without a word."""
+    RispError if it also holds other images, which would otherwise go missing from the sequence without a word,
+    or if it is one of risp's output folders (a run's loss plot read as a one-frame video)."""
+    for name, what in _NOT_FRAMES.items():
+        if (folder / name).is_file():
+            raise RispError(f"{folder}: {what} ({name}), not a video: give a video file or a folder of PNG frames")
     files = sorted((f for f in folder.iterdir() if f.is_file() and f.suffix.lower() == ".png"), key=frame_order)
     others = sorted(f.name for f in folder.iterdir() if f.is_file() and f.suffix.lower() in OTHER_IMAGE_SUFFIXES)
     if others:

@@ -821,3 +821,16 @@ def test_a_helper_whose_parent_is_already_gone_ends():
 
     init = _WorkerInit()  # made in the process that makes the DataLoader: names it by pid and start time
     assert init.parent == os.getpid() and init.started is not None
+
+
+def test_atomic_write_over_a_folder_names_the_file_not_the_temporary(tmp_path):
+    """The final rename fails where a folder stands in the file's place: the error names the file (it named
+    `.tmp-… -> file`), and no temporary is left."""
+    from risp_data.atomic import atomic_write
+
+    (tmp_path / "e.json").mkdir()
+    with pytest.raises(OSError) as e:
+        with atomic_write(tmp_path / "e.json", "w") as f:
+            f.write("{}")
+    assert e.value.filename == str(tmp_path / "e.json") and ".tmp-" not in str(e.value)
+    assert os.listdir(tmp_path) == ["e.json"]

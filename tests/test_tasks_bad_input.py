@@ -962,3 +962,17 @@ def test_a_still_image_as_the_video_needs_its_frame_rate(quad, tmp_path):
                                    "--out", str(tmp_path / "est"), "--quiet", "--no-plots"])
     assert res.exit_code == 0, res.output
     assert json.load(open(tmp_path / "est" / "result.json"))["video"]["fps"] == 10
+
+
+def test_folders_given_for_files_and_output_folders_given_as_videos(quad, tmp_path):
+    """A folder where a truth/actions file goes says so (it said 'file not found'); a risp output folder given as
+    the video is named for what it is (a run folder's loss plot was read as a one-frame video with --source-fps)."""
+    model, video = quad
+    (tmp_path / "emptyd").mkdir()
+    line = _invoke(["sysid", video, "--model", model, "--truth", str(tmp_path / "emptyd")], tmp_path)
+    assert "emptyd: a folder, not a ground-truth file" in line, line
+    line = _invoke(["sysid", video, "--model", model, "--actions", str(tmp_path / "emptyd")], tmp_path)
+    assert "emptyd: a folder, not an actions file" in line, line
+    run = os.path.dirname(model)
+    line = _invoke(["estimate", run, "--model", model, "--source-fps", "10"], tmp_path)
+    assert "a risp-train run folder (model.pt), not a video" in line, line

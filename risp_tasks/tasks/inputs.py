@@ -123,6 +123,8 @@ def read_actions(path: str, env: str, n_frames: int, fps: float | None = None, t
     cols = action_columns(env)
     if not cols:
         raise RispError(f"{path}: the {env} has no actions")
+    if os.path.isdir(path):
+        raise RispError(f"{path}: a folder, not an actions file")
     if not os.path.isfile(path):
         raise RispError(f"{path}: actions file not found")
     try:
@@ -208,6 +210,8 @@ def write_actions(path: str, env: str, actions: np.ndarray, fps: float) -> None:
 
 
 def read_json(path: str, what: str) -> dict:
+    if os.path.isdir(path):
+        raise RispError(f"{path}: a folder, not a {what} file")
     if not os.path.isfile(path):
         raise RispError(f"{path}: {what} file not found")
     try:
