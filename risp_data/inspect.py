@@ -11,7 +11,7 @@ from .errors import RispError
 from .shards import load_manifest
 from .shards.layout import channel_map
 from .shards.reader import complete_indices, read_samples
-from .atomic import atomic_write
+from .figures import save_figure
 
 
 @dataclass(frozen=True)
@@ -117,7 +117,7 @@ def _tonemap(image: np.ndarray) -> np.ndarray:
     return np.clip(np.nan_to_num(image), 0.0, 1.0) ** (1.0 / 2.2)
 
 
-def contact_sheet(samples: list[dict], psi_names: list[str], path: str) -> str:
+def contact_sheet(samples: list[dict], psi_names: list[str], path: str, *, seed: int | None) -> str:
     """One row per sample: the image, then ∂I/∂ψ_j per ψ_j (its strongest colour channel), drawn with a
     diverging colormap and symmetric limits ±max|∂I/∂ψ_j| so zero is white."""
     import matplotlib
@@ -145,8 +145,7 @@ def contact_sheet(samples: list[dict], psi_names: list[str], path: str) -> str:
         ax.set_yticks([])
     fig.tight_layout()
     try:
-        with atomic_write(path, "wb", suffix=".png") as f:
-            fig.savefig(f, dpi=110, format="png")
+        save_figure(fig, path, seed=seed, what="risp-data inspect: images and Jacobians")
     finally:
         plt.close(fig)
     return path
@@ -168,7 +167,7 @@ def inspect_folder(cfg: InspectConfig) -> tuple[str, str | None, list[str]]:
     got = read_samples(cfg.folder, chosen)
     path = cfg.png or os.path.join(cfg.folder, "contact_sheet.png")
     try:
-        contact_sheet([got[i] for i in chosen], list(m["psi"]["names"]), path)
+        contact_sheet([got[i] for i in chosen], list(m["psi"]["names"]), path, seed=m.get("seed"))
     except OSError as e:
         raise RispError(f"cannot write contact sheet {path}: {e.strerror or e}") from None
     return summary, path, problems

@@ -394,6 +394,7 @@ def read_video(path: str | os.PathLike, resolution: int | None = None, every: in
     comment, notes = "", []
     if p.is_dir():
         (raw, size), rate = _decode_pngs(p, each), float(source_fps or 0.0)
+        comment = _png_comment(p)
     else:
         if p.stat().st_size == 0:
             raise RispError(f"{p}: empty file (0 bytes)")
@@ -428,12 +429,29 @@ def made_by(env: str, seed: int) -> str:
 def comment_tag(path: str | os.PathLike) -> str:
     """The container's comment tag, read from the header (nothing decoded); "" for a file without one, a folder or
     a file that cannot be opened (reading it in full reports that)."""
+    if os.path.isdir(path):
+        return _png_comment(Path(path))
     if not os.path.isfile(path):
         return ""
     try:
         with _av().open(str(path)) as container:
             return _comment(container)
     except Exception:  # noqa: BLE001 - not a video: the full read says so in one line
+        return ""
+
+
+def _png_comment(folder: Path) -> str:
+    """A PNG folder's comment: its first frame's ``Comment`` text chunk (make-video writes one into every frame)."""
+    from PIL import Image
+
+    try:
+        first = next(iter(sorted((f for f in folder.iterdir() if f.is_file() and f.suffix.lower() == ".png"),
+                                 key=frame_order)), None)
+        if first is None:
+            return ""
+        with Image.open(first) as im:
+            return str((getattr(im, "text", {}) or {}).get("Comment", ""))
+    except Exception:  # noqa: BLE001 - an unreadable frame: the full read says so in one line
         return ""
 
 
@@ -465,7 +483,7 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float, crf: in
         raise RispError("frames contain NaN or inf")
     data = to_uint8(frames)
     if p.suffix.lower() not in VIDEO_SUFFIXES:
-        _write_pngs(p, data)
+        _write_pngs(p, data, comment)
         return
     av = _av()
     H, W = data.shape[1:3]
@@ -514,7 +532,9 @@ def check_video_path(path: str | os.PathLike, overwrite: bool = False) -> None:
         raise RispError(f"{p}: holds files other than PNG frames; give another --out")
 
 
-def _write_pngs(folder: Path, data: np.ndarray) -> None:
+def _write_pngs(folder: Path, data: np.ndarray, comment: str | None = None) -> None:
+    """The frames as ``frame_NNNNN.png`` in a new folder renamed into place; ``comment`` (make-video's
+    "risp make-video env=… seed=…") goes into each frame's ``Comment`` text chunk, as a video file's comment tag."""
     import shutil
 
     from PIL import Image
@@ -522,10 +542,15 @@ def _write_pngs(folder: Path, data: np.ndarray) -> None:
     from risp_data.atomic import replace_folder, temp_folder
 
     folder.parent.mkdir(parents=True, exist_ok=True)  # (write_video checked the path: check_video_path)
+    from PIL.PngImagePlugin import PngInfo
+
+    info = PngInfo()
+    if comment:
+        info.add_text("Comment", comment)
     tmp = Path(temp_folder(folder.parent))
     try:
         for i, img in enumerate(data):
-            Image.fromarray(img).save(tmp / f"frame_{i:05d}.png")
+            Image.fromarray(img).save(tmp / f"frame_{i:05d}.png", pnginfo=info)
         replace_folder(tmp, folder)  # an old folder of frames (--overwrite) goes only once the new one is in place
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)

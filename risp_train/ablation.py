@@ -205,7 +205,7 @@ def run_ablation(cfg: AblationConfig, progress: bool = True) -> dict:
                "eval_sets": eval_sets, "results": results}
     _write(os.path.join(cfg.out, "ablation.json"), json.dumps(summary, indent=1, sort_keys=True) + "\n")
     _write(os.path.join(cfg.out, "ablation.md"), ablation_markdown(summary) + "\n")
-    plot_ablation(results, os.path.join(cfg.out, "ablation.png"), "l1", list(eval_sets))
+    plot_ablation(results, os.path.join(cfg.out, "ablation.png"), "l1", list(eval_sets), seed=cfg.seed)
     return summary
 
 

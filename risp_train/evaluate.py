@@ -179,7 +179,7 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
         for i in idx:
             units[i] = unit
     plot_predicted_vs_true(pred, true, names, prefix + "_scatter.png",
-                           title=f"{shards.env}, {result['domain']} domain, {n} images", units=units)
+                           title=f"{shards.env}, {result['domain']} domain, {n} images", units=units, seed=cfg.seed)
     result["files"] = [prefix + ".json", prefix + ".md", prefix + "_scatter.png"]
     return result
 

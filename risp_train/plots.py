@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import csv
-from risp_data.atomic import atomic_write
+
+from risp_data.figures import save_figure
 
 
 def _pyplot():
@@ -15,12 +16,12 @@ def _pyplot():
     return plt
 
 
-def _save(fig, path: str) -> None:
-    with atomic_write(path, "wb", suffix=".png") as f:
-        fig.savefig(f, format="png", dpi=110, bbox_inches="tight")
+def _save(fig, path: str, seed: int | None, what: str) -> None:
+    save_figure(fig, path, seed=seed, what=what, tight=True)
 
 
-def plot_losses(csv_path: str, png_path: str, history: list[dict] | None = None, reg: str = "none") -> None:
+def plot_losses(csv_path: str, png_path: str, history: list[dict] | None = None, reg: str = "none", *,
+                seed: int | None) -> None:
     """State error and regularizer per step (log scale), held-out error per epoch when present.  ``reg``: the run's
     regularizer (what the right panel says when no step evaluated it).  A run of a few steps gets point markers
     (a line through one point is invisible)."""
@@ -57,11 +58,12 @@ def plot_losses(csv_path: str, png_path: str, history: list[dict] | None = None,
         ax[1].text(0.5, 0.5, text, ha="center", va="center", transform=ax[1].transAxes)
     ax[1].set_xlabel("step")
     ax[1].set_ylabel("regularizer r (batch mean)")
-    _save(fig, png_path)
+    _save(fig, png_path, seed, "risp-train fit: loss curves")
     plt.close(fig)
 
 
-def plot_predicted_vs_true(pred, true, names, png_path: str, title: str = "", units=None) -> None:
+def plot_predicted_vs_true(pred, true, names, png_path: str, title: str = "", units=None, *,
+                           seed: int | None) -> None:
     """One scatter panel per state entry: prediction (y) against truth (x), with the diagonal y = x.  ``units``: one
     per entry ("m", "rad", "deg", …) for the panel titles; "deg" entries are given in radians and drawn in degrees,
     as the eval tables report attitude."""
@@ -90,11 +92,12 @@ def plot_predicted_vs_true(pred, true, names, png_path: str, title: str = "", un
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    _save(fig, png_path)
+    _save(fig, png_path, seed, "risp-train eval: predicted vs true")
     plt.close(fig)
 
 
-def plot_ablation(results: list[dict], png_path: str, metric: str, sets: list[str]) -> None:
+def plot_ablation(results: list[dict], png_path: str, metric: str, sets: list[str], *,
+                  seed: int | None) -> None:
     """Held-out state error vs number of rendering configurations, one line per regularizer, one panel per set."""
     plt = _pyplot()
     order = ["none", "surrogate", "exact", "stochastic"]
@@ -112,5 +115,5 @@ def plot_ablation(results: list[dict], png_path: str, metric: str, sets: list[st
         ax.set_title(f"evaluated on {s} shards")
         ax.set_ylabel(f"per-image state error ({metric})")
         ax.legend(fontsize=8)
-    _save(fig, png_path)
+    _save(fig, png_path, seed, "risp-train ablation")
     plt.close(fig)

@@ -546,7 +546,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
                 ckpt_io.save_checkpoint(last_path, payload(epoch + 1, 0, epoch + 1 == cfg.epochs))
                 from .plots import plot_losses
 
-                plot_losses(csv_path, os.path.join(cfg.out, "losses.png"), history, cfg.reg)
+                plot_losses(csv_path, os.path.join(cfg.out, "losses.png"), history, cfg.reg, seed=cfg.seed)
             if world > 1:
                 import torch.distributed as dist
 

@@ -60,6 +60,16 @@ def test_rest_penetration(log10_kn, side, mass):
     S = sim.rollout(p, sim.default_state(1), None, 100)
     depth = side / 2 - S[0, -1, 2].item()
     assert depth == pytest.approx(rest_penetration(mass, k, 4), rel=1e-6)
+    # the same balance solved here, independently of the module's Newton iteration: φ(k δ sp(d/δ)) = m g / 4
+    from scipy.optimize import brentq
+
+    from risp_tasks.sims.cube import CONTACT_WIDTH as delta, FLOOR_WIDTH as w
+
+    def excess(d):
+        f = k * delta * np.logaddexp(0.0, d / delta)
+        return f / (1.0 + np.exp(-f / w)) - mass * G / 4
+
+    assert depth == pytest.approx(brentq(excess, -50 * delta, 0.01, xtol=1e-15, rtol=1e-12), rel=1e-6)
     if mass * G / (4 * k) > 2 * sim.contact_width:  # well past the smoothing: the penalty law m g / (n k_n)
         assert depth == pytest.approx(mass * G / (4 * k), rel=0.05)
     assert S[0, -1, 7:].abs().max() < 1e-9

@@ -491,6 +491,12 @@ def test_make_video_refuses_a_suffix_it_cannot_write(tmp_path):
             "--quiet"]
     assert CliRunner().invoke(cli, args).exit_code == 0
     assert sorted(os.listdir(tmp_path / "clip-1.5")) == ["frame_00000.png", "frame_00001.png"]
+    # its frames carry make-video's tag, as a video file's comment does: the tasks read the system from it
+    from risp_tasks.tasks.run import video_system
+    from risp_tasks.video import read_video
+
+    assert read_video(tmp_path / "clip-1.5", source_fps=10).comment == "risp make-video env=quadrotor seed=0"
+    assert video_system(str(tmp_path / "clip-1.5")) == "quadrotor"
 
 
 def test_png_folder_is_replaced_only_with_overwrite_and_only_if_all_png(tmp_path):

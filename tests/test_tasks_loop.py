@@ -409,12 +409,12 @@ def test_loss_plot_marks_the_returned_iterate_at_result_json_s_index(tmp_path, m
     figs = []
     monkeypatch.setattr(plt, "close", lambda fig=None: figs.append(fig))
     history = [5.0, 3.0, 1.0, 2.0, 4.0]
-    plot_loss(str(tmp_path / "loss.png"), history, "t", last=6.0, best=2)
+    plot_loss(str(tmp_path / "loss.png"), history, "t", last=6.0, best=2, seed=0)
     (ax,) = figs[-1].axes
     stars = [ln for ln in ax.get_lines() if ln.get_marker() == "*"]
     assert len(stars) == 1 and list(stars[0].get_xdata()) == [2] and list(stars[0].get_ydata()) == [1.0]
     loss_line = next(ln for ln in ax.get_lines() if ln.get_label() == "loss")
     assert list(loss_line.get_xdata()) == [0, 1, 2, 3, 4]
-    plot_loss(str(tmp_path / "loss2.png"), history, "t", last=0.5, best=5)  # the last iterate returned
+    plot_loss(str(tmp_path / "loss2.png"), history, "t", last=0.5, best=5, seed=0)  # the last iterate returned
     stars = [ln for ln in figs[-1].axes[0].get_lines() if ln.get_marker() == "*"]
     assert list(stars[0].get_xdata()) == [5] and list(stars[0].get_ydata()) == [0.5]

@@ -96,6 +96,10 @@ def test_estimate_writes_measured_csv_that_diagnose_reads(quad, tmp_path):
     assert ((traj.quat[1:] * traj.quat[:-1]).sum(1) >= 0).all()
     for name in ("result.json", "loss.png", "trajectory.png", "frames.png"):
         assert (tmp_path / "est" / name).is_file()
+    from risp_data.figures import png_provenance
+
+    for name in ("loss.png", "trajectory.png", "frames.png"):  # each PNG names the run's seed, as result.json does
+        assert png_provenance(tmp_path / "est" / name)["risp:seed"] == str(r["seed"]), name
     saved = json.load(open(tmp_path / "est" / "result.json"))
     assert saved["video"]["sha256"] == r["video"]["sha256"] and len(saved["model"]["sha256"]) == 64
     assert "state_rmse_network" in saved["errors"] and saved["seed"] == 0

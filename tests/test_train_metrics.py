@@ -110,7 +110,7 @@ def test_scatter_plot_draws_attitude_in_degrees_with_units(tmp_path, monkeypatch
     true = _rigid_truth(4)
     pred = true + 0.01
     names = ["x", "y", "z", "yaw", "pitch", "roll"]
-    plot_predicted_vs_true(pred, true, names, str(tmp_path / "s.png"), units=["m"] * 3 + ["deg"] * 3)
+    plot_predicted_vs_true(pred, true, names, str(tmp_path / "s.png"), units=["m"] * 3 + ["deg"] * 3, seed=4)
     axes = [ax for ax in figs[-1].axes if ax.get_title()]
     assert [ax.get_title() for ax in axes] == ["x [m]", "y [m]", "z [m]", "yaw [°]", "pitch [°]", "roll [°]"]
     yaw_points = axes[3].collections[0].get_offsets()
@@ -137,7 +137,12 @@ def test_loss_plot_leaves_out_the_steps_before_the_regularizer_starts(tmp_path, 
             w.writerow([s, 0, s, 1e-3, 0.3, e + r, e, r, 0.1])
     figs = []
     monkeypatch.setattr(plt, "close", lambda fig=None: figs.append(fig))
-    plot_losses(str(path), str(tmp_path / "losses.png"), reg="stochastic")
+    plot_losses(str(path), str(tmp_path / "losses.png"), reg="stochastic", seed=4)
     (line,) = figs[-1].axes[1].get_lines()
     assert list(line.get_xdata()) == list(range(5, 10))
     np.testing.assert_allclose(line.get_ydata(), [r for _, _, r in rows[5:]])
+    from risp_data.figures import png_provenance
+
+    # the PNG names its run's seed (its JSON beside it does too)
+    assert png_provenance(tmp_path / "losses.png") == {"Software": "risp", "risp:seed": "4",
+                                                       "risp:what": "risp-train fit: loss curves"}

@@ -15,7 +15,8 @@ import torch
 from .adapter import measured_columns
 from .fit import longest_even, make_segments, predict
 from .residuals import one_step, unit_of
-from risp_data.atomic import atomic_write, replace_folder, temp_folder, write_text_atomic
+from risp_data.atomic import replace_folder, temp_folder, write_text_atomic
+from risp_data.figures import save_figure
 
 from ..strict_json import strict_json
 
@@ -38,10 +39,9 @@ def _named(path: Path, write) -> None:
         raise OSError(e.errno, e.strerror or str(e), str(path)) from None
 
 
-def _savefig(fig, path: Path) -> None:
+def _savefig(fig, path: Path, seed: int | None) -> None:
     def write():
-        with atomic_write(path, "wb", suffix=".png") as f:
-            fig.savefig(f, format="png", dpi=110, bbox_inches="tight")
+        save_figure(fig, path, seed=seed, what=f"risp-task diagnose: {path.stem}", tight=True)
 
     _named(path, write)
 
@@ -83,7 +83,7 @@ def _top_channels(accel: np.ndarray) -> list[int]:
     return sorted(np.argsort(rms)[::-1][:MAX_PLOTTED_CHANNELS].tolist())
 
 
-def plot_residuals_time(path: Path, os_base, os_ext, names: tuple[str, str]) -> None:
+def plot_residuals_time(path: Path, os_base, os_ext, names: tuple[str, str], *, seed: int | None) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -112,11 +112,11 @@ def plot_residuals_time(path: Path, os_base, os_ext, names: tuple[str, str]) -> 
     axes[-1, 0].set_xlabel("time [s] (held-out trajectories, up to 3)")
     fig.suptitle("one-step acceleration residuals a_meas − a_model (m/s², rad/s²); faint: raw, bold: moving mean; "
                  "y: 1st–99th percentile", fontsize=9)
-    _savefig(fig, path)
+    _savefig(fig, path, seed)
     plt.close(fig)
 
 
-def plot_residuals_regressors(path: Path, os_base) -> None:
+def plot_residuals_regressors(path: Path, os_base, *, seed: int | None) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -153,11 +153,11 @@ def plot_residuals_regressors(path: Path, os_base) -> None:
                 ax.set_ylabel(os_base.accel_names[c], fontsize=7)
     fig.suptitle("base-model one-step acceleration residuals vs candidate regressors (black: binned means; "
                  "axes: 1st–99th percentile)", fontsize=9)
-    _savefig(fig, path)
+    _savefig(fig, path, seed)
     plt.close(fig)
 
 
-def plot_gain(path: Path, base_ev, ext_ev, held_trajs, horizon: int) -> None:
+def plot_gain(path: Path, base_ev, ext_ev, held_trajs, horizon: int, *, seed: int | None) -> None:
     """Measured vs base vs extended open-loop rollouts, restarted from the measured state every H_r samples."""
     import matplotlib
 
@@ -196,7 +196,7 @@ def plot_gain(path: Path, base_ev, ext_ev, held_trajs, horizon: int) -> None:
         ax.set_ylabel(name, fontsize=8)
     axes[0, 0].legend(fontsize=7, loc="upper right")
     axes[-1, 0].set_xlabel(f"time [s] — held-out trajectory {tr.name}; open-loop rollouts of {H} samples from measured states")
-    _savefig(fig, path)
+    _savefig(fig, path, seed)
     plt.close(fig)
 
 
@@ -204,7 +204,7 @@ def ev_name(ev) -> str:
     return ev.fit.model.name
 
 
-def plot_ranking(path: Path, report: dict) -> None:
+def plot_ranking(path: Path, report: dict, *, seed: int | None) -> None:
     """The decision: held-out ΔBIC vs base (left) and the noise-floor ratio ρ (right), thresholds dashed."""
     import matplotlib
 
@@ -235,7 +235,7 @@ def plot_ranking(path: Path, report: dict) -> None:
     a2.set_xlabel("held-out RSS / noise floor ρ (≈ 1: only noise left)")
     a2.legend(fontsize=7)
     fig.suptitle(f"cause: {report['cause']} (selected: {sel}, outlined); blue/green: passes, grey/red: fails", fontsize=9)
-    _savefig(fig, path)
+    _savefig(fig, path, seed)
     plt.close(fig)
 
 
@@ -364,10 +364,11 @@ def _write_files(tmp: Path, out: Path, report: dict, cfg, base_ev, ext_ev, held_
         os_e = None
         if ext_ev is not base_ev:
             os_e = one_step(ext_ev.fit.model.sim, ext_ev.obs, ext_ev.fit.params, held_trajs, ext_ev.k, **cap)
-        plot_residuals_time(tmp / PLOTS["residuals_time"], os_b, os_e, ("base", ext_ev.fit.model.name))
-        plot_residuals_regressors(tmp / PLOTS["residuals_regressors"], os_b)
-        plot_gain(tmp / PLOTS["gain"], base_ev, ext_ev, held_trajs, report["base_error"]["rollout_horizon_samples"])
-        plot_ranking(tmp / PLOTS["ranking"], report)
+        plot_residuals_time(tmp / PLOTS["residuals_time"], os_b, os_e, ("base", ext_ev.fit.model.name), seed=cfg.seed)
+        plot_residuals_regressors(tmp / PLOTS["residuals_regressors"], os_b, seed=cfg.seed)
+        plot_gain(tmp / PLOTS["gain"], base_ev, ext_ev, held_trajs, report["base_error"]["rollout_horizon_samples"],
+                  seed=cfg.seed)
+        plot_ranking(tmp / PLOTS["ranking"], report, seed=cfg.seed)
         report["plots"] = {k: str(out / v) for k, v in PLOTS.items()}  # where they will be once renamed
     text = json.dumps(strict_json(report), indent=2, allow_nan=False)
     _named(out / "report.json", lambda: write_text_atomic(tmp / "report.json", text))

@@ -145,21 +145,21 @@ def write_report(cfg: TableConfig, folder: str, results: list[dict]) -> dict:
     if cfg.table == "sampling":
         from .sampling import plot_sampling
 
-        plot_sampling(results, os.path.join(folder, "sampling.png"))
+        plot_sampling(results, os.path.join(folder, "sampling.png"), seed=cfg.seed)
     if cfg.table == "regularizers":
-        plot_regularizers(report, os.path.join(folder, "regularizers.png"))
+        plot_regularizers(report, os.path.join(folder, "regularizers.png"), seed=cfg.seed)
     report["files"] = [os.path.join(folder, "table.md"), os.path.join(folder, "table.json")]
     return report
 
 
-def plot_regularizers(report: dict, path: str) -> None:
+def plot_regularizers(report: dict, path: str, *, seed: int) -> None:
     """Target-domain error vs wall time per epoch, one panel per environment, one point per regularizer."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from risp_data.atomic import atomic_write
+    from risp_data.figures import save_figure
 
     envs = report["config"]["envs"]
     fig, axes = plt.subplots(1, len(envs), figsize=(3.2 * len(envs), 3.0), squeeze=False)
@@ -172,6 +172,5 @@ def plot_regularizers(report: dict, path: str) -> None:
         ax.set(title=env, xlabel="s / epoch", ylabel="target-domain L1 error")
         ax.legend(fontsize=7)
     fig.tight_layout()
-    with atomic_write(path, "wb", suffix=".png") as f:
-        fig.savefig(f, format="png", dpi=110)
+    save_figure(fig, path, seed=seed, what="risp-task table --table regularizers")
     plt.close(fig)

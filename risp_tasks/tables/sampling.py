@@ -84,14 +84,14 @@ def sampling(cfg, art, env_name: str, scheme: str, repeat: int) -> dict:
             "true": land["true"], "grid": land["grid"].tolist(), "losses": losses.tolist()}
 
 
-def plot_sampling(results: list[dict], path: str) -> None:
+def plot_sampling(results: list[dict], path: str, *, seed: int) -> None:
     """Normalised loss landscapes L/max L vs log10 E per scheme, one panel per repeat; the truth dashed."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from risp_data.atomic import atomic_write
+    from risp_data.figures import save_figure
 
     rows = [r for r in results if "losses" in r]
     repeats = sorted({r["repeat"] for r in rows})
@@ -106,6 +106,5 @@ def plot_sampling(results: list[dict], path: str) -> None:
         ax.set(title=f"rod, repeat {k}", xlabel="log10 E", ylabel="loss / max")
         ax.legend(fontsize=7)
     fig.tight_layout()
-    with atomic_write(path, "wb", suffix=".png") as f:
-        fig.savefig(f, format="png", dpi=110)
+    save_figure(fig, path, seed=seed, what="risp-task table --table sampling: loss vs log10 E")
     plt.close(fig)

@@ -11,6 +11,7 @@ import shutil
 import numpy as np
 
 from risp_data.atomic import check_writable, file_in_the_way, replace_folder, temp_folder
+from risp_data.figures import save_figure, save_image
 from risp_data.errors import RispError
 from risp_data.shards.manifest import risp_commit
 
@@ -81,7 +82,7 @@ class ResultFolder:
 
 
 def plot_loss(path: str, history: list[float], title: str, last: float | None = None,
-              best: int | None = None) -> None:
+              best: int | None = None, *, seed: int | None) -> None:
     """Loss per iteration (at the variables before that iteration's step), then ``last``: the loss after the last
     step, which the history does not hold; ``best``: the returned iterate's index, marked.  Without iterations the
     figure says so instead of showing empty axes."""
@@ -111,11 +112,11 @@ def plot_loss(path: str, history: list[float], title: str, last: float | None = 
     ax.set_ylabel("loss")
     ax.set_title(title, fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, seed=seed, what="risp-task: loss per iteration")
     plt.close(fig)
 
 
-def plot_trajectories(path: str, names, t, curves: dict[str, np.ndarray]) -> None:
+def plot_trajectories(path: str, names, t, curves: dict[str, np.ndarray], *, seed: int | None) -> None:
     """One panel per state component; ``curves``: label -> (T, S) (NaN rows are skipped)."""
     import matplotlib
 
@@ -137,11 +138,11 @@ def plot_trajectories(path: str, names, t, curves: dict[str, np.ndarray]) -> Non
     axes[0][0].legend(fontsize=6)
     axes[-1][0].set_xlabel("time [s]", fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, seed=seed, what="risp-task: trajectories", dpi=100)
     plt.close(fig)
 
 
-def save_strip(path: str, rows: dict[str, np.ndarray], note: str | None = None) -> None:
+def save_strip(path: str, rows: dict[str, np.ndarray], note: str | None = None, *, seed: int | None) -> None:
     """PNG: one row per label (reference / initial / optimized), frames side by side, sRGB; ``note``: a line of
     text under the rows (e.g. that the simulated rows are drawn in the nominal look, not the video's)."""
     from PIL import Image, ImageDraw
@@ -162,4 +163,4 @@ def save_strip(path: str, rows: dict[str, np.ndarray], note: str | None = None) 
             canvas.paste(Image.fromarray(img), (label_w + c * (w + 2), r * (h + 2)))
     if note:
         draw.text((2, len(imgs) * (h + 2) + 1), note, fill=(60, 60, 60))
-    canvas.save(path)
+    save_image(canvas, path, seed=seed, what="risp-task: reference / initial / optimized frames")

@@ -413,7 +413,7 @@ def _write_estimate_csv(path: str, ctx: Context, states: torch.Tensor, provenanc
 def _plots(folder, cfg, env, ctx, loss_frames, initial_states, final_states, truth, history, renderer, *,
            truth_fps: float) -> None:
     plot_loss(folder.path("loss.png"), history["loss"], f"{cfg.task} ({env.name}), loss {cfg.loss}",
-              last=history["last_loss"], best=history["best_iteration"])
+              last=history["last_loss"], best=history["best_iteration"], seed=cfg.seed)
     t_keep = np.asarray(ctx.keep, np.float64) / ctx.fps
     if cfg.task == "control":
         t_sim = np.arange(len(final_states)) / ctx.fps
@@ -426,7 +426,7 @@ def _plots(folder, cfg, env, ctx, loss_frames, initial_states, final_states, tru
     if truth is not None:
         true = np.asarray(truth["env_states"], np.float64)  # one row per decoded frame, at the video's own rate
         curves["truth"] = (np.arange(len(true)) / truth_fps, true) if cfg.task != "control" else (t_sim[-1:], true[-1:])
-    plot_trajectories(folder.path("trajectory.png"), env.state_names, None, curves)
+    plot_trajectories(folder.path("trajectory.png"), env.state_names, None, curves, seed=cfg.seed)
     if renderer is None:
         return
     pick = np.unique(np.linspace(0, len(loss_frames) - 1, min(STRIP_FRAMES, len(loss_frames))).round().astype(int))
@@ -437,4 +437,5 @@ def _plots(folder, cfg, env, ctx, loss_frames, initial_states, final_states, tru
                 "initial": renderer(initial_states[frames].float(), seed=1).numpy(),
                 "optimized": renderer(final_states[frames].float(), seed=1).numpy()}
     save_strip(folder.path("frames.png"), rows,
-               note="initial, optimized: rendered in the train domain's nominal look (the reference row is the video)")
+               note="initial, optimized: rendered in the train domain's nominal look (the reference row is the video)",
+               seed=cfg.seed)
