@@ -201,7 +201,7 @@ def markdown_table(result: dict) -> str:
     names = list(next(iter(groups.values()), {}))
     head = [f"{g} [{groups['model'][g]['unit']}]" for g in names] + [f"paper {m} (all entries)"]
     lines = [f"State estimation on `{result['shards']}` ({result['env']}, domain {result['domain']}, "
-             f"n = {result['n']} images; mean ± std over images)", "",
+             f"n = {result['n']} images; mean ± std over images; `random` drawn with seed {result.get('seed')})", "",
              "| method | " + " | ".join(head) + " |", "|---|" + "---:|" * len(head)]
     for method, r in result["results"].items():
         cells = [_pm(groups[method][g]["mean"], groups[method][g]["std"], groups[method][g]["unit"])

@@ -93,7 +93,8 @@ def test_fit_lowers_held_out_error_and_writes_outputs(shards, tmp_path):
     assert set(res["results"]) == {"model", "average", "random"} and res["n"] == 32
     for v in res["results"].values():
         assert v["mean"] > 0 and v["std"] > 0 and len(v["per_dim_mae"]) == 6
-    assert "| model |" in open(tmp_path / "ev.md").read()
+    md = open(tmp_path / "ev.md").read()
+    assert "| model |" in md and f"`random` drawn with seed {res['seed']}" in md  # the table names its seed
     for method in ("model", "average", "random"):  # per state group, physical units (issue 8)
         g = res["groups"][method]
         assert set(g) == {"position", "attitude"} and g["position"]["n"] == 32 and g["attitude"]["unit"] == "deg"
