@@ -186,7 +186,7 @@ class StateRenderer:
         ends = np.cumsum([len(v) for v in per_state])
         return np.asarray([part.mean() if len(part) else 0.0 for part in np.split(inside, ends[:-1])], np.float64)
 
-    def __call__(self, states: torch.Tensor, seed: int = 0) -> torch.Tensor:
+    def __call__(self, states: torch.Tensor, *, seed: int) -> torch.Tensor:
         """Images (T, H, W, 3) float32 linear RGB of states (T, S); differentiable w.r.t. ``states``."""
         S = self.env.state_dim
         if not torch.is_tensor(states) or states.ndim != 2 or states.shape[1] != S:
