@@ -470,8 +470,9 @@ def check_folder(job: RenderJob, variant: str, psi_pool: dict | None = None) -> 
                 raise RispError(f"{out} was rendered by risp-train ablation with a pool of {held.get('size')} "
                                 "look(s) (manifest psi_pool): risp-data cannot re-render its samples (they would get "
                                 "looks of their own); run that ablation command again, which resumes the folder")
-            raise RispError(f"output folder {out} holds samples rendered with another pool of looks; give a new "
-                            f"folder with --out (or remove {out})")
+            other = "without a pool of looks" if held is None else "with another pool of looks"
+            raise RispError(f"output folder {out} holds samples rendered {other}; give a new folder with --out "
+                            f"(or remove {out})")
     elif not _is_fresh(out):
         raise RispError(f"output folder {out} is not empty and has no {MANIFEST}; use an empty or new folder")
 

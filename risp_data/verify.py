@@ -106,7 +106,7 @@ def repair_folder(folder: str, progress: bool = True, log=print) -> int:
     return int(stats.get("rendered_samples", 0))
 
 
-def _pool_configs(m: dict) -> list | None:
+def _pool_configs(m: dict, folder: str) -> list | None:
     """The looks of a folder risp-train ablation rendered with a pool (manifest ``psi_pool``), else None; a record
     without the looks' aux (written before 2026-12-02) cannot be re-rendered: one line says so."""
     from .psi import RenderConfig
@@ -115,8 +115,8 @@ def _pool_configs(m: dict) -> list | None:
     if rec is None:
         return None
     if "aux" not in rec:
-        raise RispError(f"{m.get('out', 'the folder')} was rendered with a pool of looks whose record lacks their aux "
-                        "(an older risp-train ablation): its samples cannot be re-rendered; render the ablation again")
+        raise RispError(f"{folder} was rendered with a pool of looks whose record lacks their aux (an older risp-train "
+                        "ablation): its samples cannot be re-rendered; run the ablation command again (it adds them)")
     return [RenderConfig(psi=np.asarray(p, dtype=np.float64), aux=a) for p, a in zip(rec["psi"], rec["aux"])]
 
 
@@ -161,7 +161,7 @@ def verify_folder(cfg: VerifyConfig) -> VerifyReport:
     from .threads import available_cpus
 
     renderer = make_renderer(job, available_cpus())  # Dr.Jit's threads set, not left to its implicit default
-    pool = _pool_configs(m)
+    pool = _pool_configs(m, cfg.folder)
     low, high = np.asarray(m["psi"]["low"]), np.asarray(m["psi"]["high"])
     h = cfg.eps * (high - low)
     k = len(h)

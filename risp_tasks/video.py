@@ -427,8 +427,9 @@ def made_by(env: str, seed: int) -> str:
 
 
 def comment_tag(path: str | os.PathLike) -> str:
-    """The container's comment tag, read from the header (nothing decoded); "" for a file without one, a folder or
-    a file that cannot be opened (reading it in full reports that)."""
+    """The container's comment tag, read from the header (nothing decoded); for a PNG folder its first frame's
+    ``Comment`` chunk; "" for a file or folder without one, or one that cannot be opened (reading it in full
+    reports that)."""
     if os.path.isdir(path):
         return _png_comment(Path(path))
     if not os.path.isfile(path):

@@ -131,7 +131,9 @@ def _render_pooled_locked(job, pool: list, variant: str, progress: bool) -> str:
     from risp_data.shards.writer import write_shard
 
     manifest = prepare_folder(job, variant, psi_pool=pool_record(pool))
-    manifest["psi_pool"] = pool_record(pool)
+    if manifest.get("psi_pool") != pool_record(pool):  # on disk before the first shard's marker: a kill in between
+        manifest["psi_pool"] = pool_record(pool)      # leaves a folder the pool resumes (and an older record, of
+        save_manifest(job.out, manifest)              # the same looks without their aux, gets them)
     done = {r["index"] for r in manifest["shards"]}
     todo = [i for i in range(job.num_shards) if i not in done]
     if not todo:

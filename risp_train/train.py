@@ -244,6 +244,9 @@ def check_resume_val(state: dict, val, cfg: TrainConfig, path: str) -> None:
     if was.get("manifest_hash") != now["manifest_hash"]:
         raise RispError(f"cannot resume {path} with --val {cfg.val}: it was validated on other shards "
                         f"({was.get('folder')}; manifest hash differs); pass the same --val")
+    if was.get("samples") != now["samples"]:  # val_samples: not a CLI option, but a config field of the API
+        raise RispError(f"cannot resume {path} with val_samples {now['samples']}: its val_error curve was measured "
+                        f"on {was.get('samples')} held-out samples")
 
 
 def helper_workers(shards, cache: str, world: int, workers: int) -> int:

@@ -982,3 +982,23 @@ def test_folders_given_for_files_and_output_folders_given_as_videos(quad, tmp_pa
     run = os.path.dirname(model)
     line = _invoke(["estimate", run, "--model", model, "--source-fps", "10"], tmp_path)
     assert "a risp-train run folder (model.pt), not a video" in line, line
+
+
+def test_a_linked_out_in_a_folder_that_cannot_be_written_is_refused_before_the_work(quad, tmp_path, monkeypatch):
+    """--overwrite onto a link to a result folder: the temporary goes beside the link, so the link's own folder must
+    be writable too — checked before the optimisation, not found out after it."""
+    import risp_tasks.tasks.run as run_mod
+    from risp_tasks.cli import cli
+
+    real = tmp_path / "disk" / "res"
+    real.mkdir(parents=True)
+    (real / "result.json").write_text("{}")
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    os.symlink(real, locked / "res")
+    _deny_writes_in(monkeypatch, locked)
+    monkeypatch.setattr(run_mod, "optimize", lambda *a, **k: pytest.fail("optimised before checking --out"))
+    res = CliRunner().invoke(cli, ["estimate", quad[1], "--model", quad[0], "--out", str(locked / "res"), "--quiet",
+                                   "--overwrite"])
+    assert "no write permission" in _error_line(res, skip="model: ")
+    assert os.listdir(real) == ["result.json"]

@@ -92,3 +92,30 @@ def test_a_pooled_folder_is_verified_with_its_looks_and_resumed_only_by_the_abla
     other = config_pool("cube", 1, 5)
     with pytest.raises(Exception, match="another pool of looks"):
         render_pooled(job, other, progress=False)
+
+
+def test_a_pooled_render_killed_at_its_first_shard_resumes(tmp_path, monkeypatch):
+    """The pool is in the manifest on disk before the first shard is written: a kill between a shard's marker
+    and the manifest update leaves a folder the same pool resumes (it was refused as 'another pool')."""
+    import risp_data.shards.writer as writer
+    from risp_data.generate import RenderJob
+    from risp_data.shards import iter_wds, load_manifest
+    from risp_train.ablation import config_pool, pool_record, render_pooled
+
+    out = str(tmp_path / "pooled")
+    job = RenderJob(env="cube", n=4, out=out, domain="train", formats=("wds",), resolution=16, spp=2, seed=0,
+                    workers=1, shard_size=2, jacobian=True)
+    pool = config_pool("cube", 2, 0)
+    real = writer.write_shard
+
+    def killed_after_the_marker(*a, **k):
+        real(*a, **k)
+        raise KeyboardInterrupt  # the marker is written, the manifest not yet updated
+
+    monkeypatch.setattr(writer, "write_shard", killed_after_the_marker)
+    with pytest.raises(KeyboardInterrupt):
+        render_pooled(job, pool, progress=False)
+    assert load_manifest(out)["psi_pool"] == pool_record(pool)
+    monkeypatch.setattr(writer, "write_shard", real)
+    render_pooled(job, pool, progress=False)
+    assert [s["meta"]["psi_pool_index"] for s in iter_wds(out)] == [0, 1, 0, 1]

@@ -36,7 +36,8 @@ def check_free(out: str, overwrite: bool = False) -> None:
     if not (os.path.isdir(out) and os.path.isfile(os.path.join(out, RESULT_FILE))):
         raise RispError(f"{out}: exists and is not a task's result folder (no {RESULT_FILE}); --overwrite replaces "
                         f"only those: choose another --out")
-    check_writable(os.path.dirname(os.path.realpath(out)), f"--out {out}: its folder")
+    for parent in {os.path.dirname(os.path.abspath(out)), os.path.dirname(os.path.realpath(out))}:
+        check_writable(parent, f"--out {out}: its folder")  # the temporary beside the link, the folder it names
 
 
 def versions() -> dict:

@@ -47,7 +47,8 @@ def resolve_model(cfg: TaskConfig) -> tuple[str, str]:
 
 
 def video_system(path: str) -> str | None:
-    """The system a make-video file names in its comment tag; None for any other video or a PNG folder."""
+    """The system a make-video file (or PNG folder: its frames' Comment chunk) names in its tag; None for other
+    footage."""
     from ..video import comment_tag, made_for
 
     return made_for(comment_tag(path))
