@@ -96,14 +96,14 @@ def replace_folder(tmp: "str | os.PathLike", dest: "str | os.PathLike") -> None:
     import shutil
 
     dest = os.fspath(dest)
-    moved_from = tmp
+    moved = False  # tmp moved beside the link's target (the caller cleans up only the original path)
     if os.path.islink(dest):  # a link the user made to the folder: replace the folder it points to, keep the link
         target = os.path.realpath(dest)
         if os.path.dirname(target) != os.path.dirname(os.path.realpath(tmp)):  # rename() cannot cross into it
-            moved = temp_folder(os.path.dirname(target))
-            os.rmdir(moved)
-            shutil.move(os.fspath(tmp), moved)
-            tmp = moved
+            beside = temp_folder(os.path.dirname(target))
+            os.rmdir(beside)
+            shutil.move(os.fspath(tmp), beside)
+            tmp, moved = beside, True
         dest = target
     old = None
     if os.path.exists(dest):
@@ -115,7 +115,7 @@ def replace_folder(tmp: "str | os.PathLike", dest: "str | os.PathLike") -> None:
     except BaseException:
         if old is not None and not os.path.exists(dest):
             os.replace(old, dest)
-        if os.fspath(tmp) != os.fspath(moved_from):  # moved beside the link's target: the caller cleans the original
+        if moved:
             shutil.rmtree(tmp, ignore_errors=True)
         raise
     if old is not None:

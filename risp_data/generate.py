@@ -461,11 +461,12 @@ def check_folder(job: RenderJob, variant: str, psi_pool: dict | None = None) -> 
     if os.path.exists(os.path.join(out, MANIFEST)):
         manifest = load_manifest(out)
         diffs = identity_mismatch(manifest, new_manifest(job, variant))
-        if diffs and not _holds_no_samples(out):
+        holds_samples = not _holds_no_samples(out)
+        if diffs and holds_samples:
             raise RispError(f"output folder {out} holds another job ({'; '.join(diffs)}); give a new folder with --out "
                             f"(or remove {out})")
         held = manifest.get("psi_pool")
-        if not _holds_no_samples(out) and not _same_pool(held, psi_pool):
+        if holds_samples and not _same_pool(held, psi_pool):
             if psi_pool is None:
                 raise RispError(f"{out} was rendered by risp-train ablation with a pool of {held.get('size')} "
                                 "look(s) (manifest psi_pool): risp-data cannot re-render its samples (they would get "

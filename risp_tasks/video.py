@@ -446,13 +446,12 @@ def _png_comment(folder: Path) -> str:
     from PIL import Image
 
     try:
-        first = next(iter(sorted((f for f in folder.iterdir() if f.is_file() and f.suffix.lower() == ".png"),
-                                 key=frame_order)), None)
-        if first is None:
+        frames = png_frames(folder)
+        if not frames:
             return ""
-        with Image.open(first) as im:
+        with Image.open(frames[0]) as im:
             return str((getattr(im, "text", {}) or {}).get("Comment", ""))
-    except Exception:  # noqa: BLE001 - an unreadable frame: the full read says so in one line
+    except Exception:  # noqa: BLE001 - not a folder of frames, an unreadable frame: the full read says so in one line
         return ""
 
 

@@ -116,13 +116,14 @@ def render_pooled(job, pool: list, progress: bool = True) -> str:
 
     validate_job(job)
     variant = init_mitsuba(job.variant)
-    check_folder(job, variant, pool_record(pool))  # refuses another job's or another pool's folder
+    record = pool_record(pool)
+    check_folder(job, variant, record)  # refuses another job's or another pool's folder
     os.makedirs(job.out, exist_ok=True)
     with folder_lock(job.out):
-        return _render_pooled_locked(job, pool, variant, progress)
+        return _render_pooled_locked(job, pool, record, variant, progress)
 
 
-def _render_pooled_locked(job, pool: list, variant: str, progress: bool) -> str:
+def _render_pooled_locked(job, pool: list, record: dict, variant: str, progress: bool) -> str:
     from tqdm.auto import tqdm
 
     from risp_data.envs import get_environment
@@ -130,10 +131,10 @@ def _render_pooled_locked(job, pool: list, variant: str, progress: bool) -> str:
     from risp_data.shards.manifest import save_manifest
     from risp_data.shards.writer import write_shard
 
-    manifest = prepare_folder(job, variant, psi_pool=pool_record(pool))
-    if manifest.get("psi_pool") != pool_record(pool):  # on disk before the first shard's marker: a kill in between
-        manifest["psi_pool"] = pool_record(pool)      # leaves a folder the pool resumes (and an older record, of
-        save_manifest(job.out, manifest)              # the same looks without their aux, gets them)
+    manifest = prepare_folder(job, variant, psi_pool=record)
+    if manifest.get("psi_pool") != record:  # on disk before the first shard's marker: a kill in between leaves a
+        manifest["psi_pool"] = record       # folder the pool resumes (and an older record, of the same looks
+        save_manifest(job.out, manifest)    # without their aux, gets them)
     done = {r["index"] for r in manifest["shards"]}
     todo = [i for i in range(job.num_shards) if i not in done]
     if not todo:

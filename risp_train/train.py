@@ -226,13 +226,13 @@ def val_record(val, cfg: TrainConfig) -> dict | None:
             "folder": os.path.abspath(val.folder)}
 
 
-def check_resume_val(state: dict, val, cfg: TrainConfig, path: str) -> None:
+def check_resume_val(state: dict, now: dict | None, cfg: TrainConfig, path: str) -> None:
     """Refuse to resume with another held-out set than the run began with: the history's ``val_error`` would
     switch data sets half-way and the loss plot would join two curves.  Checkpoints from before the record
-    (no ``val`` key) are not compared."""
+    (no ``val`` key) are not compared.  ``now``: this run's :func:`val_record`."""
     if "val" not in state:
         return
-    was, now = state["val"], val_record(val, cfg)
+    was = state["val"]
     if was is None and now is None:
         return
     if was is None:
@@ -327,6 +327,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
         raise RispError(f"shard folder {cfg.shards} was rendered without Jacobians; --reg {cfg.reg} needs them "
                         "(render the training set without --no-jacobian, or train without the regularizer: --reg none)")
     val = open_shards(cfg.val) if cfg.val else None
+    val_rec = val_record(val, cfg)  # once: every checkpoint stores it
     if val is not None:
         if val.env != shards.env:
             raise RispError(f"--val shards {cfg.val} are of environment {val.env!r}, training shards of {shards.env!r}")
@@ -371,7 +372,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
         changes = option_changes(state["config"], cfg, shards.env, used=state)  # before the data set is decoded below
         if changes:
             raise RispError(f"cannot resume {last_path} with different options: {', '.join(changes)}")
-        check_resume_val(state, val, cfg, last_path)
+        check_resume_val(state, val_rec, cfg, last_path)
         final = os.path.join(cfg.out, MODEL)
         if state["progress"].get("complete") and os.path.isfile(final):
             # nothing left to train: the finished run's model.pt stays as it is (rewriting it changed its checksum,
@@ -466,7 +467,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
             "history": history, "world_size": world, "workers": cfg.workers, "threads": threads, "cache": cache,
             "device": str(device), "torch_version": torch.__version__, "psi_std": psi_std.tolist(),
             "epoch_sums": [float(v) for v in sums] if batch > 0 else [0.0, 0.0, 0.0],
-            "samples": sample_counts(shards), "val": val_record(val, cfg),
+            "samples": sample_counts(shards), "val": val_rec,
         }
 
     if rank == 0:

@@ -262,9 +262,8 @@ def make_reference(cfg: ReferenceConfig) -> dict:
     check_video_size(cfg)
     check_video_path(cfg.out, cfg.overwrite)  # before the render: a .gif or a folder of other files fail here
     check_writable(os.path.dirname(os.path.abspath(cfg.out)), f"--out {cfg.out}: its folder")
-    for side in (truth_path(cfg.out), actions_path(cfg.out)):  # written after the video: refuse now what would fail
-        if os.path.lexists(side) and not os.path.isfile(side):
-            what = "ground truth" if side == truth_path(cfg.out) else "actions"
+    for side, what in ((truth_path(cfg.out), "ground truth"), (actions_path(cfg.out), "actions")):
+        if os.path.lexists(side) and not os.path.isfile(side):  # written after the video: refuse now what would fail
             raise RispError(f"{side}: exists and is not a file (the video's {what} file goes there); move it away "
                             "or give another --out")
     if not cfg.overwrite:  # a video's ground truth and actions belong to it: never replace them unasked

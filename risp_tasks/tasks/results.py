@@ -28,16 +28,15 @@ def check_free(out: str, overwrite: bool = False) -> None:
         blocker = file_in_the_way(os.path.dirname(os.path.abspath(out)))  # the result must go under a folder
         if blocker:
             raise RispError(f"{out}: {blocker} is a file, not a folder: choose another --out")
-        # the folder is written beside out (a temporary sibling renamed into place): say now, not after the work
-        check_writable(os.path.dirname(os.path.abspath(out)), f"--out {out}: its folder")
-        return
-    if not overwrite:
+    elif not overwrite:
         raise RispError(f"{out}: result folder exists; choose another --out, remove it, or give --overwrite")
-    if not (os.path.isdir(out) and os.path.isfile(os.path.join(out, RESULT_FILE))):
+    elif not (os.path.isdir(out) and os.path.isfile(os.path.join(out, RESULT_FILE))):
         raise RispError(f"{out}: exists and is not a task's result folder (no {RESULT_FILE}); --overwrite replaces "
                         f"only those: choose another --out")
+    # the folder is written beside out (a temporary sibling renamed into place; through a link, into the folder
+    # it names): say now, not after the work
     for parent in {os.path.dirname(os.path.abspath(out)), os.path.dirname(os.path.realpath(out))}:
-        check_writable(parent, f"--out {out}: its folder")  # the temporary beside the link, the folder it names
+        check_writable(parent, f"--out {out}: its folder")
 
 
 def versions() -> dict:
