@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import re
 import tempfile
 from typing import IO, Iterator
 
@@ -16,13 +17,16 @@ def _umask() -> int:
 
 
 @contextlib.contextmanager
-def atomic_write(path: "str | os.PathLike", mode: str = "wb", suffix: str = "") -> Iterator[IO]:
+def atomic_write(path: "str | os.PathLike", mode: str = "wb", suffix: str = "",
+                 exclusive: bool = False) -> Iterator[IO]:
     """Yield a file in ``path``'s folder under a temporary name (``.tmp-*``); on success flush, fsync and
-    rename it over ``path``; on any exception (including KeyboardInterrupt) remove it and re-raise."""
+    rename it over ``path``; on any exception (including KeyboardInterrupt) remove it and re-raise.
+    ``exclusive``: never replace — FileExistsError when something is at ``path`` by then (another process may
+    have written it since the caller looked: the check and the publication are one step, a hard link)."""
     folder = os.path.dirname(os.path.abspath(path))
     try:
         os.makedirs(folder, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=TEMP_PREFIX, suffix=suffix, dir=folder)
+        fd, tmp = tempfile.mkstemp(prefix=temp_prefix(), suffix=suffix, dir=folder)
     except OSError as e:  # name the file being written, not a temporary name the user never chose
         blocker = file_in_the_way(folder)
         if blocker:  # makedirs says "File exists" of a file where a folder must go: say which and why
@@ -34,7 +38,10 @@ def atomic_write(path: "str | os.PathLike", mode: str = "wb", suffix: str = "") 
             yield f
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, path)
+        if exclusive:
+            _publish_exclusive(tmp, os.fspath(path))
+        else:
+            os.replace(tmp, path)
     except BaseException as e:
         if os.path.exists(tmp):
             os.unlink(tmp)
@@ -45,7 +52,58 @@ def atomic_write(path: "str | os.PathLike", mode: str = "wb", suffix: str = "") 
         raise
 
 
+def _publish_exclusive(tmp: str, path: str) -> None:
+    """Give the finished ``tmp`` the name ``path`` unless ``path`` exists (FileExistsError naming it)."""
+    try:
+        os.link(tmp, path)  # fails if path exists, atomically
+    except FileExistsError:
+        raise FileExistsError(errno.EEXIST, "exists", path) from None
+    except OSError:  # a file system without hard links: check, then rename (a narrow race remains there)
+        if os.path.lexists(path):
+            raise FileExistsError(errno.EEXIST, "exists", path) from None
+        os.replace(tmp, path)
+        return
+    os.unlink(tmp)
+
+
 TEMP_PREFIX = ".tmp-"
+
+
+def _host() -> str:
+    """This machine's name as it goes into a temporary's name: letters, digits and ``_`` only (``-`` ends the
+    owner field, ``@`` separates it)."""
+    import socket
+
+    return re.sub(r"[^A-Za-z0-9_]", "_", socket.gethostname()) or "host"
+
+
+def temp_prefix() -> str:
+    """``.tmp-<pid>@<host>-``: a temporary names the process that writes it, so that a cleanup elsewhere can tell a
+    killed job's leftovers from a running job's work in progress (:func:`remove_temporaries`)."""
+    return f"{TEMP_PREFIX}{os.getpid()}@{_host()}-"
+
+
+_OWNER = re.compile(re.escape(TEMP_PREFIX) + r"(\d+)@([A-Za-z0-9_]+)-")
+
+
+def temporary_in_use(name: str) -> bool:
+    """True when the temporary ``name`` may belong to a job that is still running: its writer's process is alive
+    on this machine, or it was written on another machine (whose processes cannot be asked; shared file systems).
+    Names without an owner (written before temporaries carried one) are a killed job's."""
+    m = _OWNER.match(name)
+    if m is None:
+        return False
+    if m.group(2) != _host():
+        return True
+    try:
+        os.kill(int(m.group(1)), 0)  # signal 0: asks whether the process exists, sends nothing
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's live process
+        return True
+    except (OverflowError, ValueError):
+        return False
+    return True
 
 
 def file_in_the_way(folder: str) -> str | None:
@@ -60,7 +118,7 @@ def probe_writable(folder: "str | os.PathLike") -> None:
     """Create ``folder`` (and its parents) and a temporary file in it, then delete the file: an OSError naming what
     failed if files cannot be written there (permissions, a read-only file system, a file in the way)."""
     os.makedirs(folder, exist_ok=True)
-    fd, probe = tempfile.mkstemp(prefix=TEMP_PREFIX + "write-check-", dir=folder)
+    fd, probe = tempfile.mkstemp(prefix=temp_prefix() + "write-check-", dir=folder)
     os.close(fd)
     os.unlink(probe)
 
@@ -84,7 +142,7 @@ def check_writable(folder: "str | os.PathLike", what: str = "output folder") -> 
 def temp_folder(parent: "str | os.PathLike") -> str:
     """A new empty folder ``parent/.tmp-*`` with the usual permissions (mkdtemp makes 0700), to fill and then
     rename into place."""
-    tmp = tempfile.mkdtemp(prefix=TEMP_PREFIX, dir=parent)
+    tmp = tempfile.mkdtemp(prefix=temp_prefix(), dir=parent)
     os.chmod(tmp, 0o777 & ~_umask())
     return tmp
 
@@ -131,17 +189,46 @@ def replace_folder(tmp: "str | os.PathLike", dest: "str | os.PathLike") -> None:
 def remove_temporaries(folder: "str | os.PathLike") -> None:
     """Delete the temporaries (``.tmp-*``) a killed job left in ``folder``: the files of :func:`atomic_write` and
     the folders of :func:`temp_folder` (a killed task or make-video whose ``--out`` lies inside ``folder``).  Never
-    visible to readers under their final names, safe to drop before a job resumes; a link is removed, not followed."""
+    visible to readers under their final names, safe to drop before a job resumes; a link is removed, not followed.
+    A temporary whose writer still runs (:func:`temporary_in_use`: say, a task writing its result folder into a run
+    folder that a resumed fit cleans) is left alone."""
     import shutil
 
     if os.path.isdir(folder):
         for name in os.listdir(folder):
-            if name.startswith(TEMP_PREFIX):
+            if name.startswith(TEMP_PREFIX) and not temporary_in_use(name):
                 path = os.path.join(folder, name)
                 if os.path.isdir(path) and not os.path.islink(path):
                     shutil.rmtree(path)
                 else:
                     os.unlink(path)
+
+
+@contextlib.contextmanager
+def folder_lock(folder: "str | os.PathLike", busy: str) -> Iterator[None]:
+    """Hold an exclusive lock on ``folder/.lock`` (``flock``; released when the holder exits, also when it is
+    killed) so two jobs never write one folder; ``busy``: the error line when another process holds it."""
+    import fcntl
+
+    from .errors import RispError
+
+    path = os.path.join(folder, LOCK_FILE)
+    # 0o666 less the umask, as every other file: a group-shared folder's lock must open for the whole group
+    fd = os.open(path, os.O_CREAT | os.O_RDWR, 0o666)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:  # EWOULDBLOCK: another process holds it
+            raise RispError(busy) from None
+        except OSError as e:  # ENOLCK, ENOSYS, EINVAL: NFS mounted nolock, Lustre without flock — nobody holds it
+            raise RispError(f"cannot lock {path}: {e.strerror or e} (a file system without flock? mount it with "
+                            "locking, or write the folder on a local disk)") from None
+        yield
+    finally:
+        os.close(fd)
+
+
+LOCK_FILE = ".lock"
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:

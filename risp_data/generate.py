@@ -22,7 +22,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .atomic import probe_writable, remove_temporaries
+from .atomic import LOCK_FILE, probe_writable, remove_temporaries
+from .atomic import folder_lock as atomic_folder_lock
 from .errors import RispError
 from .processes import end_pool_workers, exit_with, start_time
 from .ray_support import ray_errors, require_ray
@@ -47,7 +48,6 @@ from .shards.layout import storage_block
 from .shards.zarr_store import ZARR_DIR, create_store, manifest_shapes, mark_complete_shards
 
 EXECUTORS = ("local", "ray")
-LOCK_FILE = ".lock"
 SEED_SCHEME = "sample i: np.random.SeedSequence(seed, spawn_key=(i,)); rng = default_rng(it) draws state, then psi/aux; render_seed = its generate_state(1, uint32)[0]"
 
 
@@ -422,17 +422,8 @@ def _drop_damaged_shards(folder: str, manifest: dict[str, Any], log: Callable[[s
 @contextlib.contextmanager
 def folder_lock(folder: str):
     """Hold an exclusive lock on ``folder/.lock`` so two render jobs never write the same folder."""
-    import fcntl
-
-    fd = os.open(os.path.join(folder, LOCK_FILE), os.O_CREAT | os.O_RDWR, 0o644)
-    try:
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            raise RispError(f"another risp-data render is writing to {folder}; wait for it or stop it") from None
+    with atomic_folder_lock(folder, f"another risp-data render is writing to {folder}; wait for it or stop it"):
         yield
-    finally:
-        os.close(fd)  # closing releases the lock (also when the process is killed)
 
 
 def _is_fresh(folder: str) -> bool:

@@ -82,7 +82,8 @@ def diagnose(data, env, out, seed, held_out, horizon, rollout_horizon, max_segme
 ONLY_FOR = {"--grow-horizon": ("sysid", "imitate"), "--action-knots": ("imitate", "control"),
             "--params": ("imitate", "control"), "--actions": ("sysid", "estimate"),
             "--every": ("estimate", "sysid", "imitate"), "--source-fps": ("estimate", "sysid", "imitate"),
-            "--fit-initial-state": ("sysid", "imitate"), "--fit-params": ("imitate",)}
+            "--fit-initial-state": ("sysid", "imitate"), "--fit-params": ("imitate",),
+            "--initial-state": ("control",), "--horizon": ("control",)}
 
 
 def _task_options(task: str):
@@ -134,6 +135,10 @@ def _task_options(task: str):
                           "rod log10 E) jointly with the actions, from the middle of their ranges or --params "
                           "[default: yes for the hand and the rod unless --params is given, no for the quadrotor] "
                           "(docs/tasks.md §Unknown physical parameters)"),
+        click.option("--initial-state", default=None, **shown("--initial-state"),
+                     help="control: JSON {'state': [...]} or {'env_state': [...]} (default: the simulator's)"),
+        click.option("--horizon", type=int, default=None, **shown("--horizon"),
+                     help="control: frames to reach the pictured state [default: 10]"),
         click.option("--seed", type=int, default=0, show_default=True),
         click.option("--every", type=int, default=1, show_default=True, **shown("--every"), help="keep every k-th frame (not control)"),
         click.option("--fps", type=float, default=None, help="resample the video to this frame rate (a divisor of the "
@@ -247,8 +252,6 @@ def imitate(video, **kw):
 @cli.command()
 @click.argument("target", type=click.Path())
 @_task_options("control")
-@click.option("--initial-state", default=None, help="JSON {'state': [...]} or {'env_state': [...]} (default: the simulator's)")
-@click.option("--horizon", type=int, default=10, show_default=True, help="frames to reach the pictured state")
 def control(target, **kw):
     """Actions that drive the system from its initial state to the state pictured in TARGET (a PNG or JPEG image)."""
     _run("control", target, **kw)

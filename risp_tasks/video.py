@@ -11,6 +11,7 @@ picks, for output time k / fps, the nearest input frame; then ``every`` keeps ev
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import math
 import os
@@ -469,11 +470,14 @@ def made_for(comment: str) -> str | None:
 
 
 def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float, crf: int = 12,
-                overwrite: bool = False, comment: str | None = None) -> None:
+                overwrite: bool = False, comment: str | None = None, exclusive: bool = False) -> str:
     """Write linear-RGB frames (T, H, W, 3) as a video (by suffix: H.264 in .mp4/.mkv/.mov, MPEG-4 Part 2
     in .avi) or, for any other path, a folder of PNGs ``frame_00000.png`` …; atomically.  Another media suffix
     (``.gif``: :data:`OTHER_MEDIA_SUFFIXES`) is an error, not a folder of that name.  A video file is replaced; a PNG folder only with
-    ``overwrite`` and only when it holds nothing but PNG frames.  ``comment``: the file's comment tag (files only)."""
+    ``overwrite`` and only when it holds nothing but PNG frames.  ``comment``: the file's comment tag (files only).
+    ``exclusive``: replace nothing — FileExistsError when a video (or a non-empty folder) is at ``path`` when it
+    is published, also one another process wrote meanwhile.  Returns the :func:`sha256_file` of what was written,
+    taken before it is published (the file at ``path`` may be another writer's a moment later)."""
     frames = np.asarray(frames)
     p = Path(path)
     check_video_path(p, overwrite)
@@ -483,28 +487,32 @@ def write_video(path: str | os.PathLike, frames: np.ndarray, fps: float, crf: in
         raise RispError("frames contain NaN or inf")
     data = to_uint8(frames)
     if p.suffix.lower() not in VIDEO_SUFFIXES:
-        _write_pngs(p, data, comment)
-        return
+        return _write_pngs(p, data, comment, exclusive)
     av = _av()
     H, W = data.shape[1:3]
+    import io
     from fractions import Fraction
 
-    with atomic_write(p, "wb", suffix=p.suffix) as f:
-        with av.open(f, mode="w", format={".mp4": "mp4", ".mkv": "matroska", ".mov": "mov", ".avi": "avi"}[p.suffix.lower()]) as out:
-            if comment:
-                out.metadata["comment"] = comment
-            stream = out.add_stream(CODECS[p.suffix.lower()], rate=Fraction(fps).limit_denominator(1000))
-            stream.width, stream.height = W, H
-            stream.pix_fmt = "yuv444p" if CODECS[p.suffix.lower()] == "libx264" else "yuv420p"
-            if CODECS[p.suffix.lower()] == "libx264":
-                stream.options = {"crf": str(crf), "preset": "medium"}
-            else:
-                stream.bit_rate = 8_000_000
-            for img in data:
-                for packet in stream.encode(av.VideoFrame.from_ndarray(img, format="rgb24")):
-                    out.mux(packet)
-            for packet in stream.encode():
+    encoded = io.BytesIO()  # encoded in memory (far smaller than the frames themselves), hashed, then published
+    with av.open(encoded, mode="w", format={".mp4": "mp4", ".mkv": "matroska", ".mov": "mov", ".avi": "avi"}[p.suffix.lower()]) as out:
+        if comment:
+            out.metadata["comment"] = comment
+        stream = out.add_stream(CODECS[p.suffix.lower()], rate=Fraction(fps).limit_denominator(1000))
+        stream.width, stream.height = W, H
+        stream.pix_fmt = "yuv444p" if CODECS[p.suffix.lower()] == "libx264" else "yuv420p"
+        if CODECS[p.suffix.lower()] == "libx264":
+            stream.options = {"crf": str(crf), "preset": "medium"}
+        else:
+            stream.bit_rate = 8_000_000
+        for img in data:
+            for packet in stream.encode(av.VideoFrame.from_ndarray(img, format="rgb24")):
                 out.mux(packet)
+        for packet in stream.encode():
+            out.mux(packet)
+    blob = encoded.getvalue()
+    with atomic_write(p, "wb", suffix=p.suffix, exclusive=exclusive) as f:
+        f.write(blob)
+    return hashlib.sha256(blob).hexdigest()
 
 
 #: suffixes of video and image files write_video cannot write: such a path is an error, not a PNG folder of that
@@ -532,9 +540,11 @@ def check_video_path(path: str | os.PathLike, overwrite: bool = False) -> None:
         raise RispError(f"{p}: holds files other than PNG frames; give another --out")
 
 
-def _write_pngs(folder: Path, data: np.ndarray, comment: str | None = None) -> None:
-    """The frames as ``frame_NNNNN.png`` in a new folder renamed into place; ``comment`` (make-video's
-    "risp make-video env=… seed=…") goes into each frame's ``Comment`` text chunk, as a video file's comment tag."""
+def _write_pngs(folder: Path, data: np.ndarray, comment: str | None = None, exclusive: bool = False) -> str:
+    """The frames as ``frame_NNNNN.png`` in a new folder renamed into place (``exclusive``: only onto nothing or an
+    empty folder); ``comment`` (make-video's "risp make-video env=… seed=…") goes into each frame's ``Comment`` text
+    chunk, as a video file's comment tag.  Returns the new folder's :func:`sha256_file`, taken before it is
+    published."""
     import shutil
 
     from PIL import Image
@@ -551,10 +561,20 @@ def _write_pngs(folder: Path, data: np.ndarray, comment: str | None = None) -> N
     try:
         for i, img in enumerate(data):
             Image.fromarray(img).save(tmp / f"frame_{i:05d}.png", pnginfo=info)
-        replace_folder(tmp, folder)  # an old folder of frames (--overwrite) goes only once the new one is in place
+        digest = sha256_file(tmp)
+        if exclusive:
+            try:
+                os.rename(tmp, folder)  # onto nothing or an empty folder; a folder of frames stays (ENOTEMPTY)
+            except OSError as e:
+                if e.errno in (errno.ENOTEMPTY, errno.EEXIST):
+                    raise FileExistsError(errno.EEXIST, "exists", str(folder)) from None
+                raise
+        else:
+            replace_folder(tmp, folder)  # an old folder of frames (--overwrite) goes only once the new one is in place
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    return digest
 
 
 __all__ = ["Video", "check_video_path", "read_video", "read_rgb8", "png_frames", "write_video", "resize", "sample_indices", "srgb_to_linear", "linear_to_srgb",

@@ -104,13 +104,27 @@ def load_checkpoint(path: str) -> dict[str, Any]:
     """Read a checkpoint (a file, or a run folder's model.pt) with ``weights_only=True``; RispError when
     missing, corrupt, not ours, or holding non-finite weights or a degenerate normalization
     (:func:`check_values`)."""
+    return read_checkpoint(path)[0]
+
+
+def read_checkpoint(path: str) -> tuple[dict[str, Any], str]:
+    """:func:`load_checkpoint` and the sha256 of the very bytes it loaded: a result that names its model by
+    checksum must name this one, not whatever file a later fit has renamed into the path since."""
+    import hashlib
+    import io
+
     path = model_file(path)
     if not os.path.isfile(path):
         raise RispError(f"checkpoint not found: {path}")
-    if os.path.getsize(path) == 0:
+    try:
+        with open(path, "rb") as f:
+            data = f.read()
+    except OSError as e:
+        raise RispError(f"cannot read checkpoint {path}: {e.strerror or e}") from None
+    if not data:
         raise RispError(f"corrupt checkpoint {path}: the file is empty (0 bytes)")
     try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        ckpt = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except Exception as e:  # zipfile, unpickler and EOF errors on damaged files
         raise RispError(_load_error(path, e)) from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
@@ -121,7 +135,7 @@ def load_checkpoint(path: str) -> dict[str, Any]:
     if missing:
         raise RispError(f"corrupt checkpoint {path}: missing {', '.join(missing)}")
     check_values(ckpt, path)
-    return ckpt
+    return ckpt, hashlib.sha256(data).hexdigest()
 
 
 def check_values(ckpt: dict[str, Any], path: str) -> None:

@@ -36,9 +36,9 @@ import numpy as np
 import torch
 
 from risp_data.errors import RispError
-from risp_data.shards.manifest import package_versions, risp_commit, sha256_file
+from risp_data.shards.manifest import package_versions, risp_commit
 
-from .checkpoint import check_compatible, load_checkpoint, model_file
+from .checkpoint import check_compatible, read_checkpoint
 from .data import iter_batches, manifest_hash, open_shards
 from .predictor import predictor_from_checkpoint
 from risp_data.atomic import check_writable, write_text_atomic
@@ -135,7 +135,7 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
         raise RispError(f"unknown --metric {cfg.metric!r}; choose one of: {', '.join(METRICS)}")
     if cfg.seed < 0 or cfg.batch_size < 1 or (cfg.limit is not None and cfg.limit < 1):
         raise RispError("--seed must be >= 0, --batch-size >= 1 and --limit >= 1")
-    ckpt = load_checkpoint(cfg.model)
+    ckpt, model_sha = read_checkpoint(cfg.model)  # the hash of the bytes evaluated (a fit may replace the file)
     shards = open_shards(cfg.shards, cfg.format)
     prefix = _out_prefix(cfg)
     check_writable(os.path.dirname(os.path.abspath(prefix)), "--out folder")  # before the evaluation, not after
@@ -162,7 +162,7 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
     result = {
         "env": shards.env, "shards": os.path.abspath(cfg.shards), "domain": shards.manifest.get("domain"),
         "manifest_hash": manifest_hash(shards.manifest), "model": os.path.abspath(cfg.model),
-        "model_sha256": sha256_file(model_file(cfg.model)), "versions": {**package_versions(), "risp_commit": risp_commit()},
+        "model_sha256": model_sha, "versions": {**package_versions(), "risp_commit": risp_commit()},
         "train_manifest_hash": ckpt.get("manifest_hash"), "reg": ckpt.get("config", {}).get("reg"),
         "metric": cfg.metric, "n": n, "seed": cfg.seed, "state_names": names,
         "results": {k: summarize(state_differences(v, true, names), cfg.metric) for k, v in estimates.items()},

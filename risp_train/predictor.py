@@ -17,7 +17,7 @@ from torch import nn
 
 from risp_data.errors import RispError
 
-from .checkpoint import load_checkpoint
+from .checkpoint import read_checkpoint
 from .model import ModelConfig, ResNet18
 from .normalization import Normalization
 
@@ -34,6 +34,7 @@ class RispPredictor(nn.Module):
         self.resolution = int(resolution)
         self.look = look  # the training images' look (risp_data.envs.look); None when not recorded
         self.spp = spp  # samples per pixel of the training images; None when not recorded (before 2026-12-01)
+        self.sha256: str | None = None  # of the checkpoint file's bytes this predictor was loaded from (load)
 
     def _check(self, images: torch.Tensor) -> None:
         r = self.resolution
@@ -77,4 +78,7 @@ def predictor_from_checkpoint(ckpt: dict, path: str = "<checkpoint>") -> RispPre
 
 def load(path: str) -> RispPredictor:
     """A frozen, eval-mode :class:`RispPredictor` from a risp-train checkpoint (``weights_only=True``)."""
-    return predictor_from_checkpoint(load_checkpoint(path), path)
+    ckpt, sha = read_checkpoint(path)
+    p = predictor_from_checkpoint(ckpt, path)
+    p.sha256 = sha
+    return p

@@ -42,7 +42,7 @@ tangents scaled by σ_ψ:
 * ``stochastic``  R = c_T · √((1/B) Σ_b ‖M̃_b v_b‖²)   (the square root of the batch-mean estimate of
   ‖M̃‖_F²: consistent for the batch's RMS of ‖M̃_b‖_F, which is ≥ and close to its mean)
 * ``surrogate``   R = √(2/π) · √T · (1/B) Σ_b ‖∂ℓ_b/∂ψ̃‖   (T ∂ℓ_b/∂ψ̃ = M̃_bᵀ sign(ŷ_b − y_b), whose norm
-  is ‖M̃_b‖_F in expectation over sign patterns independent of M̃_b)
+  has squared norm ‖M̃_b‖_F² in expectation over sign patterns independent of M̃_b)
 
 and L = (1/B) Σ_b ℓ_b + γ R with a dimensionless γ: γ = 1 weighs the rendering-induced error like the state
 error itself (γ = 0 for ``none``).  No factor depends on the preset; the per-environment default γ comes

@@ -15,6 +15,7 @@ a resumed run (``--resume``) replays exactly the same computation.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import os
@@ -36,7 +37,8 @@ from .memory import load_memory_set, memory_batches, resolve_cache
 from .model import ModelConfig, ResNet18, build_model, min_resolution, stem_for_resolution
 from .normalization import Normalization, StatsAccumulator
 from .regularizers import gamma_at, psi_scale, risp_loss
-from risp_data.atomic import atomic_write, check_writable, remove_temporaries, write_text_atomic
+from risp_data.atomic import (LOCK_FILE, TEMP_PREFIX, atomic_write, check_writable, folder_lock, remove_temporaries,
+                              write_text_atomic)
 from risp_data.shards.manifest import package_versions, risp_commit
 from risp_data.threads import set_torch_threads
 
@@ -156,8 +158,28 @@ _EVAL_OUTPUT = re.compile(r"eval-.+(\.json|\.md|_scatter\.png)$")
 
 
 def _is_run_file(name: str) -> bool:
-    """A file a run folder holds: the trainer's own, its temporaries, or an evaluation written into it."""
-    return name in RUN_FILES or bool(_EVAL_OUTPUT.match(name)) or name.startswith(".tmp")
+    """A file a run folder holds: the trainer's own or an evaluation written into it."""
+    return name in RUN_FILES or bool(_EVAL_OUTPUT.match(name))
+
+
+def _is_bookkeeping(name: str) -> bool:
+    """The lock and the temporaries (risp_data.atomic): in a run folder and a shard folder alike, so they say
+    nothing about what a folder holds; remove_temporaries, not --overwrite, deletes the temporaries (a live
+    writer's stay)."""
+    return name == LOCK_FILE or name.startswith(TEMP_PREFIX)
+
+
+def _run_snapshot(out: str) -> tuple:
+    """(inode, mtime, size) of the run folder's model.pt and last.pt, None where absent: the state of the folder
+    that --resume decides on."""
+    def key(name):
+        try:
+            st = os.stat(os.path.join(out, name))
+        except (FileNotFoundError, NotADirectoryError):  # no folder yet, or a file in its path (said later)
+            return None
+        return st.st_ino, st.st_mtime_ns, st.st_size
+
+    return key(MODEL), key(LAST)
 
 
 def check_run_folder(out: str, resume: bool, overwrite: bool, remove: bool = True) -> None:
@@ -168,15 +190,15 @@ def check_run_folder(out: str, resume: bool, overwrite: bool, remove: bool = Tru
     held = [name for name in (MODEL, LAST) if os.path.exists(os.path.join(out, name))]
     if resume and overwrite:
         raise RispError("--resume and --overwrite exclude each other")
-    present = sorted(os.listdir(out)) if os.path.isdir(out) else []
+    present = sorted(n for n in os.listdir(out) if not _is_bookkeeping(n)) if os.path.isdir(out) else []
     if present and not overwrite and not any(_is_run_file(name) for name in present):
         shown = ", ".join(present[:3]) + (", …" if len(present) > 3 else "")
         raise RispError(f"{out} is not empty and holds no risp-train run ({shown}); choose another --out, or "
                         "--overwrite to write the run beside those files")
     if overwrite:
-        # only when the folder holds a run: its own files (RUN_FILES), the evaluations risp-train eval wrote into it and
-        # temporaries — never a user's file that merely starts with "eval" (evaluate.py), nor anything in a folder of
-        # other files that the run is written beside
+        # only when the folder holds a run: its own files (RUN_FILES) and the evaluations risp-train eval wrote into
+        # it — never a user's file that merely starts with "eval" (evaluate.py), nor anything in a folder of other
+        # files that the run is written beside; the lock stays (a new file would lock nothing)
         if remove and held:  # a model or a checkpoint: a config.json alone may be anyone's
             for name in present:
                 if _is_run_file(name):
@@ -306,15 +328,17 @@ def fit(cfg: TrainConfig, *, resume: bool = False, progress: bool = True,
     dist_info = init_distributed()
     before = torch.get_num_threads()
     try:
-        return _fit(cfg, dist_info, device=device, resume=resume, progress=progress,
-                    stop_after_step=stop_after_step,
-                    overwrite=overwrite, allow_incomplete=allow_incomplete, echo=echo)
+        with contextlib.ExitStack() as hold:  # the run folder's lock, from the first write to the last
+            return _fit(cfg, dist_info, device=device, resume=resume, progress=progress,
+                        stop_after_step=stop_after_step, hold=hold,
+                        overwrite=overwrite, allow_incomplete=allow_incomplete, echo=echo)
     finally:
         torch.set_num_threads(before)
 
 
 def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: bool, progress: bool,
-         stop_after_step: int | None, overwrite: bool, allow_incomplete: bool, echo=None) -> str:
+         stop_after_step: int | None, hold: contextlib.ExitStack, overwrite: bool, allow_incomplete: bool,
+         echo=None) -> str:
     from risp_data.envs import get_environment
 
     rank, world = dist_info.rank, dist_info.world_size
@@ -336,6 +360,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
             raise RispError(f"--val shards {cfg.val} are {val.resolution}×{val.resolution} images, the training "
                             f"shards {shards.resolution}×{shards.resolution}: render them at --res {shards.resolution}")
     last_path = os.path.join(cfg.out, LAST)
+    seen = _run_snapshot(cfg.out)  # what the decisions below read; compared again once the folder is locked
     resuming = resume and not overwrite and os.path.exists(last_path)
     # a new network must fit the images (a resumed one keeps its checkpoint's stem, which has trained on them)
     stem = stem_for_resolution(shards.resolution) if cfg.stem == "auto" else cfg.stem
@@ -436,8 +461,15 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
     # Only now, with the data read and checked (normalisation statistics, the held-out baseline), is anything in the
     # run folder deleted or written: --overwrite on bad data loses nothing (docs/cli-train.md)
     if rank == 0:  # one process deletes: another rank's cleanup could remove rank 0's config.json temporary
-        check_run_folder(cfg.out, resume, overwrite)
         os.makedirs(cfg.out, exist_ok=True)
+        # before anything is deleted: a second fit on this folder (an --overwrite, a --resume) would delete or
+        # interleave the running one's files
+        hold.enter_context(folder_lock(cfg.out, f"another risp-train fit is writing to {cfg.out}; wait for it "
+                                                "or stop it"))
+        if not overwrite and _run_snapshot(cfg.out) != seen:  # a fit that ended while this one read its data
+            raise RispError(f"{cfg.out} changed while this fit read its data (another fit wrote its {MODEL} or "
+                            f"{LAST}); run the command again to decide on what it holds now")
+        check_run_folder(cfg.out, resume, overwrite)
         remove_temporaries(cfg.out)  # half-written checkpoints/logs of a killed run (never under their names)
         if state is not None:
             _csv_keep_until(csv_path, step)

@@ -53,6 +53,17 @@ def test_quick_demo_runs_end_to_end(tmp_path):
     assert report["seed"] == 3
     assert (out / "README.md").read_text().startswith("# risp demo")
 
+    # run again into the same folder: the finished steps are reused (diagnose ran again before: minutes), the
+    # results they wrote stay as they were
+    kept = {p: p.stat().st_mtime_ns for p in (out / "diagnose" / "report.json", out / "sysid" / "result.json",
+                                             run / "model.pt", out / "video" / "quadrotor.truth.json")}
+    again = subprocess.run([sys.executable, "-m", "cli", "demo", "--quick", "--seed", "3", "--out", str(out)],
+                           capture_output=True, text=True, timeout=1500)
+    assert again.returncode == 0, again.stderr[-3000:]
+    ran = [c["command"].split()[1] for c in json.loads((out / "demo.json").read_text())["commands"]]
+    assert not {"diagnose", "sysid", "make-video"} & set(ran) and "fit" in ran, ran
+    assert {p: p.stat().st_mtime_ns for p in kept} == kept
+
 
 def test_risp_group_lists_the_three_tools_and_demo():
     proc = subprocess.run([sys.executable, "-m", "cli", "--help"], capture_output=True, text=True, timeout=120)

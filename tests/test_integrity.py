@@ -203,6 +203,177 @@ def test_a_killed_tasks_temporary_folder_in_a_run_folder_does_not_stop_fit(data,
     assert (keep / "mine.txt").read_text() == "mine"
 
 
+def test_a_running_jobs_temporaries_survive_a_cleanup_and_a_killed_ones_do_not(tmp_path):
+    """remove_temporaries (fit's, render's) deleted every `.tmp-*` in the folder, also the result folder a task
+    was still writing there — the task then failed at its final rename.  Temporaries name their writer; a live
+    writer's stay, a dead one's and an unowned (older) one go."""
+    from risp_data.atomic import remove_temporaries, temp_folder, temp_prefix, temporary_in_use
+
+    mine = temp_folder(tmp_path)  # this process's: alive
+    writer = subprocess.Popen([sys.executable, "-c", "import sys; sys.stdin.read()"], stdin=subprocess.PIPE)
+    theirs = tmp_path / temp_prefix().replace(f"{os.getpid()}@", f"{writer.pid}@")
+    theirs.mkdir()
+    (theirs / "result.json").write_text("{}")
+    (tmp_path / ".tmp-old-style").write_text("half")
+    remove_temporaries(tmp_path)
+    assert os.path.isdir(mine) and (theirs / "result.json").is_file()
+    assert not (tmp_path / ".tmp-old-style").exists()
+    writer.communicate(b"")  # the writer ends (and is reaped): now its temporary is a leftover
+    assert not temporary_in_use(theirs.name)
+    remove_temporaries(tmp_path)
+    assert os.path.isdir(mine) and not theirs.exists()
+    other_host = tmp_path / f".tmp-{writer.pid}@another_machine-x1"
+    other_host.mkdir()  # a shared file system's: its writer cannot be asked, so it stays
+    remove_temporaries(tmp_path)
+    assert other_host.exists()
+
+
+def test_a_second_fit_on_a_running_fits_folder_is_refused_and_deletes_nothing(data, tmp_path):
+    """Nothing stopped two fits on one run folder: a second `--overwrite` deleted the running one's files and a
+    second `--resume` wrote checkpoints into it beside the first.  fit holds the folder's lock from its first write
+    to its last (here another process holds it, as a running fit does)."""
+    from risp_train.config import make_config
+    from risp_train.train import TrainingStopped, fit
+
+    run = tmp_path / "run"
+    cfg = make_config(data["train"], str(run), preset="cpu", epochs=2, batch_size=2, width=4, workers=0,
+                      shuffle_buffer=4, stats_samples=16, checkpoint_every=3)
+    with pytest.raises(TrainingStopped):
+        fit(cfg, progress=False, stop_after_step=4)  # a run with a checkpoint to resume from
+    before = {n: (run / n).read_bytes() for n in os.listdir(run) if (run / n).is_file()}
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import sys; from risp_data.atomic import folder_lock\n"
+        f"with folder_lock({str(run)!r}, 'busy'):\n"
+        "    print('held', flush=True); sys.stdin.read()")],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=ENV)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        line = _one_line_error(CliRunner().invoke(train_cli, ["fit", data["train"], "--out", str(run), *_TINY,
+                                                              "--epochs", "1", "--overwrite"]))
+        assert "another risp-train fit is writing to" in line
+        with pytest.raises(RispError, match="another risp-train fit is writing to"):
+            fit(cfg, progress=False, resume=True)
+        assert {n: (run / n).read_bytes() for n in os.listdir(run) if (run / n).is_file()} == before
+    finally:
+        holder.communicate("")
+    fit(cfg, progress=False, resume=True)  # the lock went with its holder; the lock file itself stays
+    assert (run / ".lock").is_file() and (run / "model.pt").is_file()
+
+
+def test_a_fit_decided_on_a_folder_another_fit_changed_meanwhile_stops(data, tmp_path, monkeypatch):
+    """B read last.pt (or found none) while A was still training; A finished before B took the lock, and B went
+    on — training anew over A's finished model.pt (with other options, which a resume would have refused).  After
+    the lock, the folder must still be what the decisions were made on."""
+    import risp_train.train as train
+    from risp_train.config import make_config
+
+    run = tmp_path / "run"
+    cfg = make_config(data["train"], str(run), preset="cpu", epochs=2, batch_size=2, width=4, workers=0,
+                      shuffle_buffer=4, stats_samples=16, checkpoint_every=3)
+    with pytest.raises(train.TrainingStopped):
+        train.fit(cfg, progress=False, stop_after_step=4)
+    real = train.check_writable
+
+    def another_fit_finishes(*a, **kw):  # between the decision and the lock
+        real(*a, **kw)
+        shutil.copy(run / "last.pt", run / "model.pt")
+        os.replace(run / "model.pt", run / "last.pt.new")
+        os.replace(run / "last.pt.new", run / "last.pt")
+
+    monkeypatch.setattr(train, "check_writable", another_fit_finishes)
+    before = (run / "last.pt").read_bytes()
+    with pytest.raises(RispError, match="changed while this fit read its data"):
+        train.fit(cfg, progress=False, resume=True)
+    assert (run / "last.pt").read_bytes() == before
+    fresh = tmp_path / "fresh"
+
+    def a_model_appears(*a, **kw):
+        real(*a, **kw)
+        fresh.mkdir(exist_ok=True)
+        (fresh / "model.pt").write_bytes(before)
+
+    monkeypatch.setattr(train, "check_writable", a_model_appears)
+    with pytest.raises(RispError, match="changed while this fit read its data"):
+        train.fit(make_config(data["train"], str(fresh), preset="cpu", epochs=1, batch_size=2, width=4, workers=0,
+                              shuffle_buffer=4, stats_samples=16), progress=False)
+    assert (fresh / "model.pt").read_bytes() == before
+
+
+def test_overwrite_leaves_a_running_writers_temporaries_and_a_shard_folder_is_no_run(data, model, tmp_path):
+    """fit --overwrite unlinked every `.tmp*` name itself — also an eval's temporary while it wrote into the run
+    folder (the eval then failed, or "wrote" files that were gone); and the `.lock` a render folder holds made
+    the folder pass for a run folder, so fit wrote model.pt among the shards."""
+    import tempfile
+
+    from risp_data.atomic import temp_prefix
+
+    run = tmp_path / "run"
+    r = CliRunner().invoke(train_cli, ["fit", data["train"], "--out", str(run), *_TINY, "--epochs", "1"])
+    assert r.exit_code == 0, r.output
+    fd, live = tempfile.mkstemp(prefix=temp_prefix(), suffix=".png", dir=run)  # this (live) process's
+    os.close(fd)
+    (run / ".tmp-killed.png").write_bytes(b"half")
+    r = CliRunner().invoke(train_cli, ["fit", data["train"], "--out", str(run), *_TINY, "--epochs", "1",
+                                       "--overwrite", "--seed", "2"])
+    assert r.exit_code == 0, r.output
+    assert os.path.exists(live) and not (run / ".tmp-killed.png").exists()
+    shards = tmp_path / "shards"
+    shutil.copytree(data["train"], shards)
+    (shards / ".lock").touch()
+    line = _one_line_error(CliRunner().invoke(train_cli, ["fit", data["train"], "--out", str(shards), *_TINY,
+                                                          "--epochs", "1"]))
+    assert "holds no risp-train run" in line and not (shards / "model.pt").exists()
+
+
+def test_a_lock_that_cannot_be_taken_says_why_and_opens_for_the_group(tmp_path, monkeypatch):
+    """A file system without flock (NFS mounted nolock) answered "another render is writing" for ever; and the
+    .lock was 0644 whatever the umask, so on a group-shared folder only its creator could lock it again."""
+    import errno
+    import fcntl
+
+    from risp_data.atomic import folder_lock
+
+    old = os.umask(0o002)
+    try:
+        with folder_lock(tmp_path, "busy"):
+            pass
+    finally:
+        os.umask(old)
+    assert (tmp_path / ".lock").stat().st_mode & 0o777 == 0o664
+
+    def no_locks(fd, op):
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(fcntl, "flock", no_locks)
+    with pytest.raises(RispError, match=r"cannot lock .*No locks available \(a file system without flock"):
+        with folder_lock(tmp_path, "busy"):
+            pass
+
+
+def test_results_name_the_model_bytes_they_used(data, model, tmp_path, monkeypatch):
+    """eval (and a task) hashed model.pt when it finished, not when it loaded: a fit --overwrite in between gave
+    the old model's numbers the new model's checksum."""
+    import risp_train
+    import risp_train.evaluate as evaluate
+    from risp_data.shards.manifest import sha256_file
+
+    path = tmp_path / "model.pt"
+    shutil.copy(model, path)
+    loaded = sha256_file(str(path))
+    assert risp_train.load(str(path)).sha256 == loaded
+    real = evaluate.open_shards
+
+    def replaced_meanwhile(*a, **kw):  # after the load: a fit renames another model into the path
+        (tmp_path / "other.pt").write_bytes(path.read_bytes() + b"\0")
+        os.replace(tmp_path / "other.pt", path)
+        return real(*a, **kw)
+
+    monkeypatch.setattr(evaluate, "open_shards", replaced_meanwhile)
+    r = CliRunner().invoke(train_cli, ["eval", str(path), data["train"], "--out", str(tmp_path / "ev"), "--limit", "4"])
+    assert r.exit_code == 0, r.output
+    assert json.load(open(tmp_path / "ev.json"))["model_sha256"] == loaded != sha256_file(str(path))
+
+
 def test_replace_folder_writes_through_a_link_the_user_made(tmp_path):
     """--overwrite of a result folder that is a symlink: the folder it points to is replaced and the link kept
     (the link used to be replaced by a real folder, and the old one left as a hidden `.tmp-*` link)."""

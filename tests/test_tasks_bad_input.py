@@ -414,6 +414,69 @@ def test_make_video_does_not_replace_a_video_unasked(tmp_path):
     assert json.load(open(tmp_path / "v.truth.json"))["env"] == "cube" and not (tmp_path / "v.actions.csv").exists()
 
 
+@pytest.mark.parametrize("suffix", [".mp4", ""])
+def test_make_video_does_not_replace_a_video_another_process_wrote_meanwhile(tmp_path, monkeypatch, suffix):
+    """Two make-video runs to one --out both passed the "exists" check before rendering, and the second silently
+    replaced the first; its truth hashed the file then on disk (possibly the other run's video).  Now the video is
+    published only where nothing is by then, and the truth names the bytes this run wrote."""
+    import risp_tasks.video as video
+    from risp_tasks.cli import cli
+
+    out = tmp_path / f"v{suffix}"
+    other = np.full((2, 8, 8, 3), 0.3, np.float32)
+    real = video.write_video
+
+    def meanwhile(path, *a, **kw):  # another make-video publishes its video while this one renders
+        real(path, other, 10)
+        return real(path, *a, **kw)
+
+    monkeypatch.setattr(video, "write_video", meanwhile)
+    args = ["make-video", "--env", "quadrotor", "--out", str(out), "--frames", "2", "--resolution", "8", "--quiet"]
+    line = _error_line(CliRunner().invoke(cli, args))
+    # a file: refused when it is published; a folder of frames already by write_video's own look at the path
+    assert ("exists (written by another process" if suffix else "folder exists and is not empty") in line
+    assert np.allclose(video.read_video(out).frames, video.read_video(out).frames[:1]) and not (
+        tmp_path / "v.truth.json").exists()  # the other run's frames stay; no truth of this run beside them
+    monkeypatch.setattr(video, "write_video", real)
+    assert CliRunner().invoke(cli, args + ["--overwrite"]).exit_code == 0
+    truth = json.load(open(tmp_path / "v.truth.json"))
+    assert truth["video_sha256"] == video.sha256_file(out)
+
+
+def test_write_video_returns_the_hash_of_what_it_wrote(tmp_path):
+    from risp_tasks.video import sha256_file, write_video
+
+    frames = np.full((2, 8, 8, 3), 0.4, np.float32)
+    for path in (tmp_path / "a.mp4", tmp_path / "frames"):
+        assert write_video(path, frames, 10, exclusive=True) == sha256_file(path)
+        with pytest.raises(FileExistsError):
+            write_video(path, frames * 0.5, 10, overwrite=True, exclusive=True)
+        assert write_video(path, frames * 0.5, 10, overwrite=True) == sha256_file(path)
+
+
+def test_a_video_replaced_while_a_task_reads_it_is_refused(tmp_path, monkeypatch):
+    """A task hashed the video after decoding it: a video renamed into the path in between gave the result the
+    other video's checksum (and a truth check against the wrong file)."""
+    import risp_tasks.tasks.inputs as inputs
+    from risp_data.errors import RispError
+    from risp_tasks.video import write_video
+
+    path = tmp_path / "v.mp4"
+    write_video(path, np.full((3, 8, 8, 3), 0.2, np.float32), 10)
+    real = inputs.read_video
+
+    def then_replaced(p, **kw):
+        frames = real(p, **kw)
+        write_video(p, np.full((3, 8, 8, 3), 0.6, np.float32), 10)
+        return frames
+
+    monkeypatch.setattr(inputs, "read_video", then_replaced)
+    with pytest.raises(RispError, match="the video changed while it was read"):
+        inputs.read_reference(str(path), 8, 1, None, None)
+    monkeypatch.setattr(inputs, "read_video", real)
+    assert inputs.read_reference(str(path), 8, 1, None, None).sha256 == inputs.sha256_file(str(path))
+
+
 def _deny_writes_in(monkeypatch, folder):
     """os.access says no write permission on ``folder`` (as a read-only mount would; the tests may run as root,
     for whom chmod does not take writing away)."""

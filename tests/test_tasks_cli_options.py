@@ -9,7 +9,8 @@ from risp_tasks.cli import ONLY_FOR, cli
 TASKS = ("estimate", "sysid", "imitate", "control")
 # a value for each option that takes one (the flags are given as they are)
 VALUES = {"--grow-horizon": ["3"], "--action-knots": ["4"], "--params": ['{"mass": 3.0}'], "--actions": ["a.csv"],
-          "--every": ["2"], "--source-fps": ["10"], "--fit-initial-state": [], "--fit-params": []}
+          "--every": ["2"], "--source-fps": ["10"], "--fit-initial-state": [], "--fit-params": [],
+          "--initial-state": ["s.json"], "--horizon": ["5"]}
 # the negative forms of the boolean pairs are refused too
 NEGATIVE = {"--fit-initial-state": "--fixed-initial-state", "--fit-params": "--no-fit-params"}
 

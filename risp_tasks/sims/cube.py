@@ -56,7 +56,8 @@ _INF = float("inf")
 EFFECTS = {
     "friction": Effect(
         "friction", ("mu",), (0.3,), ((0.0, 1.0),),
-        "smoothed Coulomb friction f_t = −mu·f_n·v_t / sqrt(|v_t|² + ε²) at each corner (f_n: normal force)",
+        "smoothed Coulomb friction f_t = −mu·φ(f_n⁺)·v_t / sqrt(|v_t|² + ε²) at each corner (f_n⁺: the normal force "
+        "the substep will apply, smoothly floored: φ; docs/models.md §3.3)",
         bounds=((0.0, _INF),), units=("1",)),
     "restitution": Effect(
         "restitution", ("alpha",), (0.5,), ((0.0, 2.0),),
@@ -65,7 +66,7 @@ EFFECTS = {
         bounds=((0.0, _INF),), units=("s/m",)),
     "rolling_friction": Effect(
         "rolling_friction", ("mu_r",), (0.002,), ((0.0, 0.01),),
-        "torque −mu_r·(Σ f_n)·ω / sqrt(|ω|² + ε_ω²) opposing the rotation while in contact",
+        "torque −mu_r·(Σ φ(f_n⁺))·ω / sqrt(|ω|² + ε_ω²) opposing the rotation while in contact",
         bounds=((0.0, _INF),), units=("m",)),
 }
 

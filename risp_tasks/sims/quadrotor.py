@@ -8,8 +8,8 @@ Full state (13, + 4 with ``motor_lag``), SI units:
     wx wy wz     angular velocity, body frame [rad/s]
     f0 f1 f2 f3  (motor_lag only) thrust of each rotor [N]
 
-Action (4): propeller commands u_i, smoothly clamped to [−500, 500]; rotor thrust f_i = k_f·u_i.
-Rotor i sits at L·(cos a_i, sin a_i, 0) and spins with sign s_i; its drag produces the yaw torque
+Action (4): propeller commands u_i; rotor thrust f_i = k_f·clamp_s(u_i), clamp_s a smooth clamp to [−500, 500]
+(docs/models.md §2).  Rotor i sits at (L·cos a_i, L·sin a_i, ROTOR_HEIGHT) in the body frame and spins with sign s_i; its drag produces the yaw torque
 s_i·k_m·f_i.  Default: L = ARM_LENGTH = 0.3 m, "+" layout a_i = iπ/2 (see risp_data.envs.quadrotor),
 s = (+1, −1, +1, −1); the "x" layout has a_i = π/4 + iπ/2; ``arm_length``, ``layout``, ``rotor_angles``
 and ``spin`` are constructor options (real vehicles, docs/measured-data.md).  Integrator: semi-implicit

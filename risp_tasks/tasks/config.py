@@ -20,14 +20,18 @@ def default_residual(task: str, loss: str) -> str:
     return "l1" if task == "sysid" and loss in NETWORK_LOSSES else "l2"
 
 
+CONTROL_HORIZON = 10  # control's default frames to reach the pictured state
+
+
 @dataclass(frozen=True)
 class TaskConfig:
     """One task run.  ``loss``: ``render`` — ‖N(render(sim(θ))) − N(reference)‖² (the paper's loss, through
     network, renderer and simulator); ``state`` — ‖sim states − N(reference)‖², no rendering in the loop;
     ``oracle`` — against the ground-truth states of ``truth`` (evaluation only); ``pixelwise`` — ∇Sim's
-    ‖render(sim(θ)) − reference images‖² in the train domain's nominal look (a baseline); ``perceptual`` —
-    ‖F(render(sim(θ))) − F(reference images)‖² with F from ``perceptual_weights`` or the built-in filter bank
-    (risp_tasks.tasks.features; a baseline)."""
+    mean squared difference of render(sim(θ)) and the reference images in the train domain's nominal look (a
+    baseline); ``perceptual`` — the mean over features of (F(render(sim(θ))) − F(reference images))² with F from
+    ``perceptual_weights`` or the built-in filter bank (risp_tasks.tasks.features; a baseline).  Exact forms:
+    risp_tasks.tasks.loop, docs/tasks.md §Losses."""
 
     task: str
     video: str  # video file, PNG folder, or (control) a target PNG
@@ -70,7 +74,7 @@ class TaskConfig:
     camera: str | None = None  # camera JSON (intrinsics/extrinsics) replacing the environment's camera
     mesh: str | None = None  # vehicle mesh file (quadrotor) replacing the built-in one
     initial_state: str | None = None  # control: JSON with the initial simulator state
-    horizon: int = 10  # control: frames to reach the target
+    horizon: int | None = None  # control: frames to reach the target (None: 10)
     # sysid, imitate: optimise the initial state read from the first two frames jointly (simulate.InitialState);
     # None: yes where the initial state is read from the video (quadrotor, cube, hand; the rod starts at rest)
     fit_initial_state: bool | None = None
@@ -93,6 +97,14 @@ class TaskConfig:
             object.__setattr__(self, "residual", default_residual(self.task, self.loss))
         if self.primal_spp is None:
             object.__setattr__(self, "primal_spp", self.spp)
+        if self.task != "control":  # accepted by every task's command line so that this line can say whose they are
+            given = [name for name, value in (("--initial-state", self.initial_state), ("--horizon", self.horizon))
+                     if value is not None]
+            if given:
+                raise RispError(f"{' and '.join(given)}: control's (the start and the frames to reach a pictured "
+                                f"state), not {self.task}'s")
+        elif self.horizon is None:
+            object.__setattr__(self, "horizon", CONTROL_HORIZON)
         if self.init not in INITS:
             raise RispError(f"unknown init {self.init!r}; choose one of: {', '.join(INITS)}")
         if self.residual not in RESIDUALS:
@@ -107,7 +119,7 @@ class TaskConfig:
                 ("--lr", self.lr, math.isfinite(self.lr) and self.lr > 0, "a finite number > 0"),
                 ("--momentum", self.momentum, 0 <= self.momentum < 1, "in [0, 1): RMSProp's momentum; 1 or more diverges"),
                 ("--every", self.every, self.every >= 1, ">= 1"),
-                ("--horizon", self.horizon, self.horizon >= 1, ">= 1"),
+                ("--horizon", self.horizon, self.horizon is None or self.horizon >= 1, ">= 1"),
                 ("--spp", self.spp, self.spp >= 1, ">= 1"),
                 ("--primal-spp", self.primal_spp, self.primal_spp >= 1, ">= 1"),
                 ("--render-threads", self.render_threads, self.render_threads >= 0, ">= 0 (0: automatic)"),

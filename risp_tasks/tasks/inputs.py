@@ -83,6 +83,13 @@ def look_note(predictor, path: str, loss: str, mesh: str | None) -> str | None:
             "(docs/environments.md §Appearance)")
 
 
+def _unchanged_sha256(path: str, before: str | None) -> str:
+    now = sha256_file(path)
+    if before is not None and now != before:
+        raise RispError(f"{path}: the video changed while it was read (another process replaced it); run again")
+    return now
+
+
 @dataclass(frozen=True)
 class Reference:
     """The reference video at the network's resolution and the simulation timeline it lies on."""
@@ -101,11 +108,17 @@ class Reference:
 
 
 def read_reference(path: str, resolution: int, every: int, fps: float | None, source_fps: float | None) -> Reference:
+    try:
+        before = sha256_file(path)
+    except (OSError, RispError):  # read_video says what is wrong with a bad path, in its own words
+        before = None
     video = read_video(path, resolution=resolution, every=every, fps=fps, source_fps=source_fps)
     rate = video.source_fps
     if not rate > 0:
         raise RispError(f"{path}: the frame rate is unknown (a PNG folder or a still image): give --source-fps")
-    return Reference(video=video, sha256=sha256_file(path), source_fps=rate)
+    # hashed before and after the decode: the checksum a result records must be of the frames it used (a
+    # make-video --overwrite may rename another video into the path meanwhile)
+    return Reference(video=video, sha256=_unchanged_sha256(path, before), source_fps=rate)
 
 
 def action_columns(env: str) -> tuple[str, ...]:

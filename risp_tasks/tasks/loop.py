@@ -4,7 +4,8 @@
     L_state(θ)     = mean_t ‖τ(s_t(θ)) − N(I_t)‖²      no rendering in the loop (the paper's real-world pipeline)
     L_oracle(θ)    = mean_t ‖τ(s_t(θ)) − τ(s*_t)‖²     ground-truth states (evaluation only)
     L_pixelwise(θ) = mean over t, pixels, channels of (R(s_t(θ)) − I_t)²   ∇Sim's image loss (a baseline)
-    L_perceptual(θ) = mean_t ‖F(R(s_t(θ))) − F(I_t)‖²   a feature loss (a baseline; F: risp_tasks.tasks.features)
+    L_perceptual(θ) = mean over t and features of (F(R(s_t(θ))) − F(I_t))²   a feature loss (a baseline; F:
+                      risp_tasks.tasks.features)
 
 With ``--grow-horizon G`` the sums run over the first n(i) compared frames at iteration i (a horizon curriculum,
 :func:`horizon`), n(i) = min(T, 2 + ⌊(T − 2)·i / G⌋) for i < G and T afterwards.

@@ -289,14 +289,19 @@ def make_reference(cfg: ReferenceConfig) -> dict:
     frame_seeds = rng.integers(0, 2**31 - 1, cfg.frames)
     images = np.stack([renderer.render_reference(s, look, int(sd)) for s, sd in
                        tqdm(list(zip(env_states, frame_seeds)), desc="rendering", disable=not cfg.progress, leave=False)])
-    write_video(cfg.out, images, cfg.fps, overwrite=cfg.overwrite, comment=made_by(cfg.env, cfg.seed))
+    try:  # without --overwrite published only where nothing is by then (another make-video may have written it)
+        video_sha = write_video(cfg.out, images, cfg.fps, overwrite=cfg.overwrite,
+                                comment=made_by(cfg.env, cfg.seed), exclusive=not cfg.overwrite)
+    except FileExistsError:
+        raise RispError(f"{cfg.out}: exists (written by another process while this one rendered); give another "
+                        "--out, or --overwrite to replace it") from None
     # the video's files are a set: the truth names its video by checksum (tasks refuse a truth of another video),
     # and a replaced video's old truth and actions go before the new ones are written (a cube video has no actions)
     for stale in (truth_path(cfg.out), actions_path(cfg.out)):
         if os.path.exists(stale):
             os.remove(stale)
     truth = {"format": "risp-reference-truth", "format_version": 1, "env": cfg.env, "seed": cfg.seed,
-             "video_sha256": sha256_file(cfg.out), "versions": versions(),
+             "video_sha256": video_sha, "versions": versions(),  # of the frames written, not the file there now
              "config": asdict(cfg), "fps": cfg.fps, "frames": cfg.frames, "sim_steps_per_frame": k, "dt": sim.dt,
              "params": dict(zip(sim.param_names, params[0].tolist())), "effects": list(sim.effects),
              "env_state_names": list(get_env_state_names(cfg.env)), "env_states": env_states.tolist(),

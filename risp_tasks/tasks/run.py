@@ -254,7 +254,7 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
 
     result = {
         "task": cfg.task, "env": env_name, "config": cfg.to_dict(), "seed": cfg.seed,
-        "model": {"path": model_path, "sha256": sha256_file(model_path)},
+        "model": {"path": model_path, "sha256": predictor.sha256},  # of the bytes loaded, not the file now there
         "video": {"path": cfg.video, "sha256": video_sha, "frames": n_source, "kept": keep, "fps": fps,
                   **({"decoded_frames": ref.n_source, "decoded_kept": ref.indices, "decoded_fps": ref.source_fps}
                      if ref is not None else {})},
