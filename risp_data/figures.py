@@ -21,6 +21,16 @@ def png_text(seed: int | None, what: str | None = None) -> dict[str, str]:
     return text
 
 
+def subplots(*args, figsize=None, **kwargs):
+    """``(figure, axes)`` as ``pyplot.subplots`` gives them, but on a bare :class:`matplotlib.figure.Figure`: no
+    pyplot, no backend switched (a notebook's backend stays its own), nothing to close (docs/formats.md
+    §PNG provenance)."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=figsize)
+    return fig, fig.subplots(*args, **kwargs)
+
+
 def save_figure(fig, path: "str | os.PathLike", *, seed: int | None, what: str | None = None, dpi: int = 110,
                 tight: bool = False) -> None:
     """Write a matplotlib figure to ``path`` as PNG, atomically, its provenance in its text chunks."""

@@ -612,6 +612,12 @@ def _run_pool(job, todo, on_record, bar):
         t.join()
 
 
+def ray_actor_count(workers: int, shards: int, cluster_cpus: int) -> int:
+    """Ray actors for a render: ``--workers``, but no more than the shards to render or the cluster's CPUs (each
+    actor holds at least one CPU while it lives)."""
+    return max(1, min(workers, shards, cluster_cpus))
+
+
 def _run_ray(job, todo, on_record, bar):
     """The same shard tasks on Ray actors (a running cluster when RAY_ADDRESS is set, else a local one)."""
     ray = require_ray()
@@ -621,14 +627,20 @@ def _run_ray(job, todo, on_record, bar):
         ray.init()
 
     # as the local pool: the CPUs this process may use, shared by the actors that start (not os.cpu_count(), which
-    # ignores taskset and oversubscribed Dr.Jit); never more than the cluster has, or no actor could be scheduled
-    actors_n = max(1, min(job.workers, len(todo)))
-    threads = max(1, available_cpus() // actors_n)
-    threads = max(1, min(threads, int(ray.cluster_resources().get("CPU", threads))))
+    # ignores taskset and oversubscribed Dr.Jit).  Never more actors than the cluster has CPUs: an actor that cannot
+    # be scheduled still gets shards from the ActorPool, which then waits for it for ever.
+    cluster_cpus = max(1, int(ray.cluster_resources().get("CPU", 1)))
+    actors_n = ray_actor_count(job.workers, len(todo), cluster_cpus)
+    threads = max(1, min(available_cpus(), cluster_cpus) // actors_n)
+    # Ray workers need not share this process's working directory (a cluster's never do): absolute paths
+    job = dataclasses.replace(job, out=os.path.abspath(job.out))
 
     @ray.remote
     class ShardActor:  # one Renderer per actor, reused for all its shards
         def __init__(self, job, threads):
+            import torch
+
+            torch.set_num_threads(1)  # as the pool's workers: torch only stores the samples
             self.renderer = make_renderer(job, threads)
             self.job = job
 

@@ -120,13 +120,10 @@ def _tonemap(image: np.ndarray) -> np.ndarray:
 def contact_sheet(samples: list[dict], psi_names: list[str], path: str, *, seed: int | None) -> str:
     """One row per sample: the image, then ∂I/∂ψ_j per ψ_j (its strongest colour channel), drawn with a
     diverging colormap and symmetric limits ±max|∂I/∂ψ_j| so zero is white."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from risp_data.figures import subplots
 
     cols = 1 + (len(psi_names) if samples[0]["jacobian"] is not None else 0)
-    fig, axes = plt.subplots(len(samples), cols, figsize=(1.6 * cols, 1.7 * len(samples)), squeeze=False)
+    fig, axes = subplots(len(samples), cols, figsize=(1.6 * cols, 1.7 * len(samples)), squeeze=False)
     for r, s in enumerate(samples):
         ax = axes[r, 0]
         ax.imshow(_tonemap(s["image"]), interpolation="nearest")
@@ -144,10 +141,7 @@ def contact_sheet(samples: list[dict], psi_names: list[str], path: str, *, seed:
         ax.set_xticks([])
         ax.set_yticks([])
     fig.tight_layout()
-    try:
-        save_figure(fig, path, seed=seed, what="risp-data inspect: images and Jacobians")
-    finally:
-        plt.close(fig)
+    save_figure(fig, path, seed=seed, what="risp-data inspect: images and Jacobians")
     return path
 
 

@@ -17,6 +17,7 @@ and skips the batches already seen.
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import os
 from dataclasses import dataclass
@@ -189,13 +190,14 @@ def _shuffle_buffer(src: Iterator[dict], size: int, seed_words: list[int]) -> It
         yield buf.pop(int(rng.integers(len(buf))))
 
 
-def _decoder(need_jacobian: bool):
+def _decoder(need_jacobian: bool, resolution: int | None = None):
     from risp_data.shards import decode_wds_sample
 
     def decode(raw: dict) -> dict:
         if need_jacobian and "jacobian.exr" not in raw:
             raise RispError(f"webdataset sample {raw.get('__key__')} in {raw.get('__url__')} has no jacobian.exr")
-        d = decode_wds_sample(raw, jacobian=need_jacobian)  # checksums every member either way
+        # checksums every member either way; an image of another size is refused before it is decoded
+        d = decode_wds_sample(raw, jacobian=need_jacobian, resolution=resolution)
         d["url"] = raw.get("__url__", "")
         return d
 
@@ -206,12 +208,15 @@ class WdsStream(torch.utils.data.IterableDataset):
     """One epoch of decoded samples for this rank, split over DataLoader workers (see the module doc)."""
 
     def __init__(self, urls: tuple[str, ...], seed: int, epoch: int, shuffle_buffer: int, need_jacobian: bool,
-                 rank: int, shuffle: bool = True, split: bool = True, split_nodes: bool = True):
+                 rank: int, shuffle: bool = True, split: bool = True, split_nodes: bool = True,
+                 resolution: int | None = None, world_size: int = 1):
         super().__init__()
+        self.resolution = resolution  # the manifest's: an image of another size is refused before decoding
         self.urls, self.seed, self.epoch = urls, seed, epoch
         self.shuffle_buffer, self.need_jacobian, self.rank, self.shuffle = shuffle_buffer, need_jacobian, rank, shuffle
         self.split = split  # False: every sample of every shard, in order (statistics, evaluation)
         self.split_nodes = split_nodes  # False: split over DataLoader workers only (each rank reads every shard)
+        self.world_size = world_size  # rank r reads the epoch's shards r, r + W, … (as steps_per_epoch plans)
 
     def __iter__(self) -> Iterator[dict]:
         import webdataset as wds
@@ -225,13 +230,16 @@ class WdsStream(torch.utils.data.IterableDataset):
         worker = 0 if info is None else info.id
         stages: list[Any] = [wds.SimpleShardList(urls)]
         if self.split:
-            stages += [wds.split_by_node, wds.split_by_worker] if self.split_nodes else [wds.split_by_worker]
+            # the rank's shards from its own rank and world size, not wds.split_by_node's reading of the process
+            # group or the environment: the split the step plan assumes, whoever builds the stream
+            by_rank = lambda src: itertools.islice(src, self.rank, None, self.world_size)  # noqa: E731
+            stages += [by_rank, wds.split_by_worker] if self.split_nodes else [wds.split_by_worker]
         # tars → raw samples, each shard's samples checked against its manifest record (count, range, env)
         stages.append(shard_check_for_urls(list(self.urls), handler=raise_with_url).samples)
         if self.shuffle and self.shuffle_buffer > 1:
             words = [self.seed, self.epoch, self.rank, worker, 0xB0F]
             stages.append(lambda src: _shuffle_buffer(src, self.shuffle_buffer, words))
-        stages.append(wds.map(_decoder(self.need_jacobian), handler=raise_with_url))
+        stages.append(wds.map(_decoder(self.need_jacobian, self.resolution), handler=raise_with_url))
         return iter(wds.DataPipeline(*stages))
 
 
@@ -350,7 +358,8 @@ def make_loader(shards: ShardSet, *, seed: int, epoch: int, batch_size: int, wor
     fn = _Collate(state_dim, shards.resolution, len(shards.psi_names))
     if shards.format == "wds":
         nw = effective_workers(len(shards.urls), world_size, workers)
-        ds = WdsStream(shards.urls, seed, epoch, shuffle_buffer, need_jacobian, rank)
+        ds = WdsStream(shards.urls, seed, epoch, shuffle_buffer, need_jacobian, rank, resolution=shards.resolution,
+                       world_size=world_size)
         return torch.utils.data.DataLoader(ds, batch_size=batch_size, num_workers=nw, collate_fn=fn,
                                            drop_last=True, persistent_workers=False, worker_init_fn=_WorkerInit(),
                                            generator=loader_generator())
@@ -367,7 +376,8 @@ def iter_samples(shards: ShardSet, need_jacobian: bool = False) -> Iterator[dict
         for i in range(len(ds)):
             yield ds[i]
         return
-    yield from WdsStream(shards.urls, 0, 0, 0, need_jacobian, rank=0, shuffle=False, split=False)
+    yield from WdsStream(shards.urls, 0, 0, 0, need_jacobian, rank=0, shuffle=False, split=False,
+                         resolution=shards.resolution)
 
 
 def iter_batches(shards: ShardSet, batch_size: int, need_jacobian: bool = False, state_dim: int | None = None,

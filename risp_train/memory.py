@@ -69,19 +69,25 @@ def estimate_bytes(shards: ShardSet, need_jacobian: bool) -> int:
     return n * per
 
 
-def resolve_cache(mode: str, shards: ShardSet, need_jacobian: bool, available: int | None = None) -> str:
+def resolve_cache(mode: str, shards: ShardSet, need_jacobian: bool, available: int | None = None,
+                  processes: int = 1) -> str:
     """``memory`` or ``stream`` for ``--cache mode``: ``auto`` keeps the data in memory when it needs at most
-    AUTO_MEMORY_SHARE of the available memory; ``memory`` insists (one clear error when it cannot fit)."""
+    AUTO_MEMORY_SHARE of the available memory; ``memory`` insists (one clear error when it cannot fit).
+    ``processes``: the training processes on this machine (torchrun's LOCAL_WORLD_SIZE), each of which holds the
+    whole set: each may count on its share of the memory only."""
     if mode not in CACHE_MODES:
         raise RispError(f"unknown --cache {mode!r}; choose one of: {', '.join(CACHE_MODES)}")
     if mode == "stream":
         return "stream"
     need = estimate_bytes(shards, need_jacobian)
     avail = available_memory() if available is None else available
+    if avail is not None:
+        avail //= max(1, processes)
     if mode == "memory":
         if avail is not None and need > avail:
+            each = f" for each of {processes} processes" if processes > 1 else ""
             raise RispError(f"--cache memory: {shards.folder} decodes to {need / 2**30:.1f} GiB but only "
-                            f"{avail / 2**30:.1f} GiB of memory is available; use --cache stream")
+                            f"{avail / 2**30:.1f} GiB of memory is available{each}; use --cache stream")
         return "memory"
     return "memory" if avail is not None and need <= AUTO_MEMORY_SHARE * avail else "stream"
 
@@ -113,7 +119,8 @@ def load_memory_set(shards: ShardSet, *, need_jacobian: bool, workers: int = 0, 
     keys: list[str | None] = [None] * n
     fn = _Collate(state_dim, res, k)
     if shards.format == "wds":  # each worker decodes whole shards; every rank holds every sample
-        ds = WdsStream(shards.urls, 0, 0, 0, need_jacobian, rank=0, shuffle=False, split=True, split_nodes=False)
+        ds = WdsStream(shards.urls, 0, 0, 0, need_jacobian, rank=0, shuffle=False, split=True, split_nodes=False,
+                       resolution=shards.resolution)
         nw = max(0, min(workers, len(shards.urls)))
     else:
         ds = ZarrSamples(shards.folder, need_jacobian)

@@ -1,19 +1,11 @@
-"""PNG figures (matplotlib, Agg backend): loss curves of a run, predicted vs true states, the ablation figure."""
+"""PNG figures — loss curves of a run, predicted vs true states, the ablation figure — drawn on matplotlib
+figures without pyplot (risp_data.figures.subplots: the caller's backend is left alone)."""
 
 from __future__ import annotations
 
 import csv
 
-from risp_data.figures import save_figure
-
-
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+from risp_data.figures import save_figure, subplots
 
 
 def _save(fig, path: str, seed: int | None, what: str) -> None:
@@ -33,8 +25,7 @@ def plot_losses(csv_path: str, png_path: str, history: list[dict] | None = None,
             values.append(float(row["reg"]))
     if not steps:
         return
-    plt = _pyplot()
-    fig, ax = plt.subplots(1, 2, figsize=(10, 3.6))
+    fig, ax = subplots(1, 2, figsize=(10, 3.6))
     marker = "o" if len(steps) <= 20 else None
     ax[0].plot(steps, err, lw=0.8, marker=marker, label="train state error ℓ (normalized L1)")
     val = [(h["step"], h["val_error"]) for h in (history or []) if h.get("val_error") is not None]
@@ -59,7 +50,6 @@ def plot_losses(csv_path: str, png_path: str, history: list[dict] | None = None,
     ax[1].set_xlabel("step")
     ax[1].set_ylabel("regularizer r (batch mean)")
     _save(fig, png_path, seed, "risp-train fit: loss curves")
-    plt.close(fig)
 
 
 def plot_predicted_vs_true(pred, true, names, png_path: str, title: str = "", units=None, *,
@@ -76,8 +66,7 @@ def plot_predicted_vs_true(pred, true, names, png_path: str, title: str = "", un
             pred[:, i], true[:, i] = np.degrees(pred[:, i]), np.degrees(true[:, i])
     cols = min(len(names), 5)
     rows = -(-len(names) // cols)
-    plt = _pyplot()
-    fig, axes = plt.subplots(rows, cols, figsize=(2.6 * cols, 2.5 * rows), squeeze=False)
+    fig, axes = subplots(rows, cols, figsize=(2.6 * cols, 2.5 * rows), squeeze=False)
     for i, ax in enumerate(axes.ravel()):
         if i >= len(names):
             ax.axis("off")
@@ -93,18 +82,16 @@ def plot_predicted_vs_true(pred, true, names, png_path: str, title: str = "", un
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     _save(fig, png_path, seed, "risp-train eval: predicted vs true")
-    plt.close(fig)
 
 
 def plot_ablation(results: list[dict], png_path: str, metric: str, sets: list[str], *,
                   seed: int | None) -> None:
     """Held-out state error vs number of rendering configurations, one line per regularizer, one panel per set."""
-    plt = _pyplot()
     order = ["none", "surrogate", "exact", "stochastic"]
     regs = sorted({r["reg"] for r in results}, key=order.index)
     pools = sorted({r["pool"] for r in results}, key=lambda p: (p == "per-sample", int(p) if p.isdigit() else 0))
     labels = [("new per sample" if p == "per-sample" else f"{p} config" + ("" if p == "1" else "s")) for p in pools]
-    fig, axes = plt.subplots(1, len(sets), figsize=(5.2 * len(sets), 3.8), squeeze=False)
+    fig, axes = subplots(1, len(sets), figsize=(5.2 * len(sets), 3.8), squeeze=False)
     for ax, s in zip(axes[0], sets):
         for k, reg in enumerate(regs):
             pts = [next((r[s] for r in results if r["reg"] == reg and r["pool"] == p), None) for p in pools]
@@ -116,4 +103,3 @@ def plot_ablation(results: list[dict], png_path: str, metric: str, sets: list[st
         ax.set_ylabel(f"per-image state error ({metric})")
         ax.legend(fontsize=8)
     _save(fig, png_path, seed, "risp-train ablation")
-    plt.close(fig)

@@ -69,6 +69,15 @@ def init_distributed() -> Dist:
     return Dist(dist.get_rank(), dist.get_world_size())
 
 
+def agreed_cache(cache: str) -> str:
+    """``memory`` when every rank chose it, else ``stream`` (one all-reduce of 1/0 with MIN)."""
+    import torch.distributed as dist
+
+    flag = torch.tensor([1 if cache == "memory" else 0])
+    dist.all_reduce(flag, op=dist.ReduceOp.MIN)
+    return "memory" if int(flag) == 1 else "stream"
+
+
 def allreduce_gradients(params: list[torch.nn.Parameter], world_size: int) -> None:
     """Average gradients over ranks (one flat all-reduce; parameters without a gradient count as 0)."""
     import torch.distributed as dist
@@ -373,7 +382,11 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
     psi_std = psi_scale(shards.env, shards.manifest.get("domain", "train"))
     mhash = manifest_hash(shards.manifest)
 
-    cache = resolve_cache(cfg.cache, shards, need_j)  # memory | stream (memory.py); a resume keeps its own below
+    # memory | stream (memory.py); a resume keeps its own below.  Every rank must choose alike (their step plans
+    # differ by mode): each decides on its share of this machine's memory, then all take stream if any did.
+    cache = resolve_cache(cfg.cache, shards, need_j, processes=int(os.environ.get("LOCAL_WORLD_SIZE", str(world))))
+    if world > 1:
+        cache = agreed_cache(cache)
     state = None
     if resuming:
         state = ckpt_io.load_checkpoint(last_path)

@@ -65,3 +65,14 @@ def test_ray_errors_without_ray_imported_leaves_errors_alone(monkeypatch):
     with pytest.raises(ValueError):
         with ray_errors("x"):
             raise ValueError("no ray here")
+
+
+def test_a_ray_render_starts_no_more_actors_than_the_cluster_has_cpus():
+    """An actor that cannot be scheduled still receives shards from Ray's ActorPool, which then waits for it for
+    ever: --workers 8 on a 4-CPU cluster starts 4 actors (and never more than the shards to render)."""
+    from risp_data.generate import ray_actor_count
+
+    assert ray_actor_count(8, 20, 4) == 4
+    assert ray_actor_count(8, 3, 16) == 3
+    assert ray_actor_count(2, 20, 16) == 2
+    assert ray_actor_count(1, 0, 0) == 1

@@ -288,23 +288,66 @@ def test_atomic_write_gives_normal_permissions_and_cleans_up(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["x.json"]
 
 
-def test_decode_without_jacobian_skips_it_but_still_checks_checksums(tmp_path):
-    """decode_wds_sample(..., jacobian=False) returns no Jacobian, and a flipped byte in the
-    undecoded jacobian.exr is still caught by its checksum."""
-    import tarfile
-
-    from risp_data.shards import decode_wds_sample, wds_urls
-
-    folder = tmp_path / "s"
-    _write(str(folder), formats=("wds",), jacobian=True)
+def _first_raw_sample(folder, jacobian: bool) -> dict:
+    """A written folder's first sample as webdataset hands it to decode_wds_sample (bytes per member)."""
+    _write(str(folder), formats=("wds",), jacobian=jacobian)
     with tarfile.open(wds_urls(str(folder))[0]) as tar:
         members = {m.name: tar.extractfile(m).read() for m in tar.getmembers()}
     key = sorted(members)[0].split(".")[0]
     raw = {name.split(".", 1)[1]: data for name, data in members.items() if name.startswith(key + ".")}
     raw["__key__"], raw["__url__"] = key, "shard"
+    return raw
+
+
+def test_decode_without_jacobian_skips_it_but_still_checks_checksums(tmp_path):
+    """decode_wds_sample(..., jacobian=False) returns no Jacobian, and a flipped byte in the
+    undecoded jacobian.exr is still caught by its checksum."""
+    raw = _first_raw_sample(tmp_path / "s", jacobian=True)
     full, lean = decode_wds_sample(raw), decode_wds_sample(raw, jacobian=False)
     assert full["jacobian"] is not None and lean["jacobian"] is None
     np.testing.assert_array_equal(full["image"], lean["image"])
     bad = dict(raw, **{"jacobian.exr": raw["jacobian.exr"][:-1] + bytes([raw["jacobian.exr"][-1] ^ 1])})
     with pytest.raises(RispError, match="sha256"):
         decode_wds_sample(bad, jacobian=False)
+
+
+def test_an_image_of_another_size_is_refused_before_its_pixels_are_decoded(tmp_path, monkeypatch):
+    """A small ZIP-compressed EXR expands to gigabytes (4096² from 212 KB): the readers decoded the whole image
+    and only then compared its size with the manifest's.  The header is checked first, in every reader (here a
+    consistent hostile sample: its member checksum matches the bigger image)."""
+    import hashlib
+
+    from risp_data.shards.wds import encode_exr
+
+    raw = _first_raw_sample(tmp_path / "s", jacobian=False)
+    raw["image.exr"] = encode_exr({"RGB": np.zeros((4 * RES, 4 * RES, 3), np.float32)})
+    meta = json.loads(raw["json"])
+    meta["member_sha256"]["image.exr"] = hashlib.sha256(raw["image.exr"]).hexdigest()
+    raw["json"] = json.dumps(meta).encode()
+    decoded = []
+    import OpenEXR
+
+    real = OpenEXR.File
+
+    def counting(*a, header_only=False, **kw):
+        if not header_only:
+            decoded.append(1)
+        return real(*a, header_only=header_only, **kw)
+
+    monkeypatch.setattr(OpenEXR, "File", counting)
+    with pytest.raises(RispError, match=rf"the EXR is {4 * RES}×{4 * RES} pixels, the folder's images {RES}×{RES}"):
+        decode_wds_sample(raw, jacobian=False, resolution=RES)
+    assert not decoded  # refused from the header alone
+    assert decode_wds_sample(raw, jacobian=False)["image"].shape == (4 * RES, 4 * RES, 3)  # unchecked: decoded
+
+
+def test_a_zarr_array_of_another_shape_than_the_manifests_is_refused(tmp_path):
+    """The reader checked only that the arrays exist (the writer's check compares their shapes): a zarr.json
+    edited to a larger shape made a read allocate that shape's fill value."""
+    _write(str(tmp_path), formats=("zarr",))
+    meta = tmp_path / "data.zarr" / "images" / "zarr.json"
+    doc = json.loads(meta.read_text())
+    doc["shape"] = [doc["shape"][0], 2 * RES, RES, 3]  # (larger ones allocate gigabytes without the check)
+    meta.write_text(json.dumps(doc))
+    with pytest.raises(RispError, match=rf"the array images has shape \(5, {2 * RES}, {RES}, 3\), the manifest's \("):
+        ZarrDataset(str(tmp_path))[0]

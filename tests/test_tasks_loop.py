@@ -1,5 +1,6 @@
 """The task optimisation loop keeps the best iterate by the optimised loss (risp_tasks/tasks/loop.py)."""
 
+import numpy as np
 import pytest
 import torch
 
@@ -402,12 +403,13 @@ def test_each_tasks_help_lists_the_options_it_uses(task, shown, hidden):
 def test_loss_plot_marks_the_returned_iterate_at_result_json_s_index(tmp_path, monkeypatch):
     """loss.png's x axis counts the steps taken (0 = the start), the index of result.json's best_iteration: the
     star sits at that index (it was drawn one to the right, at best + 1)."""
-    import matplotlib.pyplot as plt
+    import risp_tasks.tasks.results as figure_module
 
     from risp_tasks.tasks.results import plot_loss
 
     figs = []
-    monkeypatch.setattr(plt, "close", lambda fig=None: figs.append(fig))
+    real_save = figure_module.save_figure
+    monkeypatch.setattr(figure_module, "save_figure", lambda fig, *a, **k: (figs.append(fig), real_save(fig, *a, **k)))
     history = [5.0, 3.0, 1.0, 2.0, 4.0]
     plot_loss(str(tmp_path / "loss.png"), history, "t", last=6.0, best=2, seed=0)
     (ax,) = figs[-1].axes
@@ -418,3 +420,26 @@ def test_loss_plot_marks_the_returned_iterate_at_result_json_s_index(tmp_path, m
     plot_loss(str(tmp_path / "loss2.png"), history, "t", last=0.5, best=5, seed=0)  # the last iterate returned
     stars = [ln for ln in figs[-1].axes[0].get_lines() if ln.get_marker() == "*"]
     assert list(stars[0].get_xdata()) == [5] and list(stars[0].get_ydata()) == [0.5]
+
+
+def test_image_losses_render_with_the_runs_seed():
+    """The image losses render every frame with the sampler seed ``render_seed`` (the run's --seed): the pixelwise
+    loss equals the hand-written mean of (R(s; seed) − I)² with that seed, the same seed gives the same loss, and
+    another seed other render noise (docs/tasks.md §Losses)."""
+    from risp_data.diff_render import StateRenderer
+    from risp_data.envs import get_environment
+    from risp_tasks.tasks.loop import make_loss
+
+    env = get_environment("cube")
+    renderer = StateRenderer("cube", resolution=16, spp=1)
+    rng = np.random.default_rng(3)
+    states = torch.from_numpy(np.asarray(env.sample_states(rng, 2), np.float32))
+    with torch.no_grad():
+        ref = renderer(torch.from_numpy(np.asarray(env.sample_states(rng, 2), np.float32)), seed=11)
+        by_seed = {s: float(make_loss("pixelwise", env, [0, 1], None, None, ref, renderer=renderer, render_seed=s)(states))
+                   for s in (0, 5)}
+        by_hand = float(((renderer(states, seed=5) - ref) ** 2).mean())
+        again = float(make_loss("pixelwise", env, [0, 1], None, None, ref, renderer=renderer, render_seed=5)(states))
+    assert by_seed[5] == pytest.approx(by_hand, rel=1e-6)
+    assert again == by_seed[5]
+    assert by_seed[0] != pytest.approx(by_seed[5], rel=1e-6)

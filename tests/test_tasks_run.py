@@ -625,3 +625,25 @@ def test_toss_velocity_aims_inside_and_is_capped():
     assert np.abs(v_short).max() == pytest.approx(TOSS_SPEED) and np.all(np.abs(v_short) <= TOSS_SPEED + 1e-12)
     stop = xy0 + v_short * 0.1
     assert np.all((stop - xy0) * (end - stop) >= 0)  # between start and aim, component-wise
+
+
+def test_make_reference_gives_the_callers_thread_counts_back(tmp_path):
+    """make_reference set one torch thread and Dr.Jit to every CPU and left them so: the tables call it in-process,
+    between cells that must each run on one Dr.Jit thread."""
+    import drjit as dr
+
+    from risp_data.mitsuba_setup import init_mitsuba
+    from risp_tasks.tasks.reference import ReferenceConfig, make_reference
+
+    init_mitsuba()
+    torch_before, drjit_before = torch.get_num_threads(), dr.thread_count()
+    try:
+        torch.set_num_threads(3)
+        dr.set_thread_count(1)
+        truth = make_reference(ReferenceConfig(env="quadrotor", out=str(tmp_path / "v.mp4"), frames=2, resolution=8,
+                                               spp=1, seed=1, progress=False))
+        assert truth["threads"]["torch"] == 1 and truth["threads"]["drjit"] >= 1  # what it ran with, recorded
+        assert torch.get_num_threads() == 3 and dr.thread_count() == 1
+    finally:
+        torch.set_num_threads(torch_before)
+        dr.set_thread_count(drjit_before)

@@ -143,6 +143,11 @@ def test_auto_streams_when_memory_is_short_and_memory_refuses_clearly(shards):
     assert resolve_cache("auto", s, True, available=4 * need) == "memory"
     assert resolve_cache("auto", s, True, available=need) == "stream"  # more than half of what is free
     assert resolve_cache("stream", s, True, available=10 * need) == "stream"
+    # two torchrun processes on one machine each hold the whole set: each may count on half the memory
+    assert resolve_cache("auto", s, True, available=4 * need, processes=2) == "memory"
+    assert resolve_cache("auto", s, True, available=4 * need, processes=3) == "stream"
+    with pytest.raises(RispError, match="for each of 3 processes"):
+        resolve_cache("memory", s, True, available=2 * need, processes=3)
     with pytest.raises(RispError, match="--cache stream"):
         resolve_cache("memory", s, True, available=need // 2)
     with pytest.raises(RispError, match="unknown --cache"):

@@ -101,12 +101,13 @@ def test_paper_l1_and_l2_on_a_hand_built_difference():
 def test_scatter_plot_draws_attitude_in_degrees_with_units(tmp_path, monkeypatch):
     """eval's predicted-vs-true PNG: angles in degrees, as its tables report them, and each panel names its unit
     (the yaw/pitch/roll panels were radians without a unit beside a table in degrees)."""
-    import matplotlib.pyplot as plt
+    import risp_train.plots as figure_module
 
     from risp_train.plots import plot_predicted_vs_true
 
     figs = []
-    monkeypatch.setattr(plt, "close", lambda fig=None: figs.append(fig))
+    real_save = figure_module.save_figure
+    monkeypatch.setattr(figure_module, "save_figure", lambda fig, *a, **k: (figs.append(fig), real_save(fig, *a, **k)))
     true = _rigid_truth(4)
     pred = true + 0.01
     names = ["x", "y", "z", "yaw", "pitch", "roll"]
@@ -124,7 +125,7 @@ def test_loss_plot_leaves_out_the_steps_before_the_regularizer_starts(tmp_path, 
     axis' floor as if they were values; the computed ones are drawn as logged."""
     import csv
 
-    import matplotlib.pyplot as plt
+    import risp_train.plots as figure_module
 
     from risp_train.plots import plot_losses
 
@@ -136,7 +137,8 @@ def test_loss_plot_leaves_out_the_steps_before_the_regularizer_starts(tmp_path, 
         for s, e, r in rows:
             w.writerow([s, 0, s, 1e-3, 0.3, e + r, e, r, 0.1])
     figs = []
-    monkeypatch.setattr(plt, "close", lambda fig=None: figs.append(fig))
+    real_save = figure_module.save_figure
+    monkeypatch.setattr(figure_module, "save_figure", lambda fig, *a, **k: (figs.append(fig), real_save(fig, *a, **k)))
     plot_losses(str(path), str(tmp_path / "losses.png"), reg="stochastic", seed=4)
     (line,) = figs[-1].axes[1].get_lines()
     assert list(line.get_xdata()) == list(range(5, 10))
@@ -146,3 +148,25 @@ def test_loss_plot_leaves_out_the_steps_before_the_regularizer_starts(tmp_path, 
     # the PNG names its run's seed (its JSON beside it does too)
     assert png_provenance(tmp_path / "losses.png") == {"Software": "risp", "risp:seed": "4",
                                                        "risp:what": "risp-train fit: loss curves"}
+
+
+def test_plots_leave_the_callers_matplotlib_backend_alone(tmp_path):
+    """Every plot called matplotlib.use("Agg"): a notebook user who ran an evaluation or a diagnosis from Python
+    was switched to Agg, and plt.show() showed nothing afterwards.  The figures are drawn without pyplot."""
+    import matplotlib
+
+    from risp_tasks.tasks.results import plot_loss, plot_trajectories
+    from risp_train.plots import plot_predicted_vs_true
+
+    before = matplotlib.get_backend()
+    try:
+        matplotlib.use("svg")  # a backend the plots must not replace (any non-Agg one)
+        plot_loss(str(tmp_path / "loss.png"), [3.0, 2.0, 1.0], "t", seed=0)
+        plot_trajectories(str(tmp_path / "traj.png"), ["x"], None, {"a": (np.arange(3.0), np.zeros((3, 1)))}, seed=0)
+        true = _rigid_truth(3)
+        plot_predicted_vs_true(true + 0.01, true, ["x", "y", "z", "yaw", "pitch", "roll"], str(tmp_path / "s.png"),
+                               seed=0)
+        assert matplotlib.get_backend() == "svg"
+        assert all((tmp_path / n).stat().st_size > 1000 for n in ("loss.png", "traj.png", "s.png"))
+    finally:
+        matplotlib.use(before)

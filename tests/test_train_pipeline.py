@@ -506,3 +506,24 @@ def test_images_too_small_for_the_network_are_refused_before_a_run_folder(tmp_pa
                                         r"9×9\); render them with --res 9 or more"):
         fit(cfg, progress=False)
     assert not out.exists()
+
+
+def test_each_rank_streams_its_own_shards_as_the_step_plan_counts(shards):
+    """Rank r of W reads the epoch's shards r, r + W, … from its own rank and world size (not the environment's):
+    the ranks' samples are disjoint, together every sample once, and each rank has the batches steps_per_epoch
+    planned for it."""
+    from risp_train.data import ShardSet, WdsStream, epoch_shard_order, open_shards, steps_per_epoch
+
+    s: ShardSet = open_shards(shards["train"], "wds")
+    assert len(s.urls) == 4
+    keys = {}
+    for rank in (0, 1):
+        stream = WdsStream(s.urls, seed=3, epoch=1, shuffle_buffer=0, need_jacobian=False, rank=rank, world_size=2,
+                           resolution=s.resolution)
+        keys[rank] = [d["key"] for d in stream]
+    assert not set(keys[0]) & set(keys[1])
+    assert len(keys[0]) + len(keys[1]) == s.num_samples == len(set(keys[0]) | set(keys[1]))
+    order = epoch_shard_order(len(s.urls), 3, 1)
+    for rank in (0, 1):
+        assert len(keys[rank]) == sum(s.counts[i] for i in order[rank::2])
+    assert steps_per_epoch(s, 3, 1, 4, 2, 0) == min(len(k) // 4 for k in keys.values())

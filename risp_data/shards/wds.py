@@ -16,6 +16,7 @@ Tars are reproducible: sorted members, fixed mtime, uid/gid 0, no user names.  N
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import io
 import json
@@ -55,10 +56,18 @@ def encode_exr(channels: dict[str, np.ndarray]) -> bytes:
     return buf.getvalue()
 
 
-def decode_exr(data: bytes) -> dict[str, np.ndarray]:
-    """Channel groups of an EXR (``"RGB"``, ``"<name>.RGB"``) as (H, W, 3) float32 arrays."""
+def decode_exr(data: bytes, resolution: int | None = None) -> dict[str, np.ndarray]:
+    """Channel groups of an EXR (``"RGB"``, ``"<name>.RGB"``) as (H, W, 3) float32 arrays.  ``resolution``: the
+    size the folder's manifest says, checked from the header before the pixels are decoded (a small ZIP-compressed
+    file can expand to gigabytes: a damaged or hostile shard must not exhaust memory first)."""
     import OpenEXR
 
+    if resolution is not None:
+        with OpenEXR.File(io.BytesIO(data), header_only=True) as f:
+            (x0, y0), (x1, y1) = f.header()["dataWindow"]
+        size = (int(y1) - int(y0) + 1, int(x1) - int(x0) + 1)
+        if size != (resolution, resolution):
+            raise ValueError(f"the EXR is {size[0]}×{size[1]} pixels, the folder's images {resolution}×{resolution}")
     with OpenEXR.File(io.BytesIO(data)) as f:
         return {k: np.asarray(v.pixels, dtype=np.float32) for k, v in f.channels().items()}
 
@@ -77,10 +86,11 @@ def encode_jacobian(jacobian: np.ndarray, psi_names: list[str], channels: dict[s
     return encode_exr(out)
 
 
-def decode_jacobian(data: bytes, psi_names: list[str], channels: dict[str, str] | None = None) -> np.ndarray:
+def decode_jacobian(data: bytes, psi_names: list[str], channels: dict[str, str] | None = None,
+                    resolution: int | None = None) -> np.ndarray:
     """The full (K, H, W, 3) stack of a Jacobian EXR; ``channels`` (the sample's json ``jacobian_channels``,
     absent in old samples: all ``"RGB"``) says which channels each ψ stored, the others are +0.0."""
-    groups = decode_exr(data)
+    groups = decode_exr(data, resolution)
     channels = channels or {}
     keys = [f"{n}.{channels.get(n, RGB)}" for n in psi_names]
     missing = [k for k in keys if k not in groups]
@@ -155,12 +165,13 @@ def _where(sample: dict[str, Any]) -> str:
     return f"shard {sample.get('__url__', '<unknown shard>')} key {sample.get('__key__', '<unknown key>')}"
 
 
-def decode_wds_sample(sample: dict[str, Any], jacobian: bool = True) -> dict[str, Any]:
+def decode_wds_sample(sample: dict[str, Any], jacobian: bool = True, resolution: int | None = None) -> dict[str, Any]:
     """Decode a raw webdataset sample (bytes per member) into arrays; RispError naming shard and key.
 
     Returns ``dict(key, image (H,W,3) float32, jacobian (K,H,W,3) float32 or None, state (S,) float64,
     psi (K,) float64, meta dict)``.  Every member's checksum is verified; with ``jacobian=False`` the
-    Jacobian EXR (the bulk of a sample) is not decoded and ``jacobian`` is None.
+    Jacobian EXR (the bulk of a sample) is not decoded and ``jacobian`` is None; with ``resolution`` (the
+    manifest's) an EXR of another size is refused from its header, before its pixels are decoded.
     """
     for ext in ("image.exr", "json", "psi.npy", "state.npy"):
         if ext not in sample:
@@ -173,12 +184,13 @@ def decode_wds_sample(sample: dict[str, Any], jacobian: bool = True) -> dict[str
                 raise ValueError(f"missing member {ext}")
             if hashlib.sha256(sample[ext]).hexdigest() != digest:
                 raise ValueError(f"member {ext} does not match its sha256")
-        image = decode_exr(sample["image.exr"])["RGB"]
+        image = decode_exr(sample["image.exr"], resolution)["RGB"]
         state = np.load(io.BytesIO(sample["state.npy"]), allow_pickle=False)
         psi = np.load(io.BytesIO(sample["psi.npy"]), allow_pickle=False)
         jac = None
         if jacobian and "jacobian.exr" in sample:
-            jac = decode_jacobian(sample["jacobian.exr"], list(meta["psi_names"]), meta.get("jacobian_channels"))
+            jac = decode_jacobian(sample["jacobian.exr"], list(meta["psi_names"]), meta.get("jacobian_channels"),
+                                  resolution)
         if state.shape != (len(meta["state_names"]),) or psi.shape != (len(meta["psi_names"]),):
             raise ValueError(f"state/psi shapes {state.shape}/{psi.shape} disagree with the names in its json")
     except RispError:
@@ -299,6 +311,8 @@ def iter_wds(folder: str) -> Iterator[dict[str, Any]]:
     urls = wds_urls(folder)
     if not urls:
         return iter(())
+    resolution = load_manifest(folder).get("resolution")  # checked before each image is decoded
     pipeline = wds.DataPipeline(wds.SimpleShardList(urls), shard_check(folder).samples,
-                                wds.map(decode_wds_sample, handler=raise_with_url))
+                                wds.map(functools.partial(decode_wds_sample, resolution=resolution),
+                                        handler=raise_with_url))
     return iter(pipeline)

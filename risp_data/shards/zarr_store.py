@@ -195,9 +195,15 @@ class ZarrDataset:
         except Exception as e:
             raise RispError(f"corrupt zarr store {path}: {type(e).__name__}: {message_line(e)}"
                             f"{repair_hint(self.folder)}") from None
-        missing = [name for name in manifest_shapes(self.manifest) if name not in arrays]
+        shapes = manifest_shapes(self.manifest)
+        missing = [name for name in shapes if name not in arrays]
         if missing:  # an array's zarr.json deleted: the array is not there for zarr (it was a KeyError)
             raise RispError(f"corrupt zarr store {path}: the array {missing[0]} is missing{repair_hint(self.folder)}")
+        for name, shape in shapes.items():  # as the writer's check (generate._zarr_store_ok): a hand-edited
+            # zarr.json of another shape would otherwise make a read allocate that shape's fill value
+            if tuple(arrays[name].shape) != tuple(shape):
+                raise RispError(f"corrupt zarr store {path}: the array {name} has shape {tuple(arrays[name].shape)}, "
+                                f"the manifest's {tuple(shape)}{repair_hint(self.folder)}")
         return arrays
 
     def __getstate__(self) -> dict:

@@ -84,14 +84,11 @@ def _top_channels(accel: np.ndarray) -> list[int]:
 
 
 def plot_residuals_time(path: Path, os_base, os_ext, names: tuple[str, str], *, seed: int | None) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from risp_data.figures import subplots
 
     chans = _top_channels(os_base.accel)
     A = len(chans)
-    fig, axes = plt.subplots(A, 1, figsize=(9, 1.6 * A + 0.6), sharex=True, squeeze=False)
+    fig, axes = subplots(A, 1, figsize=(9, 1.6 * A + 0.6), sharex=True, squeeze=False)
     trajs = np.unique(os_base.traj)[:3]
     for row, c in enumerate(chans):
         ax = axes[row, 0]
@@ -113,21 +110,17 @@ def plot_residuals_time(path: Path, os_base, os_ext, names: tuple[str, str], *, 
     fig.suptitle("one-step acceleration residuals a_meas − a_model (m/s², rad/s²); faint: raw, bold: moving mean; "
                  "y: 1st–99th percentile", fontsize=9)
     _savefig(fig, path, seed)
-    plt.close(fig)
 
 
 def plot_residuals_regressors(path: Path, os_base, *, seed: int | None) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from risp_data.figures import subplots
 
     regs = [k for k in os_base.regressors if np.ptp(os_base.regressors[k]) > 0]
     chans = _top_channels(os_base.accel)
     A = len(chans)
     if not regs:
         regs = ["time [s]"]
-    fig, axes = plt.subplots(A, len(regs), figsize=(2.4 * len(regs) + 0.5, 1.6 * A + 0.6), squeeze=False)
+    fig, axes = subplots(A, len(regs), figsize=(2.4 * len(regs) + 0.5, 1.6 * A + 0.6), squeeze=False)
     for row, c in enumerate(chans):
         for r, name in enumerate(regs):
             ax = axes[row, r]
@@ -154,15 +147,11 @@ def plot_residuals_regressors(path: Path, os_base, *, seed: int | None) -> None:
     fig.suptitle("base-model one-step acceleration residuals vs candidate regressors (black: binned means; "
                  "axes: 1st–99th percentile)", fontsize=9)
     _savefig(fig, path, seed)
-    plt.close(fig)
 
 
 def plot_gain(path: Path, base_ev, ext_ev, held_trajs, horizon: int, *, seed: int | None) -> None:
     """Measured vs base vs extended open-loop rollouts, restarted from the measured state every H_r samples."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from risp_data.figures import subplots
 
     tr = max(held_trajs, key=lambda t: t.n)
     tr = tr.slice(0, min(tr.n, MAX_OVERLAY_SAMPLES), "")  # a long log: its first part is plenty to look at
@@ -181,7 +170,7 @@ def plot_gain(path: Path, base_ev, ext_ev, held_trajs, horizon: int, *, seed: in
         x = seg.meas.numpy()
         spread = x.reshape(-1, x.shape[-1]).std(0)
         chans = [meas_names[i] for i in sorted(np.argsort(spread)[::-1][:4].tolist())]
-    fig, axes = plt.subplots(len(chans), 1, figsize=(9, 1.5 * len(chans) + 0.6), sharex=True, squeeze=False)
+    fig, axes = subplots(len(chans), 1, figsize=(9, 1.5 * len(chans) + 0.6), sharex=True, squeeze=False)
     for c, name in enumerate(chans):
         ax = axes[c, 0]
         ax.plot(tr.t, measured_columns(tr)[name], color="k", lw=1.0, label="measured")
@@ -197,7 +186,6 @@ def plot_gain(path: Path, base_ev, ext_ev, held_trajs, horizon: int, *, seed: in
     axes[0, 0].legend(fontsize=7, loc="upper right")
     axes[-1, 0].set_xlabel(f"time [s] — held-out trajectory {tr.name}; open-loop rollouts of {H} samples from measured states")
     _savefig(fig, path, seed)
-    plt.close(fig)
 
 
 def ev_name(ev) -> str:
@@ -206,10 +194,7 @@ def ev_name(ev) -> str:
 
 def plot_ranking(path: Path, report: dict, *, seed: int | None) -> None:
     """The decision: held-out ΔBIC vs base (left) and the noise-floor ratio ρ (right), thresholds dashed."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from risp_data.figures import subplots
 
     rows = report["ranking"][::-1]
     if not rows:
@@ -219,7 +204,7 @@ def plot_ranking(path: Path, report: dict, *, seed: int | None) -> None:
     dbic = [r["delta_bic"] for r in rows]
     rho = [r["noise_floor_ratio"] if r["noise_floor_ratio"] is not None else float("nan") for r in rows]
     sel = report.get("selected_model")
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 0.35 * len(rows) + 1.4), sharey=True)
+    fig, (a1, a2) = subplots(1, 2, figsize=(10, 0.35 * len(rows) + 1.4), sharey=True)
     beat = [d >= th["delta_bic_min"] and r["rss_reduction"] >= th["min_rss_reduction"] for d, r in zip(dbic, rows)]
     a1.barh(names, dbic, color=["C0" if b else "C7" for b in beat],
             edgecolor=["k" if n == sel else "none" for n in names])
@@ -236,7 +221,6 @@ def plot_ranking(path: Path, report: dict, *, seed: int | None) -> None:
     a2.legend(fontsize=7)
     fig.suptitle(f"cause: {report['cause']} (selected: {sel}, outlined); blue/green: passes, grey/red: fails", fontsize=9)
     _savefig(fig, path, seed)
-    plt.close(fig)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -54,9 +54,11 @@ def prediction_errors(env, pred: torch.Tensor, true: torch.Tensor) -> dict:
             "groups": summarize_groups(env.name, pred.numpy(), true.numpy())}
 
 
-def optimise_states(cfg, env, images: torch.Tensor, init: torch.Tensor, loss_name: str) -> tuple[torch.Tensor, dict]:
+def optimise_states(cfg, env, images: torch.Tensor, init: torch.Tensor, loss_name: str,
+                    render_seed: int = 0) -> tuple[torch.Tensor, dict]:
     """Per-image analysis by synthesis: s ← argmin ‖R(s) − I‖² (pixelwise) or ‖F(R(s)) − F(I)‖² (perceptual),
-    R = risp_data.diff_render in the train domain's nominal look, through the tasks' one loop.  Returns the states
+    R = risp_data.diff_render in the train domain's nominal look, through the tasks' one loop, every render with
+    sampler seed ``render_seed`` (the repeat's seed: repeats see independent render noise).  Returns the states
     and the loop's history (its ``stopped`` where a NaN/inf loss ended the descent)."""
     from risp_data.diff_render import StateRenderer
     from risp_tasks.tasks.loop import Problem, Timer, make_loss, optimize
@@ -65,7 +67,8 @@ def optimise_states(cfg, env, images: torch.Tensor, init: torch.Tensor, loss_nam
     states = init.detach().clone().to(torch.float32).requires_grad_(True)
     frames = list(range(len(images)))
     features = feature_extractor(cfg.perceptual_weights) if loss_name == "perceptual" else None
-    loss = make_loss(loss_name, env, frames, None, None, images, renderer=renderer, features=features)
+    loss = make_loss(loss_name, env, frames, None, None, images, renderer=renderer, features=features,
+                     render_seed=render_seed)
     problem = Problem(variables={"states": states}, states=lambda: states, estimates=dict)
     history = optimize(problem, loss, optimizer="rmsprop", lr=cfg.lr, momentum=0.5, iterations=cfg.iterations,
                        timer=Timer(), progress=False)
@@ -98,7 +101,8 @@ def estimation(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> 
         if m.name == "average":
             pred = avg.expand(n, -1)
         else:
-            pred, history = optimise_states(cfg, env, images, avg.expand(n, -1), m.loss)
+            pred, history = optimise_states(cfg, env, images, avg.expand(n, -1), m.loss,
+                                            render_seed=repeat_seed(cfg.seed, repeat))
             if "stopped" in history:
                 info["stopped"] = history["stopped"]
             if m.name == "perceptual":

@@ -431,6 +431,10 @@ def _run_ray(cfg: TableConfig, todo: list[Cell], folder: str, cache: str | None,
     ray = require_ray()
     if not ray.is_initialized():
         ray.init()
+    # Ray workers need not share this process's working directory (a cluster's never do): absolute paths
+    folder, cache = os.path.abspath(folder), (os.path.abspath(cache) if cache else cache)
+    if cfg.perceptual_weights:
+        cfg = replace(cfg, perceptual_weights=os.path.abspath(cfg.perceptual_weights))
     remote_prepare = ray.remote(_prepare_single_threaded)
     remote_cell = ray.remote(_compute_cell_single_threaded)
     with ray_errors("making a table's data and networks"):

@@ -154,15 +154,12 @@ def write_report(cfg: TableConfig, folder: str, results: list[dict]) -> dict:
 
 def plot_regularizers(report: dict, path: str, *, seed: int) -> None:
     """Target-domain error vs wall time per epoch, one panel per environment, one point per regularizer."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from risp_data.figures import subplots
 
     from risp_data.figures import save_figure
 
     envs = report["config"]["envs"]
-    fig, axes = plt.subplots(1, len(envs), figsize=(3.2 * len(envs), 3.0), squeeze=False)
+    fig, axes = subplots(1, len(envs), figsize=(3.2 * len(envs), 3.0), squeeze=False)
     for ax, env in zip(axes[0], envs):
         for reg, err in report["cells"][env].items():
             sec = report["seconds_per_epoch"][env][reg]
@@ -173,4 +170,3 @@ def plot_regularizers(report: dict, path: str, *, seed: int) -> None:
         ax.legend(fontsize=7)
     fig.tight_layout()
     save_figure(fig, path, seed=seed, what="risp-task table --table regularizers")
-    plt.close(fig)

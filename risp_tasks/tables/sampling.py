@@ -86,10 +86,7 @@ def sampling(cfg, art, env_name: str, scheme: str, repeat: int) -> dict:
 
 def plot_sampling(results: list[dict], path: str, *, seed: int) -> None:
     """Normalised loss landscapes L/max L vs log10 E per scheme, one panel per repeat; the truth dashed."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from risp_data.figures import subplots
 
     from risp_data.figures import save_figure
 
@@ -97,7 +94,7 @@ def plot_sampling(results: list[dict], path: str, *, seed: int) -> None:
     repeats = sorted({r["repeat"] for r in rows})
     if not repeats:
         return
-    fig, axes = plt.subplots(1, len(repeats), figsize=(3.4 * len(repeats), 3.0), squeeze=False)
+    fig, axes = subplots(1, len(repeats), figsize=(3.4 * len(repeats), 3.0), squeeze=False)
     for ax, k in zip(axes[0], repeats):
         for r in (r for r in rows if r["repeat"] == k):
             losses = np.asarray(r["losses"])
@@ -107,4 +104,3 @@ def plot_sampling(results: list[dict], path: str, *, seed: int) -> None:
         ax.legend(fontsize=7)
     fig.tight_layout()
     save_figure(fig, path, seed=seed, what="risp-task table --table sampling: loss vs log10 E")
-    plt.close(fig)

@@ -62,11 +62,12 @@ class Problem:
 
 def make_loss(mode: str, env, keep: list[int], ref_targets: torch.Tensor | None, truth_targets: torch.Tensor | None,
               ref_images: torch.Tensor | None, predictor=None, renderer=None, timer: Timer | None = None,
-              features=None, residual: str = "l2") -> Callable[..., torch.Tensor]:
+              features=None, residual: str = "l2", render_seed: int = 0) -> Callable[..., torch.Tensor]:
     """loss(states (n_source, S), n=None) -> scalar for one of the modes above, on the frames ``keep`` (only their
     first ``n`` when given: the horizon curriculum); ``features``: F of the perceptual mode (a frozen torch module,
     images (B, H, W, 3) -> (B, D)); ``residual``: ``l2`` (squared) or ``l1`` (absolute) differences in the
-    network's target space (render, state, oracle)."""
+    network's target space (render, state, oracle); ``render_seed``: the sampler seed of every render (the run's
+    --seed)."""
     timer = timer or Timer()
     if residual not in RESIDUALS:
         raise RispError(f"unknown residual {residual!r}; choose one of: {', '.join(RESIDUALS)}")
@@ -92,13 +93,14 @@ def make_loss(mode: str, env, keep: list[int], ref_targets: torch.Tensor | None,
             idx, sl = first(n)
             return target_error(env.state_to_target(s[idx]), truth_targets[sl].to(s.dtype))
         return oracle_loss
-    # Every render uses sampler seed 0 (common random numbers): the image loss is then a deterministic
-    # function of the state, so iterates — and the best-iterate rule — are compared on the same noise.
+    # Every render of one descent uses the same sampler seed (common random numbers): the image loss is then a
+    # deterministic function of the state, so iterates — and the best-iterate rule — are compared on the same noise.
+    # The seed is the run's, so that repeats with different --seed see independent render noise.
     if mode == "render":
         def render_loss(s, n=None):
             idx, sl = first(n)
             with timer.section("rendering"):
-                images = renderer(s[idx], seed=0)
+                images = renderer(s[idx], seed=render_seed)
             with timer.section("network"):
                 targets = predictor.predict(images)[1]
             return target_error(targets.to(s.dtype), ref_targets[sl].to(s.dtype))
@@ -107,7 +109,7 @@ def make_loss(mode: str, env, keep: list[int], ref_targets: torch.Tensor | None,
         def pixel_loss(s, n=None):
             idx, sl = first(n)
             with timer.section("rendering"):
-                images = renderer(s[idx], seed=0)
+                images = renderer(s[idx], seed=render_seed)
             return ((images - ref_images[sl]) ** 2).mean().to(s.dtype)
         return pixel_loss
     if mode == "perceptual":
@@ -117,7 +119,7 @@ def make_loss(mode: str, env, keep: list[int], ref_targets: torch.Tensor | None,
         def perceptual_loss(s, n=None):
             idx, sl = first(n)
             with timer.section("rendering"):
-                images = renderer(s[idx], seed=0)
+                images = renderer(s[idx], seed=render_seed)
             with timer.section("network"):
                 f = features(images)
             return ((f - goal[sl]) ** 2).mean().to(s.dtype)

@@ -242,6 +242,24 @@ def check_video_size(cfg: ReferenceConfig) -> None:
 
 
 def make_reference(cfg: ReferenceConfig) -> dict:
+    """Simulate, render and write one reference video with its ground truth and actions (docs/tasks.md §Reference
+    videos); returns the truth.  It sets its own thread counts (one torch thread, Dr.Jit on every CPU it may use,
+    recorded in the truth) and gives the caller's back when it returns: the tables make videos in-process, between
+    cells that run on one thread each."""
+    import sys
+
+    torch_before = torch.get_num_threads()
+    drjit = sys.modules.get("drjit")  # not imported yet: nobody has set its count (importing it here comes too early)
+    drjit_before = drjit.thread_count() if drjit is not None else None
+    try:
+        return _make_reference(cfg)
+    finally:
+        torch.set_num_threads(torch_before)
+        if drjit_before is not None:
+            drjit.set_thread_count(drjit_before)
+
+
+def _make_reference(cfg: ReferenceConfig) -> dict:
     from tqdm import tqdm
 
     from risp_data.psi import sample_rendering

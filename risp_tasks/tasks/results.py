@@ -86,12 +86,9 @@ def plot_loss(path: str, history: list[float], title: str, last: float | None = 
     """Loss per iteration (at the variables before that iteration's step), then ``last``: the loss after the last
     step, which the history does not hold; ``best``: the returned iterate's index, marked.  Without iterations the
     figure says so instead of showing empty axes."""
-    import matplotlib
+    from risp_data.figures import subplots
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(5, 3.2))
+    fig, ax = subplots(figsize=(5, 3.2))
     if history:
         # x = the steps taken before the loss was measured (0: the start), the index result.json's best_iteration
         # uses; the point after the last step is x = len(history)
@@ -113,20 +110,16 @@ def plot_loss(path: str, history: list[float], title: str, last: float | None = 
     ax.set_title(title, fontsize=9)
     fig.tight_layout()
     save_figure(fig, path, seed=seed, what="risp-task: loss per iteration")
-    plt.close(fig)
 
 
 def plot_trajectories(path: str, names, t, curves: dict[str, np.ndarray], *, seed: int | None) -> None:
     """One panel per state component; ``curves``: label -> (T, S) (NaN rows are skipped)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from risp_data.figures import subplots
 
     n = len(names)
     cols = min(3, n)
     rows = (n + cols - 1) // cols
-    fig, axes = plt.subplots(rows, cols, figsize=(3.4 * cols, 2.2 * rows), squeeze=False)
+    fig, axes = subplots(rows, cols, figsize=(3.4 * cols, 2.2 * rows), squeeze=False)
     for i, name in enumerate(names):
         ax = axes[i // cols][i % cols]
         for label, (tt, y) in curves.items():
@@ -139,7 +132,6 @@ def plot_trajectories(path: str, names, t, curves: dict[str, np.ndarray], *, see
     axes[-1][0].set_xlabel("time [s]", fontsize=8)
     fig.tight_layout()
     save_figure(fig, path, seed=seed, what="risp-task: trajectories", dpi=100)
-    plt.close(fig)
 
 
 def save_strip(path: str, rows: dict[str, np.ndarray], note: str | None = None, *, seed: int | None) -> None:

@@ -234,7 +234,8 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
         truth_targets = env.state_to_target(truth_states[truth_rows])
     timer = Timer()
     loss = make_loss(cfg.loss, env, loss_frames, predicted_targets.double(), truth_targets, frames_t,
-                     predictor=predictor, renderer=renderer, timer=timer, features=features, residual=cfg.residual)
+                     predictor=predictor, renderer=renderer, timer=timer, features=features, residual=cfg.residual,
+                     render_seed=cfg.seed)
     with torch.no_grad():
         initial_states = problem.states().detach().clone()
         initial_estimates = problem.estimates()
