@@ -384,7 +384,8 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
 
     # memory | stream (memory.py); a resume keeps its own below.  Every rank must choose alike (their step plans
     # differ by mode): each decides on its share of this machine's memory, then all take stream if any did.
-    cache = resolve_cache(cfg.cache, shards, need_j, processes=int(os.environ.get("LOCAL_WORLD_SIZE", str(world))))
+    local_processes = int(os.environ.get("LOCAL_WORLD_SIZE", str(world)))  # torchrun's ranks on this machine
+    cache = resolve_cache(cfg.cache, shards, need_j, processes=local_processes)
     if world > 1:
         cache = agreed_cache(cache)
     state = None
@@ -428,7 +429,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
     # is 1.6x faster on an idle 2-core machine but 2-3x slower than one when the cores are shared (OpenMP's
     # threads spin; docs/PERFORMANCE.md §Training data in memory): --threads 2 is the user's call
     threads = set_torch_threads(cfg.threads, workers=helper_workers(shards, cache, world, cfg.workers),
-                                processes=int(os.environ.get("LOCAL_WORLD_SIZE", str(world))))
+                                processes=local_processes)
     if resuming:
         check_resume_counts(state, shards, cache, world, threads, cfg.workers, last_path, quiet=rank != 0)
     if cache == "memory":
