@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import hashlib
 import json
 import os
 import re
@@ -91,6 +92,39 @@ def allreduce_gradients(params: list[torch.nn.Parameter], world_size: int) -> No
         n = p.numel()
         p.grad = flat[offset:offset + n].view_as(p).clone()
         offset += n
+
+
+def weights_digest(state: dict) -> str:
+    """sha256 over a state_dict (names, dtypes, shapes and bytes, in order): equal weights, equal digest."""
+    h = hashlib.sha256()
+    for name, t in state.items():
+        a = t.detach().cpu().contiguous().numpy()
+        h.update(f"{name}|{a.dtype}|{a.shape}|".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def rank_digests(net: torch.nn.Module, world_size: int) -> list[str]:
+    """Every rank's weights digest, in rank order (one all_gather_object; a single process gives its own)."""
+    mine = weights_digest(net.state_dict())
+    if world_size <= 1:
+        return [mine]
+    import torch.distributed as dist
+
+    out: list = [None] * world_size
+    dist.all_gather_object(out, mine)
+    return [str(d) for d in out]
+
+
+def check_ranks_agree(digests: list[str], epoch: int) -> None:
+    """The ranks train one network: after the all-reduced steps their weights must be bit-equal (docs/training.md).
+
+    Every rank sees the same gathered list, so every rank raises together (no rank left waiting in a collective).
+    """
+    if len(set(digests)) > 1:
+        groups = ", ".join(f"rank {r}: {d[:12]}" for r, d in enumerate(digests))
+        raise RispError(f"the {len(digests)} torchrun ranks' weights differ after epoch {epoch} ({groups}); "
+                        "they no longer train one network (mixed torch versions or devices across ranks?)")
 
 
 def step_generator(seed: int, rank: int, step: int) -> torch.Generator:
@@ -496,6 +530,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
     net.train()
     params = list(net.parameters())
 
+    digests: list[str] | None = None  # the ranks' weight digests at the last epoch end (checked equal)
     sums = np.zeros(3)  # Σ loss, error, reg over the current epoch's steps (kept in mid-epoch checkpoints)
 
     def payload(epoch: int, batch: int, complete: bool) -> dict:
@@ -514,6 +549,8 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
             "device": str(device), "torch_version": torch.__version__, "psi_std": psi_std.tolist(),
             "epoch_sums": [float(v) for v in sums] if batch > 0 else [0.0, 0.0, 0.0],
             "samples": sample_counts(shards), "val": val_rec,
+            # the ranks' weight digests at this epoch end (none mid-epoch: they would describe older weights)
+            "rank_weights_sha256": digests if batch == 0 else None,
         }
 
     if rank == 0:
@@ -590,6 +627,8 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
                        "train_error": float(sums[1] / n_done), "train_reg": float(sums[2] / n_done), "seconds": round(time.perf_counter() - t_start, 3)}
             if val is not None:
                 summary["val_error"] = held_out_error(net, val, norm, env, cfg.val_samples)
+            digests = rank_digests(net, world)  # every epoch: a divergence is caught before it is checkpointed
+            check_ranks_agree(digests, epoch)
             history.append(summary)
             sums[:] = 0.0
             if rank == 0:
@@ -605,6 +644,9 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
         bar.close()
         if log is not None:
             log.close()
+    if digests is None:  # no epoch ran here (a resume at the last epoch's end): the weights are checked once now
+        digests = rank_digests(net, world)
+        check_ranks_agree(digests, cfg.epochs - 1)
     final = os.path.join(cfg.out, MODEL)
     if rank == 0:
         p = payload(cfg.epochs, 0, True)

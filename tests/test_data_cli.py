@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -291,17 +292,9 @@ def test_a_render_that_will_not_fit_on_its_disk_stops_keeping_its_shards(tmp_pat
         (["--n", "0"], "--n must be a positive integer"),
         (["--n", "-3"], "--n must be a positive integer"),
         (["--format", "hdf5"], "--format must be"),
-        (["--executor", "ray"], "pip install 'risp[ray]'"),
     ],
 )
-def test_bad_arguments(tmp_path, args, message):
-    if "ray" in args:
-        try:
-            import ray  # noqa: F401
-
-            pytest.skip("ray is installed")
-        except ImportError:
-            pass
+def test_bad_arguments(tmp_path, args, message):  # without Ray: test_ray_executor_without_ray_is_one_line
     options = {"--env": "cube", "--n": "2", "--res": "8", "--spp": "2", "--out": str(tmp_path / "o")}
     options.update(zip(args[::2], args[1::2]))
     r = CliRunner().invoke(cli, ["render", *[a for kv in options.items() for a in kv]])
@@ -389,11 +382,53 @@ def test_no_usable_llvm_is_one_line(tmp_path):
     assert not out.exists()
 
 
-def test_ray_executor_matches_local(rendered, tmp_path):
-    """Only where the optional ray extra is installed (not in CI): the same samples as the local executor."""
+@pytest.fixture
+def ray_tmp():
+    """A private, short Ray temp folder (RAY_TMPDIR): no other run's cluster is joined, and Ray's socket paths stay
+    under the 107 bytes AF_UNIX allows (pytest's tmp_path is too deep for them)."""
+    import tempfile
+
+    folder = tempfile.mkdtemp(prefix="rt", dir="/tmp")
+    yield folder
+    shutil.rmtree(folder, ignore_errors=True)
+
+
+def _render_on_ray(out, ray_tmp, workers):
+    """The render command in its own process with --executor ray (a local cluster of this machine's CPUs); a hang
+    fails the test at the timeout instead of hanging the suite."""
+    cmd = [sys.executable, "-m", "risp_data", "render", *TINY, "--n", "5", "--shard-size", "2", "--workers",
+           str(workers), "--executor", "ray", "--out", str(out)]
+    env = dict(os.environ, OMP_NUM_THREADS="1", RAY_TMPDIR=ray_tmp, RAY_USAGE_STATS_ENABLED="0")
+    env.pop("RAY_ADDRESS", None)
+    return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=180)
+
+
+def test_ray_executor_matches_local(rendered, tmp_path, ray_tmp):
+    """Where Ray is installed (the dev install brings its core): the same samples as the local executor."""
     pytest.importorskip("ray")
-    _ok(_render(tmp_path / "ray", "--executor", "ray", n=5, shard_size=2, workers=2))
+    r = _render_on_ray(tmp_path / "ray", ray_tmp, workers=2)
+    assert r.returncode == 0, r.stderr[-3000:]
     _assert_same(_samples(rendered), _samples(tmp_path / "ray"))
+
+
+def test_a_ray_render_with_more_workers_than_cluster_cpus_finishes(rendered, tmp_path, ray_tmp):
+    """--workers 8 on a cluster of this machine's CPUs (2 in CI; 3 shards): at most one actor per CPU starts. With
+    one actor per shard the one Ray could not schedule was handed a shard by the ActorPool, which waited for it for
+    ever (seen: the render stuck at 4 of 6 shards until killed)."""
+    pytest.importorskip("ray")
+    r = _render_on_ray(tmp_path / "ray8", ray_tmp, workers=8)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert load_manifest(str(tmp_path / "ray8"))["complete"]
+    _assert_same(_samples(rendered), _samples(tmp_path / "ray8"))
+
+
+def test_ray_executor_without_ray_is_one_line(tmp_path, monkeypatch):
+    """Without the extra (ray not importable, whether installed here or not) the render stops before writing."""
+    monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` raises ImportError
+    out = tmp_path / "no-ray"
+    r = _render(out, "--executor", "ray", n=2)
+    _error_line(r, "pip install 'risp[ray]'")
+    assert not out.exists()
 
 
 def test_image_size_counts_the_domains_samples_per_pass():

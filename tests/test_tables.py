@@ -8,6 +8,7 @@ Data sets and networks are shared by the tests of this module through one cache 
 import json
 import math
 import os
+import sys
 
 import pytest
 import torch
@@ -568,32 +569,42 @@ def test_cli_writes_and_prints_the_table(tmp_path):
     assert report["cells"]["cube"]["ours"] == {"na": "the cube has no actions", "n_na": 1, "n": 1, "paper": None}
 
 
-def test_ray_executor_runs_cells_as_ray_tasks(cache, tmp_path):
-    """Only where the optional ray extra is installed (not in CI): every cell — the rod's computed ones and the
-    cube's N/A ones — ran in a Ray worker (its recorded pid is not this process's: no silent local fallback), and
-    the rod's cells agree with the serial runner's."""
-    pytest.importorskip("ray")
+def test_ray_executor_runs_cells_as_ray_tasks(cache, tmp_path, monkeypatch):
+    """Where Ray is installed (the dev install brings its core): every cell — the rod's computed ones and the cube's
+    N/A ones — ran in a Ray worker (its recorded pid is not this process's: no silent local fallback), and the rod's
+    cells agree with the serial runner's. The run folder is given relative to this process's working folder, which
+    Ray's workers do not share (they are given absolute paths)."""
+    ray = pytest.importorskip("ray")
+    import tempfile
+
     methods = ("average", "ours-state")
-    cfg = make_config("control", quick=True, out=str(tmp_path / "ray"), envs=("cube", "rod"), methods=methods,
-                      executor="ray", **TINY)
-    report = run_table(cfg, cache=cache, echo=lambda *_: None)
+    monkeypatch.chdir(tmp_path)
+    cfg = make_config("control", quick=True, out="ray", envs=("cube", "rod"), methods=methods, executor="ray", **TINY)
+    ray_tmp = tempfile.mkdtemp(prefix="rt", dir="/tmp")  # short: Ray's socket paths must fit in 107 bytes
+    ray.init(num_cpus=2, include_dashboard=False, _temp_dir=ray_tmp)
+    try:
+        report = run_table(cfg, cache=cache, echo=lambda *_: None)
+    finally:
+        ray.shutdown()  # no cluster left running beside the rest of the suite
+        import shutil
+
+        shutil.rmtree(ray_tmp, ignore_errors=True)
     assert all(e["na"] == "the cube has no actions" for e in report["cells"]["cube"].values())
     for env in ("cube", "rod"):
         for m in methods:
             cell = json.load(open(cell_path(run_folder(cfg), Cell(env, m, 0))))
             assert cell["pid"] != os.getpid(), (env, m)
+    # the cells' files and the report went to the relative folder, not to the workers' working folders
+    assert os.path.abspath(run_folder(cfg)).startswith(str(tmp_path) + os.sep)
+    assert os.path.isfile(os.path.join(run_folder(cfg), "table.json"))
     serial = run_table(make_config("control", quick=True, out=str(tmp_path / "serial"), envs=("rod",),
                                    methods=methods, **TINY), cache=cache, echo=lambda *_: None)
     for m in methods:
         assert report["cells"]["rod"][m]["mean"] == pytest.approx(serial["cells"]["rod"][m]["mean"], rel=1e-9), m
 
 
-def test_ray_executor_without_ray_is_a_clear_error(tmp_path):
-    try:
-        import ray  # noqa: F401
-        pytest.skip("ray is installed")
-    except ImportError:
-        pass
+def test_ray_executor_without_ray_is_a_clear_error(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` raises ImportError, whether installed or not
     cfg = make_config("control", quick=True, out=str(tmp_path), envs=("rod",), executor="ray", **TINY)
     with pytest.raises(RispError, match=r"pip install 'risp\[ray\]'"):
         run_table(cfg, echo=lambda *_: None)

@@ -269,18 +269,79 @@ def test_cli_error_is_one_line_with_nonzero_exit(tmp_path):
 
 
 @pytest.mark.slow
-def test_torchrun_two_processes(shards, tmp_path):
+@pytest.mark.parametrize("cache", ["stream", "memory"])
+def test_torchrun_two_processes_train_one_network(shards, tmp_path, cache):
+    """Two gloo ranks, each on its own samples, end every epoch with bit-equal weights (both cache paths)."""
+    from risp_train.train import weights_digest
+
     out = tmp_path / "ddp"
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2", "--master-port", "29531",
-           "-m", "risp_train", "fit", shards["train"], "--out", str(out), "--preset", "cpu", "--epochs", "1",
-           "--batch-size", "4", "--width", "4", "--workers", "1", "--reg", "stochastic", "--quiet"]
+    port = 29531 if cache == "stream" else 29533
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2", "--master-port", str(port),
+           "-m", "risp_train", "fit", shards["train"], "--out", str(out), "--preset", "cpu", "--epochs", "2",
+           "--batch-size", "4", "--width", "4", "--workers", "1", "--reg", "stochastic", "--cache", cache,
+           "--quiet"]
     env = dict(os.environ, OMP_NUM_THREADS="1")
     r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
     ck = torch.load(out / "model.pt", weights_only=True)
-    assert ck["world_size"] == 2
-    # 4 shards of 16 → 2 per rank, 1 worker: 32 samples / 4 = 8 steps per epoch on each rank
-    assert ck["progress"]["global_step"] == 8
+    assert ck["world_size"] == 2 and ck["cache"] == cache
+    # 4 shards of 16 → 2 per rank (stream: 1 worker) or 32 samples per rank (memory): 8 steps per epoch each
+    assert ck["progress"]["global_step"] == 16
+    digests = ck["rank_weights_sha256"]
+    assert len(digests) == 2 and digests[0] == digests[1]  # rank 1 holds the very weights rank 0 saved
+    assert weights_digest(ck["model"]) == digests[0]  # the saved weights are the ones the ranks compared
+    # the digest tells trainings apart: one process on all the samples (other batches) ends elsewhere
+    single = tmp_path / "single"
+    r1 = CliRunner().invoke(cli, ["fit", shards["train"], "--out", str(single), "--preset", "cpu", "--epochs", "2",
+                                  "--batch-size", "4", "--width", "4", "--workers", "1", "--reg", "stochastic",
+                                  "--cache", cache, "--quiet"])
+    assert r1.exit_code == 0, r1.output
+    assert torch.load(single / "model.pt", weights_only=True)["rank_weights_sha256"][0] != digests[0]
+
+
+def _agreement_worker(rank: int, world: int, store_path: str, diverge: bool, results: str) -> None:
+    import torch.distributed as dist
+
+    from risp_train.train import check_ranks_agree, rank_digests
+
+    torch.set_num_threads(1)
+    dist.init_process_group("gloo", store=dist.FileStore(store_path, world), rank=rank, world_size=world)
+    try:
+        torch.manual_seed(rank if diverge else 0)
+        net = torch.nn.Linear(3, 2)
+        try:
+            check_ranks_agree(rank_digests(net, world), epoch=0)
+            outcome = "ok"
+        except RispError as e:
+            outcome = str(e)
+        with open(os.path.join(results, f"rank{rank}.txt"), "w") as f:
+            f.write(outcome)
+    finally:
+        dist.destroy_process_group()
+
+
+@pytest.mark.parametrize("diverge", [False, True])
+def test_diverged_ranks_are_refused_on_every_rank(tmp_path, diverge):
+    import torch.multiprocessing as mp
+
+    mp.start_processes(_agreement_worker, args=(2, str(tmp_path / "store"), diverge, str(tmp_path)), nprocs=2,
+                       join=True, start_method="spawn")
+    outcomes = [(tmp_path / f"rank{r}.txt").read_text() for r in range(2)]
+    if diverge:  # both ranks raise together (neither is left waiting in a collective)
+        assert all("torchrun ranks' weights differ after epoch 0" in o for o in outcomes), outcomes
+    else:
+        assert outcomes == ["ok", "ok"]
+
+
+def test_weights_digest_sees_a_one_ulp_change():
+    from risp_train.train import weights_digest
+
+    net = torch.nn.Linear(4, 3)
+    before = weights_digest(net.state_dict())
+    assert weights_digest(net.state_dict()) == before
+    with torch.no_grad():
+        net.weight[1, 2] = torch.nextafter(net.weight[1, 2], torch.tensor(float("inf")))
+    assert weights_digest(net.state_dict()) != before
 
 
 @pytest.mark.slow
