@@ -98,9 +98,9 @@ def weights_digest(state: dict) -> str:
     """sha256 over a state_dict (names, dtypes, shapes and bytes, in order): equal weights, equal digest."""
     h = hashlib.sha256()
     for name, t in state.items():
-        a = t.detach().cpu().contiguous().numpy()
-        h.update(f"{name}|{a.dtype}|{a.shape}|".encode())
-        h.update(a.tobytes())
+        t = t.detach().cpu().contiguous()
+        h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
+        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())  # raw bytes: any dtype, bfloat16 included
     return h.hexdigest()
 
 

@@ -393,11 +393,16 @@ def ray_tmp():
     shutil.rmtree(folder, ignore_errors=True)
 
 
-def _render_on_ray(out, ray_tmp, workers):
-    """The render command in its own process with --executor ray (a local cluster of this machine's CPUs); a hang
-    fails the test at the timeout instead of hanging the suite."""
-    cmd = [sys.executable, "-m", "risp_data", "render", *TINY, "--n", "5", "--shard-size", "2", "--workers",
-           str(workers), "--executor", "ray", "--out", str(out)]
+RAY_DRIVER = ("import sys, ray; ray.init(num_cpus=int(sys.argv[1]), include_dashboard=False); "
+              "sys.argv = ['risp-data'] + sys.argv[2:]; from risp_data.cli import main; main()")
+
+
+def _render_on_ray(out, ray_tmp, workers, cluster_cpus=2):
+    """The render command in its own process with --executor ray, on a local cluster of ``cluster_cpus`` CPUs
+    (started first, so the command finds it, whatever this machine has); a hang fails the test at the timeout
+    instead of hanging the suite."""
+    cmd = [sys.executable, "-c", RAY_DRIVER, str(cluster_cpus), "render", *TINY, "--n", "5", "--shard-size", "2",
+           "--workers", str(workers), "--executor", "ray", "--out", str(out)]
     env = dict(os.environ, OMP_NUM_THREADS="1", RAY_TMPDIR=ray_tmp, RAY_USAGE_STATS_ENABLED="0")
     env.pop("RAY_ADDRESS", None)
     return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=180)
@@ -412,7 +417,7 @@ def test_ray_executor_matches_local(rendered, tmp_path, ray_tmp):
 
 
 def test_a_ray_render_with_more_workers_than_cluster_cpus_finishes(rendered, tmp_path, ray_tmp):
-    """--workers 8 on a cluster of this machine's CPUs (2 in CI; 3 shards): at most one actor per CPU starts. With
+    """--workers 8 on a 2-CPU cluster (3 shards): at most one actor per CPU starts. With
     one actor per shard the one Ray could not schedule was handed a shard by the ActorPool, which waited for it for
     ever (seen: the render stuck at 4 of 6 shards until killed)."""
     pytest.importorskip("ray")

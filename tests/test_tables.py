@@ -569,38 +569,58 @@ def test_cli_writes_and_prints_the_table(tmp_path):
     assert report["cells"]["cube"]["ours"] == {"na": "the cube has no actions", "n_na": 1, "n": 1, "paper": None}
 
 
-def test_ray_executor_runs_cells_as_ray_tasks(cache, tmp_path, monkeypatch):
+RAY_TABLE_DRIVER = """
+import json, os, sys
+import ray
+from risp_tasks.tables.config import make_config
+from risp_tasks.tables.grid import run_table
+kw, cache, out = json.loads(sys.argv[1]), sys.argv[2], sys.argv[3]
+ray.init(num_cpus=2, include_dashboard=False)
+try:
+    report = run_table(make_config("control", out=out, **kw), cache=cache, echo=lambda *_: None)
+finally:
+    ray.shutdown()
+json.dump({"pid": os.getpid(), "cells": report["cells"]}, open("driver.json", "w"))
+"""
+
+
+def test_ray_executor_runs_cells_as_ray_tasks(cache, tmp_path):
     """Where Ray is installed (the dev install brings its core): every cell — the rod's computed ones and the cube's
-    N/A ones — ran in a Ray worker (its recorded pid is not this process's: no silent local fallback), and the rod's
-    cells agree with the serial runner's. The run folder is given relative to this process's working folder, which
-    Ray's workers do not share (they are given absolute paths)."""
-    ray = pytest.importorskip("ray")
+    N/A ones — ran in a Ray worker (its recorded pid is not the driver's: no silent local fallback), and the rod's
+    cells agree with the serial runner's. The driver runs in its own process (Ray's threads stay out of the
+    suite's, a hang fails at the timeout) on a 2-CPU local cluster, with the run folder given relative to its
+    working folder, which Ray's workers do not share (they are given absolute paths)."""
+    pytest.importorskip("ray")
+    import shutil
+    import subprocess
     import tempfile
 
     methods = ("average", "ours-state")
-    monkeypatch.chdir(tmp_path)
-    cfg = make_config("control", quick=True, out="ray", envs=("cube", "rod"), methods=methods, executor="ray", **TINY)
+    kw = dict(TINY, quick=True, envs=["cube", "rod"], methods=list(methods), executor="ray")
     ray_tmp = tempfile.mkdtemp(prefix="rt", dir="/tmp")  # short: Ray's socket paths must fit in 107 bytes
-    ray.init(num_cpus=2, include_dashboard=False, _temp_dir=ray_tmp)
+    env = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"}  # a local cluster, never another one
+    env.update(OMP_NUM_THREADS="1", RAY_TMPDIR=ray_tmp, RAY_USAGE_STATS_ENABLED="0")
     try:
-        report = run_table(cfg, cache=cache, echo=lambda *_: None)
+        r = subprocess.run([sys.executable, "-c", RAY_TABLE_DRIVER, json.dumps(kw), os.path.abspath(cache), "ray"],
+                           cwd=tmp_path, env=env, capture_output=True, text=True, timeout=240)
     finally:
-        ray.shutdown()  # no cluster left running beside the rest of the suite
-        import shutil
-
         shutil.rmtree(ray_tmp, ignore_errors=True)
-    assert all(e["na"] == "the cube has no actions" for e in report["cells"]["cube"].values())
-    for env in ("cube", "rod"):
+    assert r.returncode == 0, r.stderr[-3000:]
+    driver = json.load(open(tmp_path / "driver.json"))
+    cells = driver["cells"]
+    assert all(e["na"] == "the cube has no actions" for e in cells["cube"].values())
+    cfg = make_config("control", out=str(tmp_path / "ray"), **{k: (tuple(v) if isinstance(v, list) else v)
+                                                                for k, v in kw.items()})
+    folder = run_folder(cfg)  # the relative --out resolved against the driver's folder, not the workers'
+    assert os.path.isfile(os.path.join(folder, "table.json"))
+    for env_name in ("cube", "rod"):
         for m in methods:
-            cell = json.load(open(cell_path(run_folder(cfg), Cell(env, m, 0))))
-            assert cell["pid"] != os.getpid(), (env, m)
-    # the cells' files and the report went to the relative folder, not to the workers' working folders
-    assert os.path.abspath(run_folder(cfg)).startswith(str(tmp_path) + os.sep)
-    assert os.path.isfile(os.path.join(run_folder(cfg), "table.json"))
+            cell = json.load(open(cell_path(folder, Cell(env_name, m, 0))))
+            assert cell["pid"] != driver["pid"], (env_name, m)
     serial = run_table(make_config("control", quick=True, out=str(tmp_path / "serial"), envs=("rod",),
                                    methods=methods, **TINY), cache=cache, echo=lambda *_: None)
     for m in methods:
-        assert report["cells"]["rod"][m]["mean"] == pytest.approx(serial["cells"]["rod"][m]["mean"], rel=1e-9), m
+        assert cells["rod"][m]["mean"] == pytest.approx(serial["cells"]["rod"][m]["mean"], rel=1e-9), m
 
 
 def test_ray_executor_without_ray_is_a_clear_error(tmp_path, monkeypatch):

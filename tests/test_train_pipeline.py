@@ -275,8 +275,7 @@ def test_torchrun_two_processes_train_one_network(shards, tmp_path, cache):
     from risp_train.train import weights_digest
 
     out = tmp_path / "ddp"
-    port = 29531 if cache == "stream" else 29533
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", "2", "--master-port", str(port),
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",  # a free port
            "-m", "risp_train", "fit", shards["train"], "--out", str(out), "--preset", "cpu", "--epochs", "2",
            "--batch-size", "4", "--width", "4", "--workers", "1", "--reg", "stochastic", "--cache", cache,
            "--quiet"]
@@ -333,6 +332,55 @@ def test_diverged_ranks_are_refused_on_every_rank(tmp_path, diverge):
         assert outcomes == ["ok", "ok"]
 
 
+def _diverging_fit_worker(rank: int, world: int, port: int, cfg, results: str) -> None:
+    """One rank of a real two-rank fit; rank 1 adds 1e-6 to one gradient entry after the all-reduce."""
+    import risp_train.train as train_mod
+
+    os.environ.update(WORLD_SIZE=str(world), RANK=str(rank), LOCAL_RANK=str(rank), LOCAL_WORLD_SIZE=str(world),
+                      MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port))
+    torch.set_num_threads(1)
+    if rank == 1:
+        real = train_mod.allreduce_gradients
+
+        def nudged(params, world_size):
+            real(params, world_size)
+            params[0].grad.view(-1)[0] += 1e-6
+
+        train_mod.allreduce_gradients = nudged
+    try:
+        fit(cfg, progress=False)
+        outcome = "finished"
+    except RispError as e:
+        outcome = str(e)
+    finally:
+        import torch.distributed as dist
+
+        if dist.is_initialized():
+            dist.destroy_process_group()
+    with open(os.path.join(results, f"fit{rank}.txt"), "w") as f:
+        f.write(outcome)
+
+
+@pytest.mark.slow
+def test_a_fit_whose_ranks_diverge_stops_at_the_epoch_end(shards, tmp_path):
+    """The check is wired into the loop: two ranks of a real fit whose weights drift apart (rank 1's gradient
+    nudged) both stop after epoch 0, before its checkpoint; no last.pt or model.pt claims a trained network."""
+    import socket
+
+    import torch.multiprocessing as mp
+
+    with socket.socket() as s:  # a free port for the two ranks' rendezvous
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    out = tmp_path / "diverged"
+    cfg = _cfg(shards, out, epochs=2, cache="memory", checkpoint_every=0)
+    mp.start_processes(_diverging_fit_worker, args=(2, port, cfg, str(tmp_path)), nprocs=2, join=True,
+                       start_method="spawn")
+    outcomes = [(tmp_path / f"fit{r}.txt").read_text() for r in range(2)]
+    assert all("torchrun ranks' weights differ after epoch 0" in o for o in outcomes), outcomes
+    assert not (out / "last.pt").exists() and not (out / "model.pt").exists()
+
+
 def test_weights_digest_sees_a_one_ulp_change():
     from risp_train.train import weights_digest
 
@@ -342,6 +390,9 @@ def test_weights_digest_sees_a_one_ulp_change():
     with torch.no_grad():
         net.weight[1, 2] = torch.nextafter(net.weight[1, 2], torch.tensor(float("inf")))
     assert weights_digest(net.state_dict()) != before
+    # any dtype (numpy has no bfloat16): the bytes are hashed, and the dtype with them
+    bf = {"w": torch.ones(3, dtype=torch.bfloat16)}
+    assert weights_digest(bf) != weights_digest({"w": torch.ones(3, dtype=torch.float16)})
 
 
 @pytest.mark.slow
