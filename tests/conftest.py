@@ -15,3 +15,19 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(old)
+
+
+@pytest.fixture
+def ray_env():
+    """The environment of a Ray driver run in its own process: a private, short Ray temp folder (RAY_TMPDIR: Ray's
+    socket paths must stay under the 107 bytes AF_UNIX allows, and pytest's tmp_path is too deep), no RAY_ADDRESS
+    (a local cluster, never another run's), one thread per process."""
+    import os
+    import shutil
+    import tempfile
+
+    folder = tempfile.mkdtemp(prefix="rt", dir="/tmp")
+    env = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"}
+    env.update(OMP_NUM_THREADS="1", RAY_TMPDIR=folder, RAY_USAGE_STATS_ENABLED="0")
+    yield env
+    shutil.rmtree(folder, ignore_errors=True)

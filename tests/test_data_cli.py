@@ -382,46 +382,33 @@ def test_no_usable_llvm_is_one_line(tmp_path):
     assert not out.exists()
 
 
-@pytest.fixture
-def ray_tmp():
-    """A private, short Ray temp folder (RAY_TMPDIR): no other run's cluster is joined, and Ray's socket paths stay
-    under the 107 bytes AF_UNIX allows (pytest's tmp_path is too deep for them)."""
-    import tempfile
-
-    folder = tempfile.mkdtemp(prefix="rt", dir="/tmp")
-    yield folder
-    shutil.rmtree(folder, ignore_errors=True)
-
-
 RAY_DRIVER = ("import sys, ray; ray.init(num_cpus=int(sys.argv[1]), include_dashboard=False); "
               "sys.argv = ['risp-data'] + sys.argv[2:]; from risp_data.cli import main; main()")
 
 
-def _render_on_ray(out, ray_tmp, workers, cluster_cpus=2):
+def _render_on_ray(out, ray_env, workers, cluster_cpus=2):
     """The render command in its own process with --executor ray, on a local cluster of ``cluster_cpus`` CPUs
     (started first, so the command finds it, whatever this machine has); a hang fails the test at the timeout
     instead of hanging the suite."""
     cmd = [sys.executable, "-c", RAY_DRIVER, str(cluster_cpus), "render", *TINY, "--n", "5", "--shard-size", "2",
            "--workers", str(workers), "--executor", "ray", "--out", str(out)]
-    env = dict(os.environ, OMP_NUM_THREADS="1", RAY_TMPDIR=ray_tmp, RAY_USAGE_STATS_ENABLED="0")
-    env.pop("RAY_ADDRESS", None)
-    return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=180)
+    return subprocess.run(cmd, capture_output=True, text=True, env=ray_env, timeout=180)
 
 
-def test_ray_executor_matches_local(rendered, tmp_path, ray_tmp):
+def test_ray_executor_matches_local(rendered, tmp_path, ray_env):
     """Where Ray is installed (the dev install brings its core): the same samples as the local executor."""
     pytest.importorskip("ray")
-    r = _render_on_ray(tmp_path / "ray", ray_tmp, workers=2)
+    r = _render_on_ray(tmp_path / "ray", ray_env, workers=2)
     assert r.returncode == 0, r.stderr[-3000:]
     _assert_same(_samples(rendered), _samples(tmp_path / "ray"))
 
 
-def test_a_ray_render_with_more_workers_than_cluster_cpus_finishes(rendered, tmp_path, ray_tmp):
+def test_a_ray_render_with_more_workers_than_cluster_cpus_finishes(rendered, tmp_path, ray_env):
     """--workers 8 on a 2-CPU cluster (3 shards): at most one actor per CPU starts. With
     one actor per shard the one Ray could not schedule was handed a shard by the ActorPool, which waited for it for
     ever (seen: the render stuck at 4 of 6 shards until killed)."""
     pytest.importorskip("ray")
-    r = _render_on_ray(tmp_path / "ray8", ray_tmp, workers=8)
+    r = _render_on_ray(tmp_path / "ray8", ray_env, workers=8)
     assert r.returncode == 0, r.stderr[-3000:]
     assert load_manifest(str(tmp_path / "ray8"))["complete"]
     _assert_same(_samples(rendered), _samples(tmp_path / "ray8"))

@@ -584,27 +584,19 @@ json.dump({"pid": os.getpid(), "cells": report["cells"]}, open("driver.json", "w
 """
 
 
-def test_ray_executor_runs_cells_as_ray_tasks(cache, tmp_path):
+def test_ray_executor_runs_cells_as_ray_tasks(cache, tmp_path, ray_env):
     """Where Ray is installed (the dev install brings its core): every cell — the rod's computed ones and the cube's
     N/A ones — ran in a Ray worker (its recorded pid is not the driver's: no silent local fallback), and the rod's
     cells agree with the serial runner's. The driver runs in its own process (Ray's threads stay out of the
     suite's, a hang fails at the timeout) on a 2-CPU local cluster, with the run folder given relative to its
     working folder, which Ray's workers do not share (they are given absolute paths)."""
     pytest.importorskip("ray")
-    import shutil
     import subprocess
-    import tempfile
 
     methods = ("average", "ours-state")
     kw = dict(TINY, quick=True, envs=["cube", "rod"], methods=list(methods), executor="ray")
-    ray_tmp = tempfile.mkdtemp(prefix="rt", dir="/tmp")  # short: Ray's socket paths must fit in 107 bytes
-    env = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"}  # a local cluster, never another one
-    env.update(OMP_NUM_THREADS="1", RAY_TMPDIR=ray_tmp, RAY_USAGE_STATS_ENABLED="0")
-    try:
-        r = subprocess.run([sys.executable, "-c", RAY_TABLE_DRIVER, json.dumps(kw), os.path.abspath(cache), "ray"],
-                           cwd=tmp_path, env=env, capture_output=True, text=True, timeout=240)
-    finally:
-        shutil.rmtree(ray_tmp, ignore_errors=True)
+    r = subprocess.run([sys.executable, "-c", RAY_TABLE_DRIVER, json.dumps(kw), os.path.abspath(cache), "ray"],
+                       cwd=tmp_path, env=ray_env, capture_output=True, text=True, timeout=240)
     assert r.returncode == 0, r.stderr[-3000:]
     driver = json.load(open(tmp_path / "driver.json"))
     cells = driver["cells"]
