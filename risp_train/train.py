@@ -56,6 +56,7 @@ class TrainingStopped(Exception):
 class Dist:
     rank: int = 0
     world_size: int = 1
+    owns_group: bool = False  # this fit created the process group (and so destroys it: leave_distributed)
 
 
 def init_distributed() -> Dist:
@@ -65,9 +66,28 @@ def init_distributed() -> Dist:
         return Dist()
     import torch.distributed as dist
 
-    if not dist.is_initialized():
+    owns = not dist.is_initialized()  # a caller's own group (e.g. a FileStore in tests) stays the caller's
+    if owns:
         dist.init_process_group("gloo")
-    return Dist(dist.get_rank(), dist.get_world_size())
+    return Dist(dist.get_rank(), dist.get_world_size(), owns)
+
+
+def leave_distributed(dist_info: Dist, finished: bool) -> None:
+    """Destroy the process group this fit created, while the interpreter is whole.
+
+    A group left to interpreter shutdown can abort its process (gloo's threads outlive Python: "terminate called
+    without an active exception", pytorch/pytorch#190489). A finished fit first waits at a barrier, so that no
+    rank tears down its end while another still uses it; a failed one does not (another rank may be stuck in a
+    collective and never reach the barrier) and only destroys its own end, which is local for gloo.
+    """
+    if not dist_info.owns_group:
+        return
+    import torch.distributed as dist
+
+    if dist.is_initialized():
+        if finished:
+            dist.barrier()
+        dist.destroy_process_group()
 
 
 def agreed_cache(cache: str) -> str:
@@ -370,13 +390,17 @@ def fit(cfg: TrainConfig, *, resume: bool = False, progress: bool = True,
     device = resolve_device(cfg.device)  # before anything is written: a bad --device leaves no run folder
     dist_info = init_distributed()
     before = torch.get_num_threads()
+    finished = False
     try:
         with contextlib.ExitStack() as hold:  # the run folder's lock, from the first write to the last
-            return _fit(cfg, dist_info, device=device, resume=resume, progress=progress,
-                        stop_after_step=stop_after_step, hold=hold,
-                        overwrite=overwrite, allow_incomplete=allow_incomplete, echo=echo)
+            final = _fit(cfg, dist_info, device=device, resume=resume, progress=progress,
+                         stop_after_step=stop_after_step, hold=hold,
+                         overwrite=overwrite, allow_incomplete=allow_incomplete, echo=echo)
+        finished = True
+        return final
     finally:
         torch.set_num_threads(before)
+        leave_distributed(dist_info, finished)
 
 
 def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: bool, progress: bool,
