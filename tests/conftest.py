@@ -28,6 +28,10 @@ def ray_env():
 
     folder = tempfile.mkdtemp(prefix="rt", dir="/tmp")
     env = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"}
-    env.update(OMP_NUM_THREADS="1", RAY_TMPDIR=folder, RAY_USAGE_STATS_ENABLED="0")
+    # a loaded 2-core machine: Ray runs its workers at nice 15, so beside a busy process on their core they starve
+    # (measured: a table's prepare task made no progress in 4 min beside a sysid run); they may take over Ray's 60 s
+    # to register; an experiment beside the suite may fill the memory past the OOM monitor's 95 % (these are small)
+    env.update(OMP_NUM_THREADS="1", RAY_TMPDIR=folder, RAY_USAGE_STATS_ENABLED="0", RAY_worker_niceness="0",
+               RAY_worker_register_timeout_seconds="300", RAY_memory_monitor_refresh_ms="0")
     yield env
     shutil.rmtree(folder, ignore_errors=True)

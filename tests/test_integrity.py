@@ -839,10 +839,18 @@ def test_disk_full_during_render_and_checkpoint_write_is_one_line(data, tmp_path
 
 
 def _children(pid):
+    """The children of every thread of ``pid`` (threads start and end while this reads: a vanished one is skipped)."""
     out = []
-    for task in os.listdir(f"/proc/{pid}/task"):
-        with open(f"/proc/{pid}/task/{task}/children") as f:
-            out += [int(c) for c in f.read().split()]
+    try:
+        tasks = os.listdir(f"/proc/{pid}/task")
+    except OSError:  # the process itself is gone
+        return out
+    for task in tasks:
+        try:
+            with open(f"/proc/{pid}/task/{task}/children") as f:
+                out += [int(c) for c in f.read().split()]
+        except OSError:
+            continue
     return out
 
 

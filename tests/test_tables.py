@@ -310,7 +310,10 @@ def test_parallel_cells_give_the_same_table_as_one_process(cache, tmp_path):
     seen = []
     cfg = make_config("estimation", quick=True, out=str(tmp_path / "b"), envs=("cube",), methods=methods, jobs=2, **kw)
     parallel = run_table(cfg, cache=cache, on_cell=lambda c, r: seen.append(r), echo=lambda *_: None)
-    assert len(seen) == len(methods) * 2 and len({r["pid"] for r in seen}) == 2  # two processes did the work
+    # the pool's processes did the work, never this one; a spawn pool starts its second process on demand, and under
+    # load the first may finish the cheap cells before the second has imported torch: one or two pids, both valid
+    pids = {r["pid"] for r in seen}
+    assert len(seen) == len(methods) * 2 and 1 <= len(pids) <= 2 and os.getpid() not in pids, pids
     for m in methods:
         a, b = serial["cells"]["cube"][m], parallel["cells"]["cube"][m]
         assert a["values"] == pytest.approx(b["values"], rel=1e-6, abs=1e-9), m
@@ -584,6 +587,7 @@ json.dump({"pid": os.getpid(), "cells": report["cells"]}, open("driver.json", "w
 """
 
 
+@pytest.mark.timeout(600)  # above the driver's own 240 s and the serial recompute (the module's 300 s is not)
 def test_ray_executor_runs_cells_as_ray_tasks(cache, tmp_path, ray_env):
     """Where Ray is installed (the dev install brings its core): every cell — the rod's computed ones and the cube's
     N/A ones — ran in a Ray worker (its recorded pid is not the driver's: no silent local fallback), and the rod's

@@ -332,9 +332,10 @@ def test_diverged_ranks_are_refused_on_every_rank(tmp_path, diverge):
         assert outcomes == ["ok", "ok"]
 
 
-def _two_rank_fit_worker(rank: int, world: int, port: int, cfg, results: str, nudge: bool) -> None:
+def _two_rank_fit_worker(rank: int, world: int, store: str, cfg, results: str, nudge: bool) -> None:
     """One rank of a real two-rank fit; with ``nudge``, rank 1 adds 1e-6 to one gradient entry after the
-    all-reduce. Writes its outcome and whether fit left a process group behind."""
+    all-reduce. Writes its outcome and whether fit left a process group behind. fit creates the group itself
+    (and so owns it), rendezvousing through a FileStore rather than a TCP port (no free-port race)."""
     import faulthandler
 
     import torch.distributed as dist
@@ -342,9 +343,11 @@ def _two_rank_fit_worker(rank: int, world: int, port: int, cfg, results: str, nu
     import risp_train.train as train_mod
 
     faulthandler.enable()  # a native abort (SIGABRT) prints every thread's Python stack to the test's output
-    os.environ.update(WORLD_SIZE=str(world), RANK=str(rank), LOCAL_RANK=str(rank), LOCAL_WORLD_SIZE=str(world),
-                      MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port))
+    os.environ.update(WORLD_SIZE=str(world), RANK=str(rank), LOCAL_RANK=str(rank), LOCAL_WORLD_SIZE=str(world))
     torch.set_num_threads(1)
+    real_init = dist.init_process_group
+    dist.init_process_group = lambda backend, **kw: real_init(backend, store=dist.FileStore(store, world), rank=rank,
+                                                              world_size=world)
     if nudge and rank == 1:
         real = train_mod.allreduce_gradients
 
@@ -363,14 +366,10 @@ def _two_rank_fit_worker(rank: int, world: int, port: int, cfg, results: str, nu
 
 
 def _two_rank_fit(cfg, tmp_path, nudge: bool) -> list[list[str]]:
-    import socket
-
     import torch.multiprocessing as mp
 
-    with socket.socket() as s:  # a free port for the two ranks' rendezvous
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    mp.start_processes(_two_rank_fit_worker, args=(2, port, cfg, str(tmp_path), nudge), nprocs=2, join=True,
+    store = tmp_path / f"store-{'nudged' if nudge else 'same'}"  # one fresh FileStore per fit
+    mp.start_processes(_two_rank_fit_worker, args=(2, str(store), cfg, str(tmp_path), nudge), nprocs=2, join=True,
                        start_method="spawn")
     return [(tmp_path / f"fit{r}.txt").read_text().splitlines() for r in range(2)]
 
@@ -412,7 +411,8 @@ def test_resume_after_sigkill(shards, tmp_path):
     import signal
     import time
 
-    args = ["fit", shards["train"], "--preset", "cpu", "--epochs", "2", "--batch-size", "4", "--width", "4",
+    # four epochs: the kill must land before the run ends, however fast the machine (it is sent at step >= 2)
+    args = ["fit", shards["train"], "--preset", "cpu", "--epochs", "4", "--batch-size", "4", "--width", "4",
             "--workers", "1", "--reg", "stochastic", "--gamma", "0.5", "--checkpoint-every", "2", "--quiet"]
     ref = CliRunner().invoke(cli, args + ["--out", str(tmp_path / "ref")])
     assert ref.exit_code == 0, ref.output
@@ -426,7 +426,7 @@ def test_resume_after_sigkill(shards, tmp_path):
                 ck = torch.load(out / "last.pt", weights_only=True)
                 if ck["progress"]["global_step"] >= 2:
                     break
-            time.sleep(0.2)
+            time.sleep(0.02)
         assert proc.poll() is None, "the run finished before it could be killed"
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
