@@ -46,13 +46,14 @@ def cli():
 @click.option("--format", "fmt", default="auto", show_default=True, help="Read wds or zarr shards (auto: wds if present).")
 @click.option("--cache", default="auto", show_default=True, help="memory: decode the data once and train from memory; stream: decode every epoch; auto: memory when it needs at most half of the available memory.")
 @click.option("--checkpoint-every", type=int, default=0, show_default=True, help="Also checkpoint every N steps (0: epoch ends only).")
+@click.option("--rank-check", default="stop", show_default=True, help="torchrun ranks whose weights differ at an epoch end: stop, or resync (every rank takes rank 0's weights; for nodes with different CPUs).")
 @click.option("--val", type=click.Path(), default=None, help="Held-out shard folder evaluated at each epoch end.")
 @click.option("--resume", is_flag=True, help="Continue the run in --out from its last checkpoint.")
 @click.option("--overwrite", is_flag=True, help="Replace the model/checkpoint a run folder already holds.")
 @click.option("--allow-incomplete", is_flag=True, help="Train on an unfinished shard folder's complete shards.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def fit(shards, out, reg, gamma, gamma_ramp, gamma_start, preset, epochs, batch_size, lr, weight_decay, width, seed, workers,
-        threads, device, fmt, cache, checkpoint_every, val, resume, overwrite, allow_incomplete, quiet):
+        threads, device, fmt, cache, checkpoint_every, rank_check, val, resume, overwrite, allow_incomplete, quiet):
     """Train on the shard folder SHARDS (decoded once into memory where it fits, else streamed; resolution from
     its manifest).
 
@@ -78,7 +79,7 @@ def fit(shards, out, reg, gamma, gamma_ramp, gamma_start, preset, epochs, batch_
     cfg = make_config(shards, out, preset=preset, reg=reg, gamma=gamma, gamma_ramp=gamma_ramp, gamma_start=gamma_start,
                       epochs=epochs, batch_size=batch_size, lr=lr, weight_decay=weight_decay, width=width, seed=seed,
                       workers=workers, threads=threads, device=device, format=fmt, cache=cache,
-                      checkpoint_every=checkpoint_every, val=val)
+                      checkpoint_every=checkpoint_every, rank_check=rank_check, val=val)
     if rank0:
         click.echo(f"data: {shards}; preset: {preset} ({why}); regularizer: {describe_regularizer(cfg, shards)}; "
                    f"run folder: {out}", err=True)

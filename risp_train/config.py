@@ -64,6 +64,7 @@ class TrainConfig:
     shuffle_buffer: int = 256  # samples held by each worker's shuffle buffer
     stats_samples: int = 256  # samples streamed for the normalization statistics
     checkpoint_every: int = 0  # also checkpoint every N optimizer steps (0: only at epoch ends)
+    rank_check: str = "stop"  # torchrun ranks whose weights differ at an epoch end: stop | resync (rank 0's state)
     val: str | None = None  # optional held-out shard folder, evaluated at each epoch end
     val_samples: int = 256
     preset: str = "paper"
@@ -80,6 +81,8 @@ class TrainConfig:
         kw["blocks"] = tuple(int(b) for b in kw.get("blocks", (2, 2, 2, 2)))
         return TrainConfig(**kw)
 
+
+RANK_CHECKS = ("stop", "resync")  # what a fit does when its ranks' weights differ (docs/training.md)
 
 # fields that must agree for --resume to continue the same run
 RESUME_FIELDS = ("reg", "gamma", "gamma_ramp", "gamma_start", "epochs", "batch_size", "lr", "weight_decay", "seed",
@@ -126,6 +129,8 @@ def validate(cfg: TrainConfig) -> None:
         raise RispError(f"--seed must be in [0, 2**63), got {cfg.seed}")
     if cfg.workers < 0 or cfg.checkpoint_every < 0 or cfg.threads < 0:
         raise RispError("--workers, --threads and --checkpoint-every must be >= 0")
+    if cfg.rank_check not in RANK_CHECKS:
+        raise RispError(f"unknown --rank-check {cfg.rank_check!r}; choose one of: {', '.join(RANK_CHECKS)}")
     if cfg.cache not in ("auto", "memory", "stream"):
         raise RispError(f"unknown --cache {cfg.cache!r}; choose one of: auto, memory, stream")
     if cfg.stem != "auto" and cfg.stem not in STEM_FACTOR:

@@ -144,7 +144,41 @@ def check_ranks_agree(digests: list[str], epoch: int) -> None:
     if len(set(digests)) > 1:
         groups = ", ".join(f"rank {r}: {d[:12]}" for r, d in enumerate(digests))
         raise RispError(f"the {len(digests)} torchrun ranks' weights differ after epoch {epoch} ({groups}); "
-                        "they no longer train one network (mixed torch versions or devices across ranks?)")
+                        "they no longer train one network (mixed torch versions or devices across ranks?); "
+                        "--rank-check resync gives every rank rank 0's weights at each epoch end instead")
+
+
+def broadcast_rank0_state(net: torch.nn.Module, opt: torch.optim.Optimizer) -> None:
+    """Every rank takes rank 0's weights, buffers and optimizer state (one ``broadcast_object_list``).
+
+    For ranks that drift apart by round-off (e.g. machines whose CPUs take other kernel paths): after it the ranks
+    train one network again, rank 0's, which is the one the checkpoints hold.
+    """
+    import torch.distributed as dist
+
+    box = [{"model": net.state_dict(), "optimizer": opt.state_dict()} if dist.get_rank() == 0 else None]
+    dist.broadcast_object_list(box, src=0)
+    if dist.get_rank() != 0:
+        net.load_state_dict(box[0]["model"])
+        opt.load_state_dict(box[0]["optimizer"])
+
+
+def agreed_weights(net: torch.nn.Module, opt: torch.optim.Optimizer, world_size: int, epoch: int, mode: str,
+                   resyncs: list, echo=None) -> list[str]:
+    """The ranks' digests at an epoch end, checked equal (``mode`` ``stop``), or first made equal from rank 0's
+    state when they differ (``resync``; the event is appended to ``resyncs`` and echoed by rank 0)."""
+    digests = rank_digests(net, world_size)
+    if mode == "resync" and len(set(digests)) > 1:
+        broadcast_rank0_state(net, opt)
+        resyncs.append({"epoch": epoch, "rank_weights_sha256": digests})
+        import torch.distributed as dist
+
+        if echo is not None and dist.get_rank() == 0:
+            echo(f"note: the {world_size} ranks' weights differed after epoch {epoch}; every rank now holds rank 0's "
+                 "weights and optimizer state (--rank-check resync)")
+        digests = rank_digests(net, world_size)
+    check_ranks_agree(digests, epoch)
+    return digests
 
 
 def step_generator(seed: int, rank: int, step: int) -> torch.Generator:
@@ -524,10 +558,12 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
         norm = Normalization.from_dict(state["normalization"])
         epoch0, batch0, step = (int(state["progress"][k]) for k in ("epoch", "batch", "global_step"))
         history = list(state.get("history", []))
+        resyncs = list(state.get("rank_resyncs") or [])
         partial_sums = state.get("epoch_sums")  # the interrupted epoch's loss sums before the checkpoint
     else:
         norm = compute_normalization(shards, env, cfg.stats_samples)
         epoch0, batch0, step, history, partial_sums = 0, 0, 0, [], None
+        resyncs = []  # epoch ends at which --rank-check resync gave every rank rank 0's state
         if val is not None:  # the untrained network's held-out error, the baseline of the curve
             history.append({"epoch": -1, "step": 0, "val_error": held_out_error(net, val, norm, env, cfg.val_samples)})
     # Only now, with the data read and checked (normalisation statistics, the held-out baseline), is anything in the
@@ -575,6 +611,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
             "samples": sample_counts(shards), "val": val_rec,
             # the ranks' weight digests at this epoch end (none mid-epoch: they would describe older weights)
             "rank_weights_sha256": digests if batch == 0 else None,
+            "rank_check": cfg.rank_check, "rank_resyncs": resyncs,
         }
 
     if rank == 0:
@@ -651,8 +688,8 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
                        "train_error": float(sums[1] / n_done), "train_reg": float(sums[2] / n_done), "seconds": round(time.perf_counter() - t_start, 3)}
             if val is not None:
                 summary["val_error"] = held_out_error(net, val, norm, env, cfg.val_samples)
-            digests = rank_digests(net, world)  # every epoch: a divergence is caught before it is checkpointed
-            check_ranks_agree(digests, epoch)
+            # every epoch: a divergence is caught (or resynced) before it is checkpointed
+            digests = agreed_weights(net, opt, world, epoch, cfg.rank_check, resyncs, echo)
             history.append(summary)
             sums[:] = 0.0
             if rank == 0:
@@ -669,8 +706,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
         if log is not None:
             log.close()
     if digests is None:  # no epoch ran here (a resume at the last epoch's end): the weights are checked once now
-        digests = rank_digests(net, world)
-        check_ranks_agree(digests, cfg.epochs - 1)
+        digests = agreed_weights(net, opt, world, cfg.epochs - 1, cfg.rank_check, resyncs, echo)
     final = os.path.join(cfg.out, MODEL)
     if rank == 0:
         p = payload(cfg.epochs, 0, True)

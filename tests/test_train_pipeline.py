@@ -389,6 +389,33 @@ def test_a_fit_whose_ranks_diverge_stops_at_the_epoch_end(shards, tmp_path):
     outcomes = _two_rank_fit(_cfg(shards, same, epochs=1, cache="memory", checkpoint_every=0), tmp_path, nudge=False)
     assert outcomes == [["finished", "group left: False"]] * 2, outcomes
     assert (same / "model.pt").exists()
+    assert torch.load(same / "model.pt", weights_only=True)["rank_resyncs"] == []
+
+
+@pytest.mark.slow
+def test_resync_gives_drifting_ranks_rank0s_weights_at_every_epoch_end(shards, tmp_path):
+    """--rank-check resync (nodes whose CPUs round differently): the same drifting ranks as above finish; at each
+    epoch end rank 1 takes rank 0's weights and optimizer state, so the digests compared (and checkpointed) agree,
+    and the checkpoint records each resync with the digests that differed."""
+    out = tmp_path / "resynced"
+    cfg = _cfg(shards, out, epochs=2, cache="memory", checkpoint_every=0, rank_check="resync")
+    outcomes = _two_rank_fit(cfg, tmp_path, nudge=True)
+    assert outcomes == [["finished", "group left: False"]] * 2, outcomes
+    ck = torch.load(out / "model.pt", weights_only=True)
+    assert [r["epoch"] for r in ck["rank_resyncs"]] == [0, 1]  # rank 1 drifts again in every epoch
+    for r in ck["rank_resyncs"]:
+        assert len(set(r["rank_weights_sha256"])) == 2  # they did differ before the broadcast
+    from risp_train.train import weights_digest
+
+    final = ck["rank_weights_sha256"]
+    assert final[0] == final[1] == weights_digest(ck["model"])  # after it both held the saved weights
+
+
+def test_unknown_rank_check_is_one_error_line(shards, tmp_path):
+    r = CliRunner().invoke(cli, ["fit", shards["train"], "--out", str(tmp_path / "r"), "--rank-check", "warn",
+                                 "--quiet"])
+    assert r.exit_code != 0 and "unknown --rank-check 'warn'; choose one of: stop, resync" in r.output, r.output
+    assert not (tmp_path / "r").exists()
 
 
 def test_weights_digest_sees_a_one_ulp_change():
