@@ -56,11 +56,16 @@ class TrainingStopped(Exception):
 class Dist:
     rank: int = 0
     world_size: int = 1
-    owns_group: bool = False  # this fit created the process group (and so destroys it: leave_distributed)
+    owns_group: bool = False  # init_distributed created the process group (and destroys it at exit)
 
 
 def init_distributed() -> Dist:
-    """Join the torchrun process group (gloo, CPU) when WORLD_SIZE > 1; otherwise a single process."""
+    """Join the torchrun process group (gloo, CPU) when WORLD_SIZE > 1; otherwise a single process.
+
+    A group this creates is destroyed at exit (``atexit``: before the interpreter is torn down; left to the
+    teardown, gloo's threads can abort the process, "terminate called without an active exception",
+    pytorch/pytorch#190489). It is not destroyed when ``fit`` returns: a second ``fit`` in the process reuses it
+    (creating a group again on the same store can hang, pytorch/pytorch#114585)."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
     if world <= 1:
         return Dist()
@@ -69,24 +74,17 @@ def init_distributed() -> Dist:
     owns = not dist.is_initialized()  # a caller's own group (e.g. a FileStore in tests) stays the caller's
     if owns:
         dist.init_process_group("gloo")
+        import atexit
+
+        atexit.register(_destroy_group)
     return Dist(dist.get_rank(), dist.get_world_size(), owns)
 
 
-def leave_distributed(dist_info: Dist, finished: bool) -> None:
-    """Destroy the process group this fit created, while the interpreter is whole.
-
-    A group left to interpreter shutdown can abort its process (gloo's threads outlive Python: "terminate called
-    without an active exception", pytorch/pytorch#190489). A finished fit first waits at a barrier, so that no
-    rank tears down its end while another still uses it; a failed one does not (another rank may be stuck in a
-    collective and never reach the barrier) and only destroys its own end, which is local for gloo.
-    """
-    if not dist_info.owns_group:
-        return
+def _destroy_group() -> None:
+    """The exit handler of a group ``init_distributed`` created (local for gloo: no rank waits for another)."""
     import torch.distributed as dist
 
     if dist.is_initialized():
-        if finished:
-            dist.barrier()
         dist.destroy_process_group()
 
 
@@ -155,8 +153,12 @@ def broadcast_rank0_state(net: torch.nn.Module, opt: torch.optim.Optimizer) -> N
     train one network again, rank 0's, which is the one the checkpoints hold.
     """
     import torch.distributed as dist
+    from torch.utils._pytree import tree_map_only
 
-    box = [{"model": net.state_dict(), "optimizer": opt.state_dict()} if dist.get_rank() == 0 else None]
+    # CPU copies: a pickled CUDA tensor names its device, which another node may not have (load_state_dict moves
+    # the weights to each parameter's device, Adam its state to its parameter's)
+    mine = {"model": net.state_dict(), "optimizer": opt.state_dict()} if dist.get_rank() == 0 else None
+    box = [tree_map_only(torch.Tensor, lambda t: t.detach().cpu(), mine) if mine is not None else None]
     dist.broadcast_object_list(box, src=0)
     if dist.get_rank() != 0:
         net.load_state_dict(box[0]["model"])
@@ -424,17 +426,13 @@ def fit(cfg: TrainConfig, *, resume: bool = False, progress: bool = True,
     device = resolve_device(cfg.device)  # before anything is written: a bad --device leaves no run folder
     dist_info = init_distributed()
     before = torch.get_num_threads()
-    finished = False
     try:
         with contextlib.ExitStack() as hold:  # the run folder's lock, from the first write to the last
-            final = _fit(cfg, dist_info, device=device, resume=resume, progress=progress,
-                         stop_after_step=stop_after_step, hold=hold,
-                         overwrite=overwrite, allow_incomplete=allow_incomplete, echo=echo)
-        finished = True
-        return final
+            return _fit(cfg, dist_info, device=device, resume=resume, progress=progress,
+                        stop_after_step=stop_after_step, hold=hold,
+                        overwrite=overwrite, allow_incomplete=allow_incomplete, echo=echo)
     finally:
         torch.set_num_threads(before)
-        leave_distributed(dist_info, finished)
 
 
 def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: bool, progress: bool,
@@ -626,6 +624,11 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
 
     bar = tqdm(total=total_steps, initial=step, disable=(not progress) or rank != 0, unit="step",
                desc=f"fit {shards.env} reg={cfg.reg} {device.type} threads={threads}")
+
+    def note(line: str) -> None:  # a line for the user while the bar is drawn: above it, not across it
+        if echo is not None:
+            with tqdm.external_write_mode(file=sys.stderr):
+                echo(line)
     log = None
     if rank == 0:
         new = not os.path.exists(csv_path)
@@ -689,7 +692,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
             if val is not None:
                 summary["val_error"] = held_out_error(net, val, norm, env, cfg.val_samples)
             # every epoch: a divergence is caught (or resynced) before it is checkpointed
-            digests = agreed_weights(net, opt, world, epoch, cfg.rank_check, resyncs, echo)
+            digests = agreed_weights(net, opt, world, epoch, cfg.rank_check, resyncs, note)
             history.append(summary)
             sums[:] = 0.0
             if rank == 0:
@@ -706,7 +709,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
         if log is not None:
             log.close()
     if digests is None:  # no epoch ran here (a resume at the last epoch's end): the weights are checked once now
-        digests = agreed_weights(net, opt, world, cfg.epochs - 1, cfg.rank_check, resyncs, echo)
+        digests = agreed_weights(net, opt, world, cfg.epochs - 1, cfg.rank_check, resyncs, note)
     final = os.path.join(cfg.out, MODEL)
     if rank == 0:
         p = payload(cfg.epochs, 0, True)

@@ -692,6 +692,18 @@ def test_a_new_default_gamma_is_a_new_network(monkeypatch):
     assert network_key(tcfg, "cube", "data") != moved
 
 
+def test_how_a_network_is_computed_is_not_part_of_its_key():
+    """Options that change where or how a fit runs, not the network it makes, keep the tables' cached networks
+    (and their cells) valid: a new such option (--rank-check) must not retrain every cached network."""
+    from risp_tasks.tables.artifacts import network_key
+    from risp_train import config as train_config
+
+    tcfg = train_config.make_config("s", "", preset="cpu", reg="stochastic")
+    key = network_key(tcfg, "cube", "data")
+    for change in (dict(rank_check="resync"), dict(workers=0), dict(threads=1), dict(out="elsewhere")):
+        assert network_key(train_config.with_(tcfg, **change), "cube", "data") == key, change
+
+
 def test_a_revised_motion_is_a_new_reference_video(monkeypatch, tmp_path):
     """A table finds a cached reference video by checksum; a motion's revision (MOTION_REVISIONS, e.g. the cube's
     tosses kept inside the sampled box) is part of it, so a video of the old motion is not found again, while an

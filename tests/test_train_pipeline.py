@@ -332,10 +332,12 @@ def test_diverged_ranks_are_refused_on_every_rank(tmp_path, diverge):
         assert outcomes == ["ok", "ok"]
 
 
-def _two_rank_fit_worker(rank: int, world: int, store: str, cfg, results: str, nudge: bool) -> None:
-    """One rank of a real two-rank fit; with ``nudge``, rank 1 adds 1e-6 to one gradient entry after the
-    all-reduce. Writes its outcome and whether fit left a process group behind. fit creates the group itself
-    (and so owns it), rendezvousing through a FileStore rather than a TCP port (no free-port race)."""
+def _two_rank_fit_worker(rank: int, world: int, store: str, cfgs, results: str, nudge: bool) -> None:
+    """One rank of real two-rank fits, run one after the other in this process; with ``nudge``, rank 1 adds 1e-6 to
+    one gradient entry after the all-reduce. Writes each fit's outcome, the notes fit echoed, and whether the
+    process group is left once the exit handlers ran. fit creates the group itself (and so owns it),
+    rendezvousing through a FileStore rather than a TCP port (no free-port race)."""
+    import atexit
     import faulthandler
 
     import torch.distributed as dist
@@ -356,20 +358,23 @@ def _two_rank_fit_worker(rank: int, world: int, store: str, cfg, results: str, n
             params[0].grad.view(-1)[0] += 1e-6
 
         train_mod.allreduce_gradients = nudged
-    try:
-        fit(cfg, progress=False)
-        outcome = "finished"
-    except RispError as e:
-        outcome = str(e)
+    lines, notes = [], []
+    for cfg in cfgs:
+        try:
+            fit(cfg, progress=False, echo=notes.append)
+            lines.append("finished")
+        except RispError as e:
+            lines.append(str(e))
+    atexit._run_exitfuncs()  # what the interpreter runs at exit, before its teardown
     with open(os.path.join(results, f"fit{rank}.txt"), "w") as f:
-        f.write(f"{outcome}\ngroup left: {dist.is_initialized()}")
+        f.write("\n".join(lines + [f"notes: {len(notes)}", f"group left: {dist.is_initialized()}"]))
 
 
-def _two_rank_fit(cfg, tmp_path, nudge: bool) -> list[list[str]]:
+def _two_rank_fit(cfgs, tmp_path, nudge: bool) -> list[list[str]]:
     import torch.multiprocessing as mp
 
-    store = tmp_path / f"store-{'nudged' if nudge else 'same'}"  # one fresh FileStore per fit
-    mp.start_processes(_two_rank_fit_worker, args=(2, str(store), cfg, str(tmp_path), nudge), nprocs=2, join=True,
+    store = tmp_path / f"store-{'nudged' if nudge else 'same'}"  # one fresh FileStore per pair of processes
+    mp.start_processes(_two_rank_fit_worker, args=(2, str(store), cfgs, str(tmp_path), nudge), nprocs=2, join=True,
                        start_method="spawn")
     return [(tmp_path / f"fit{r}.txt").read_text().splitlines() for r in range(2)]
 
@@ -378,29 +383,32 @@ def _two_rank_fit(cfg, tmp_path, nudge: bool) -> list[list[str]]:
 def test_a_fit_whose_ranks_diverge_stops_at_the_epoch_end(shards, tmp_path):
     """The check is wired into the loop: two ranks of a real fit whose weights drift apart (rank 1's gradient
     nudged) both stop after epoch 0, before its checkpoint; no last.pt or model.pt claims a trained network.
-    Either way fit destroys the process group it created (left to interpreter shutdown, gloo can abort the
-    process: pytorch/pytorch#190489)."""
+    The group fit created is destroyed by the exit handlers (left to interpreter shutdown, gloo can abort the
+    process: pytorch/pytorch#190489), not when fit returns: a second fit in the process reuses it."""
     out = tmp_path / "diverged"
-    outcomes = _two_rank_fit(_cfg(shards, out, epochs=2, cache="memory", checkpoint_every=0), tmp_path, nudge=True)
+    outcomes = _two_rank_fit([_cfg(shards, out, epochs=2, cache="memory", checkpoint_every=0)], tmp_path, nudge=True)
     assert all("torchrun ranks' weights differ after epoch 0" in o[0] for o in outcomes), outcomes
     assert not (out / "last.pt").exists() and not (out / "model.pt").exists()
-    assert [o[1] for o in outcomes] == ["group left: False"] * 2
-    same = tmp_path / "same"  # the same fit without the nudge: finished, and its group released too
-    outcomes = _two_rank_fit(_cfg(shards, same, epochs=1, cache="memory", checkpoint_every=0), tmp_path, nudge=False)
-    assert outcomes == [["finished", "group left: False"]] * 2, outcomes
-    assert (same / "model.pt").exists()
-    assert torch.load(same / "model.pt", weights_only=True)["rank_resyncs"] == []
+    assert [o[1:] for o in outcomes] == [["notes: 0", "group left: False"]] * 2
+    # without the nudge, two fits one after the other in the same processes: both finish (the second reuses the
+    # group), and nothing is resynced
+    cfgs = [_cfg(shards, tmp_path / f"same{i}", epochs=1, cache="memory", checkpoint_every=0) for i in range(2)]
+    outcomes = _two_rank_fit(cfgs, tmp_path, nudge=False)
+    assert outcomes == [["finished", "finished", "notes: 0", "group left: False"]] * 2, outcomes
+    for i in range(2):
+        assert torch.load(tmp_path / f"same{i}" / "model.pt", weights_only=True)["rank_resyncs"] == []
 
 
 @pytest.mark.slow
 def test_resync_gives_drifting_ranks_rank0s_weights_at_every_epoch_end(shards, tmp_path):
     """--rank-check resync (nodes whose CPUs round differently): the same drifting ranks as above finish; at each
     epoch end rank 1 takes rank 0's weights and optimizer state, so the digests compared (and checkpointed) agree,
-    and the checkpoint records each resync with the digests that differed."""
+    rank 0 says so once per event, and the checkpoint records each resync with the digests that differed."""
     out = tmp_path / "resynced"
     cfg = _cfg(shards, out, epochs=2, cache="memory", checkpoint_every=0, rank_check="resync")
-    outcomes = _two_rank_fit(cfg, tmp_path, nudge=True)
-    assert outcomes == [["finished", "group left: False"]] * 2, outcomes
+    outcomes = _two_rank_fit([cfg], tmp_path, nudge=True)
+    assert outcomes == [["finished", "notes: 2", "group left: False"],
+                        ["finished", "notes: 0", "group left: False"]], outcomes
     ck = torch.load(out / "model.pt", weights_only=True)
     assert [r["epoch"] for r in ck["rank_resyncs"]] == [0, 1]  # rank 1 drifts again in every epoch
     for r in ck["rank_resyncs"]:
@@ -409,6 +417,49 @@ def test_resync_gives_drifting_ranks_rank0s_weights_at_every_epoch_end(shards, t
 
     final = ck["rank_weights_sha256"]
     assert final[0] == final[1] == weights_digest(ck["model"])  # after it both held the saved weights
+
+
+def _optimizer_digest(opt) -> str:
+    from risp_train.train import weights_digest
+
+    sd = opt.state_dict()
+    flat = {f"{p}.{k}": (v if torch.is_tensor(v) else torch.tensor(v)) for p, st in sd["state"].items()
+            for k, v in st.items()}
+    return weights_digest(flat)
+
+
+def _broadcast_worker(rank: int, world: int, store_path: str, results: str) -> None:
+    import torch.distributed as dist
+
+    from risp_train.train import broadcast_rank0_state, weights_digest
+
+    torch.set_num_threads(1)
+    dist.init_process_group("gloo", store=dist.FileStore(store_path, world), rank=rank, world_size=world)
+    try:
+        torch.manual_seed(rank)  # other weights, and Adam states of other steps and moments
+        net = torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.BatchNorm1d(4), torch.nn.Linear(4, 2))
+        opt = torch.optim.Adam(net.parameters(), lr=1e-2)
+        for _ in range(rank + 1):
+            net(torch.randn(5, 3)).square().sum().backward()
+            opt.step()
+        before = (weights_digest(net.state_dict()), _optimizer_digest(opt))
+        broadcast_rank0_state(net, opt)
+        after = (weights_digest(net.state_dict()), _optimizer_digest(opt))
+        with open(os.path.join(results, f"b{rank}.json"), "w") as f:
+            json.dump({"before": before, "after": after}, f)
+    finally:
+        dist.destroy_process_group()
+
+
+def test_broadcast_gives_every_rank_rank0s_weights_buffers_and_adam_state(tmp_path):
+    import torch.multiprocessing as mp
+
+    mp.start_processes(_broadcast_worker, args=(2, str(tmp_path / "store"), str(tmp_path)), nprocs=2, join=True,
+                       start_method="spawn")
+    r0, r1 = (json.loads((tmp_path / f"b{r}.json").read_text()) for r in range(2))
+    assert r0["before"][0] != r1["before"][0] and r0["before"][1] != r1["before"][1]  # they did differ
+    assert r0["after"] == r0["before"]  # rank 0 keeps its own
+    assert r1["after"] == r0["before"]  # rank 1 now holds rank 0's weights, BatchNorm statistics and Adam moments
 
 
 def test_unknown_rank_check_is_one_error_line(shards, tmp_path):

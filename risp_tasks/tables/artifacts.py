@@ -148,7 +148,10 @@ def network_key(tcfg, env: str, data_hash: str) -> str:
     from risp_train.config import resolved_gamma, resolved_gamma_start
     from risp_train.model import MIN_LAST_MAP, STEM_FACTOR
 
-    ident = {k: v for k, v in tcfg.to_dict().items() if k not in ("shards", "out", "workers", "threads", "device")}
+    # not what makes a network: where it is written, how it is computed, and --rank-check (torchrun only: a resync
+    # makes rank 0's network, which a single process is anyway)
+    ident = {k: v for k, v in tcfg.to_dict().items()
+             if k not in ("shards", "out", "workers", "threads", "device", "rank_check")}
     if tcfg.stem == "auto":
         ident["stem_rule"] = {"min_last_map": MIN_LAST_MAP, "factors": STEM_FACTOR}
     return checksum({**ident, "gamma": resolved_gamma(tcfg, env), "gamma_start": resolved_gamma_start(tcfg, env),
