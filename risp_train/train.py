@@ -56,7 +56,6 @@ class TrainingStopped(Exception):
 class Dist:
     rank: int = 0
     world_size: int = 1
-    owns_group: bool = False  # init_distributed created the process group (and destroys it at exit)
 
 
 def init_distributed() -> Dist:
@@ -71,13 +70,12 @@ def init_distributed() -> Dist:
         return Dist()
     import torch.distributed as dist
 
-    owns = not dist.is_initialized()  # a caller's own group (e.g. a FileStore in tests) stays the caller's
-    if owns:
+    if not dist.is_initialized():  # a caller's own group (e.g. a FileStore in tests) stays the caller's
         dist.init_process_group("gloo")
         import atexit
 
         atexit.register(_destroy_group)
-    return Dist(dist.get_rank(), dist.get_world_size(), owns)
+    return Dist(dist.get_rank(), dist.get_world_size())
 
 
 def _destroy_group() -> None:
@@ -609,7 +607,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
             "samples": sample_counts(shards), "val": val_rec,
             # the ranks' weight digests at this epoch end (none mid-epoch: they would describe older weights)
             "rank_weights_sha256": digests if batch == 0 else None,
-            "rank_check": cfg.rank_check, "rank_resyncs": resyncs,
+            "rank_resyncs": resyncs,  # --rank-check itself is in "config"
         }
 
     if rank == 0:

@@ -6,6 +6,7 @@ The shards are rendered once per module by the public ``risp-data render`` comma
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -298,14 +299,23 @@ def test_torchrun_two_processes_train_one_network(shards, tmp_path, cache):
     assert torch.load(single / "model.pt", weights_only=True)["rank_weights_sha256"][0] != digests[0]
 
 
-def _agreement_worker(rank: int, world: int, store_path: str, diverge: bool, results: str) -> None:
+@contextlib.contextmanager
+def _file_store_group(rank: int, world: int, store_path: str):
+    """A spawned worker's own gloo group, rendezvousing through a file (no port to race for), destroyed after."""
     import torch.distributed as dist
-
-    from risp_train.train import check_ranks_agree, rank_digests
 
     torch.set_num_threads(1)
     dist.init_process_group("gloo", store=dist.FileStore(store_path, world), rank=rank, world_size=world)
     try:
+        yield
+    finally:
+        dist.destroy_process_group()
+
+
+def _agreement_worker(rank: int, world: int, store_path: str, diverge: bool, results: str) -> None:
+    from risp_train.train import check_ranks_agree, rank_digests
+
+    with _file_store_group(rank, world, store_path):
         torch.manual_seed(rank if diverge else 0)
         net = torch.nn.Linear(3, 2)
         try:
@@ -315,8 +325,6 @@ def _agreement_worker(rank: int, world: int, store_path: str, diverge: bool, res
             outcome = str(e)
         with open(os.path.join(results, f"rank{rank}.txt"), "w") as f:
             f.write(outcome)
-    finally:
-        dist.destroy_process_group()
 
 
 @pytest.mark.parametrize("diverge", [False, True])
@@ -429,13 +437,9 @@ def _optimizer_digest(opt) -> str:
 
 
 def _broadcast_worker(rank: int, world: int, store_path: str, results: str) -> None:
-    import torch.distributed as dist
-
     from risp_train.train import broadcast_rank0_state, weights_digest
 
-    torch.set_num_threads(1)
-    dist.init_process_group("gloo", store=dist.FileStore(store_path, world), rank=rank, world_size=world)
-    try:
+    with _file_store_group(rank, world, store_path):
         torch.manual_seed(rank)  # other weights, and Adam states of other steps and moments
         net = torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.BatchNorm1d(4), torch.nn.Linear(4, 2))
         opt = torch.optim.Adam(net.parameters(), lr=1e-2)
@@ -447,8 +451,6 @@ def _broadcast_worker(rank: int, world: int, store_path: str, results: str) -> N
         after = (weights_digest(net.state_dict()), _optimizer_digest(opt))
         with open(os.path.join(results, f"b{rank}.json"), "w") as f:
             json.dump({"before": before, "after": after}, f)
-    finally:
-        dist.destroy_process_group()
 
 
 def test_broadcast_gives_every_rank_rank0s_weights_buffers_and_adam_state(tmp_path):
