@@ -558,7 +558,6 @@ def _take(x, index):
     return type(x)(*[dr.gather(type(x[k]), x[k], index) for k in range(len(x))])
 
 
-
 def indirect_integrand(self, scene, sensor, sample, sampler, preprocess, active=True):
     """Mitsuba's ``ProjectiveDetail.eval_indirect_integrand`` (the boundary term of visibility seen from a
     surface, e.g. an occluder's edge against the environment) with the receiver's motion in the edge's speed.
