@@ -123,6 +123,7 @@ def read_checkpoint(path: str) -> tuple[dict[str, Any], str]:
         raise RispError(f"cannot read checkpoint {path}: {e.strerror or e}") from None
     if not data:
         raise RispError(f"corrupt checkpoint {path}: the file is empty (0 bytes)")
+    _check_kind(path, data)
     try:
         ckpt = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except Exception as e:  # zipfile, unpickler and EOF errors on damaged files
@@ -135,7 +136,91 @@ def read_checkpoint(path: str) -> tuple[dict[str, Any], str]:
     if missing:
         raise RispError(f"corrupt checkpoint {path}: missing {', '.join(missing)}")
     check_values(ckpt, path)
+    check_consistent(ckpt, path)
     return ckpt, hashlib.sha256(data).hexdigest()
+
+
+_ZIP, _PICKLE = b"PK\x03\x04", b"\x80"  # torch.save writes a zip archive; torch before 1.6 a bare pickle
+#: first bytes of files that land where a checkpoint goes (an eval's plot, a shard, a rendered frame)
+_KNOWN_KINDS = ((b"\x89PNG", "a PNG image"), (b"v/1\x01", "an OpenEXR image"), (b"\x1f\x8b", "a gzip file"))
+
+
+def _check_kind(path: str, data: bytes) -> None:
+    """Another kind of file given where a checkpoint goes: say what it is, instead of the unpickler's "KeyError:
+    101" (a text file's first byte read as an opcode) or a zip reader's "file in archive is not in a subdirectory"."""
+    if data.startswith(_ZIP):
+        names = _zip_names(data)
+        if names is not None and not any(n.endswith("/data.pkl") for n in names):  # None: damaged, torch says so
+            raise RispError(f"corrupt or unreadable checkpoint {path}: a zip archive of {', '.join(names[:3]) or 'nothing'}"
+                            " without torch's data.pkl (a .npz or another program's archive?), not a risp-train checkpoint")
+        return
+    if data.startswith(_PICKLE):
+        return
+    text = _as_text(data[:4096])
+    if text is not None:
+        first = text.strip().splitlines()[0][:40]
+        raise RispError(f"{path} is a text file (it begins {first!r}), not a risp-train checkpoint; pass the model.pt "
+                        "that risp-train fit wrote, or its run folder")
+    kind = next((k for magic, k in _KNOWN_KINDS if data.startswith(magic)), None)
+    if kind is None and data[257:262] == b"ustar":
+        kind = "a tar archive"
+    raise RispError(f"corrupt or unreadable checkpoint {path}: " + (f"{kind}, not a risp-train checkpoint" if kind else
+                    f"not a torch.save file (it begins with bytes {data[:4].hex(' ')}, neither a zip archive nor a pickle)"))
+
+
+def _zip_names(data: bytes) -> list[str] | None:
+    """The member names of a zip archive's bytes; None when the archive cannot be read."""
+    import io
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(io.BytesIO(data)) as z:
+            return z.namelist()
+    except (zipfile.BadZipFile, OSError, ValueError):
+        return None
+
+
+def _as_text(head: bytes) -> str | None:
+    """``head`` decoded when it is printable UTF-8 text (a character cut at its end allowed), else None."""
+    try:
+        text = head.decode("utf-8")
+    except UnicodeDecodeError as e:
+        if e.start < len(head) - 3:  # not a multi-byte character cut by the 4 KiB sample: binary
+            return None
+        text = head[:e.start].decode("utf-8")
+    if not text.strip() or any(c < " " and c not in "\t\n\r\f" for c in text):
+        return None
+    return text
+
+
+def check_consistent(ckpt: dict[str, Any], path: str) -> None:
+    """The checkpoint's parts must describe one network: T = len(target_names) normalization entries per target
+    vector and 3 per image vector, a network with T outputs, and a resolution its stem takes.  A file edited by
+    hand or assembled from two runs otherwise loads and fails at its first use with a shape error."""
+    from .model import STEM_FACTOR, min_resolution
+
+    n_targets = len(ckpt["target_names"])
+    norm = ckpt["normalization"]
+    for key, want, what in (("image_mean", 3, "3 colour channels"), ("image_std", 3, "3 colour channels"),
+                            ("target_mean", n_targets, f"{n_targets} target_names"),
+                            ("target_std", n_targets, f"{n_targets} target_names")):
+        got = len(torch.as_tensor(norm[key]).reshape(-1))
+        if got != want:
+            raise RispError(f"inconsistent checkpoint {path}: normalization {key} has {got} entries, "
+                            f"the checkpoint has {what}")
+    if not ckpt["state_names"]:
+        raise RispError(f"inconsistent checkpoint {path}: it names no state entries (state_names is empty)")
+    config = ckpt["model_config"]
+    if not isinstance(config, dict) or config.get("stem") not in STEM_FACTOR or "out_dim" not in config:
+        raise RispError(f"corrupt checkpoint {path}: model_config {config!r} names no known stem and out_dim "
+                        f"(stems: {', '.join(STEM_FACTOR)})")
+    if int(config["out_dim"]) != n_targets:
+        raise RispError(f"inconsistent checkpoint {path}: the network predicts {config['out_dim']} targets, "
+                        f"the checkpoint has {n_targets} target_names")
+    resolution, stem = ckpt["resolution"], config["stem"]
+    if isinstance(resolution, bool) or not isinstance(resolution, int) or resolution < min_resolution(stem):
+        raise RispError(f"inconsistent checkpoint {path}: resolution {resolution!r} does not suit its network "
+                        f"(stem {stem!r} takes images of at least {min_resolution(stem)}×{min_resolution(stem)})")
 
 
 def check_values(ckpt: dict[str, Any], path: str) -> None:

@@ -775,6 +775,65 @@ def test_corrupt_and_empty_checkpoints_are_one_line_without_torchs_advice(data, 
     assert "is empty (0 bytes)" in line and str(empty) in line
 
 
+def _set(path, value):
+    """A checkpoint edit: the entry at ``path`` (keys from the top) set to ``value``."""
+    def edit(ck):
+        *parents, last = path
+        for key in parents:
+            ck = ck[key]
+        ck[last] = value(ck[last]) if callable(value) else value
+    return edit
+
+
+@pytest.mark.parametrize("edit, expected", [
+    (_set(("normalization", "target_mean"), lambda v: v[:-2]),
+     "normalization target_mean has 7 entries, the checkpoint has 9 target_names"),
+    (_set(("normalization", "image_std"), [1.0, 1.0]), "normalization image_std has 2 entries, the checkpoint has 3 colour"),
+    (_set(("target_names",), lambda v: v[:6]), "normalization target_mean has 9 entries, the checkpoint has 6 target_names"),
+    (_set(("model_config", "out_dim"), 6), "the network predicts 6 targets, the checkpoint has 9 target_names"),
+    (_set(("resolution",), 8), "resolution 8 does not suit its network (stem 'small' takes images of at least 9×9)"),
+    (_set(("model_config", "stem"), "imagenet"), "resolution 16 does not suit its network (stem 'imagenet'"),
+])
+def test_an_inconsistent_checkpoint_is_one_line_naming_it(data, model, tmp_path, edit, expected):
+    """A checkpoint whose parts disagree (edited by hand, or pieced from two runs) loaded and then failed at its first
+    use with a traceback ("The size of tensor a (9) must match ...", "input (8, 8) is too small for stem"): now
+    eval, risp_train.load and the tasks' load_checkpoint refuse it when reading, naming the file."""
+    import risp_train
+    from risp_train.checkpoint import load_checkpoint
+
+    ck = torch.load(model, weights_only=True)
+    edit(ck)
+    bad = tmp_path / "edited.pt"
+    torch.save(ck, bad)
+    line = _one_line_error(CliRunner().invoke(train_cli, ["eval", str(bad), data["train"], "--quiet",
+                                                          "--out", str(tmp_path / "ev")]))
+    assert f"inconsistent checkpoint {bad}: {expected}" in line, line
+    assert not (tmp_path / "ev.json").exists()
+    for read in (risp_train.load, load_checkpoint):
+        with pytest.raises(RispError, match="inconsistent checkpoint"):
+            read(str(bad))
+
+
+def test_a_text_or_other_file_given_as_the_model_is_named_for_what_it_is(data, model, tmp_path):
+    """An eval's own .md (or .json) passed as MODEL gave "corrupt or unreadable checkpoint ...: KeyError: 101" (the
+    text's first byte read as a pickle opcode); its plot "UnpicklingError: Unsupported operand 80"; a .npz "file in
+    archive is not in a subdirectory".  Each is now one line saying what the file is."""
+    import numpy as np
+
+    runner = CliRunner()
+    r = runner.invoke(train_cli, ["eval", model, data["train"], "--quiet", "--limit", "4", "--out", str(tmp_path / "ev")])
+    assert r.exit_code == 0, r.output
+    np.savez(tmp_path / "arrays.npz", a=np.zeros(3))
+    for name, expected in (("ev.md", "is a text file (it begins 'State estimation on "),
+                           ("ev.json", "is a text file (it begins '{'), not a risp-train checkpoint"),
+                           ("ev_scatter.png", "a PNG image, not a risp-train checkpoint"),
+                           ("arrays.npz", "a zip archive of a.npy without torch's data.pkl")):
+        path = str(tmp_path / name)
+        line = _one_line_error(runner.invoke(train_cli, ["eval", path, data["train"], "--quiet",
+                                                         "--out", str(tmp_path / "again")]))
+        assert path in line and expected in line, line
+
+
 _DISK_FULL_RENDER = r"""
 import errno, sys
 import zarr.storage._local as local
