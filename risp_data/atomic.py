@@ -186,6 +186,35 @@ def replace_folder(tmp: "str | os.PathLike", dest: "str | os.PathLike") -> None:
                   file=sys.stderr)
 
 
+def publish_files(tmp: "str | os.PathLike", dest: "str | os.PathLike", names: "list[str]") -> None:
+    """Move the finished files ``names`` from the :func:`temp_folder` ``tmp`` into the folder ``dest`` it lies in, as
+    one set (files that share a folder with others, so no folder rename can publish them).  The old files of those
+    names are first moved into ``tmp`` — the last name first — then the new ones in — the last name last —: ``dest``
+    never holds a mix of old and new, and its last name is there only with all the others (the set's mark).  A kill in
+    between leaves part of one set in ``dest`` and the rest in ``tmp``, a temporary that :func:`remove_temporaries`
+    drops; a failed rename puts the old set back.  The caller deletes ``tmp``."""
+    tmp, dest = os.fspath(tmp), os.fspath(dest)
+    old = os.path.join(tmp, ".old")  # the names are taken by the new files
+    os.makedirs(old, exist_ok=True)  # exists when a failed publication is tried again
+    for name in reversed(names):
+        try:
+            os.replace(os.path.join(dest, name), os.path.join(old, name))
+        except FileNotFoundError:
+            pass
+    placed: list[str] = []
+    try:
+        for name in names:
+            os.replace(os.path.join(tmp, name), os.path.join(dest, name))
+            placed.append(name)
+    except BaseException:
+        for name in reversed(placed):  # the new files out again, then the old ones back: the set as it was
+            os.replace(os.path.join(dest, name), os.path.join(tmp, name))
+        for name in names:
+            if os.path.lexists(os.path.join(old, name)):
+                os.replace(os.path.join(old, name), os.path.join(dest, name))
+        raise
+
+
 def remove_temporaries(folder: "str | os.PathLike") -> None:
     """Delete the temporaries (``.tmp-*``) a killed job left in ``folder``: the files of :func:`atomic_write` and
     the folders of :func:`temp_folder` (a killed task or make-video whose ``--out`` lies inside ``folder``).  Never

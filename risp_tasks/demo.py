@@ -131,7 +131,7 @@ def run_demo(cfg: DemoConfig) -> Path:
                      "--val", str(shards / f"{env}-val"), *(["--resume"] if (run / "last.pt").exists() else [])], log)
     for name in ("val", "target"):
         _run(train_cli, ["eval", str(run / "model.pt"), str(shards / f"{env}-{name}"), "--seed", seed,
-                         "--out", str(run / f"eval-{name}")], log)
+                         "--out", str(run / f"eval-{name}"), "--overwrite"], log)  # a re-run evaluates again
 
     # 4. A task on a video: a target-domain reference video with a hidden mass, identified through N.
     video = out / "video" / f"{env}.mp4"

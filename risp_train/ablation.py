@@ -198,7 +198,8 @@ def run_ablation(cfg: AblationConfig, progress: bool = True) -> dict:
                 fit(tcfg, resume=True, progress=progress)
             row = {"pool": pool, "reg": reg, "model": model}
             for name, folder in eval_sets.items():
-                res = evaluate(EvalConfig(model=model, shards=folder, seed=cfg.seed,
+                # evaluated again at every re-run: its own results, replaced (a reused run's may predate a fix)
+                res = evaluate(EvalConfig(model=model, shards=folder, seed=cfg.seed, overwrite=True,
                                           out=os.path.join(run_dir, f"eval-{name}")), progress=False)
                 r = res["results"]
                 row[name] = {"mean": r["model"]["mean"], "std": r["model"]["std"]}

@@ -1,7 +1,7 @@
 """``risp-train``: fit, eval and ablation (thin: click options → frozen config → a function).
 
     risp-train fit SHARDS [--out runs/NAME] [--reg none|surrogate|exact|stochastic] [--preset paper|cpu] ...
-    risp-train eval MODEL SHARDS [--metric l1|l2]
+    risp-train eval MODEL SHARDS [--metric l1|l2] [--out PREFIX] [--overwrite]
     risp-train ablation --env cube --out runs/ablation ...
     torchrun --nproc-per-node 2 -m risp_train fit SHARDS --out runs/NAME ...
 
@@ -160,8 +160,9 @@ def find_dataset(folder: str, need_jacobian: bool) -> str:
 @click.option("--format", "fmt", default="auto", show_default=True, help="wds or zarr (auto: wds if present).")
 @click.option("--out", default=None, help="Path prefix of the .json and .md results [MODEL_DIR/eval-SHARDS_NAME].")
 @click.option("--threads", type=int, default=0, show_default=True, help="torch threads (0: one per available CPU).")
+@click.option("--overwrite", is_flag=True, help="Replace the results an earlier evaluation wrote under the --out prefix.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def eval_cmd(model, shards, metric, seed, batch_size, limit, fmt, out, threads, quiet):
+def eval_cmd(model, shards, metric, seed, batch_size, limit, fmt, out, threads, overwrite, quiet):
     """State-estimation error of MODEL (a checkpoint, or a run folder's model.pt) on SHARDS, with the average and
     random baselines."""
     from risp_data.threads import set_torch_threads
@@ -172,7 +173,7 @@ def eval_cmd(model, shards, metric, seed, batch_size, limit, fmt, out, threads, 
     set_torch_threads(threads)
 
     res = evaluate(EvalConfig(model=model_file(model), shards=shards, metric=metric, seed=seed, batch_size=batch_size,
-                              limit=limit, format=fmt, out=out), progress=not quiet)
+                              limit=limit, format=fmt, out=out, overwrite=overwrite), progress=not quiet)
     click.echo(markdown_table(res))
     click.echo(f"written: {', '.join(res['files'])}")
     if res.get("manifest_hash") and res["manifest_hash"] == res.get("train_manifest_hash"):

@@ -57,6 +57,7 @@ class EvalConfig:
     limit: int | None = None  # evaluate at most this many images
     format: str = "auto"
     out: str | None = None  # path prefix of the .json / .md files; None → <model dir>/eval-<shards name>
+    overwrite: bool = False  # replace the results an earlier evaluation wrote under the prefix (else refused)
 
 
 def state_differences(pred: np.ndarray, true: np.ndarray, state_names) -> np.ndarray:
@@ -139,6 +140,8 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
     shards = open_shards(cfg.shards, cfg.format)
     prefix = _out_prefix(cfg)
     check_writable(os.path.dirname(os.path.abspath(prefix)), "--out folder")  # before the evaluation, not after
+    if not cfg.overwrite:
+        _refuse_earlier_results(prefix)
     check_compatible(ckpt, cfg.model, env=shards.env, state_names=shards.state_names, resolution=shards.resolution)
     env = get_environment(shards.env)
     predictor = predictor_from_checkpoint(ckpt, cfg.model)
@@ -169,19 +172,53 @@ def evaluate(cfg: EvalConfig, progress: bool = True) -> dict:
         "groups": {k: summarize_groups(shards.env, v, true) for k, v in estimates.items()},
         "config": asdict(cfg),
     }
-    os.makedirs(os.path.dirname(os.path.abspath(prefix)), exist_ok=True)
-    _atomic_text(prefix + ".json", json.dumps(result, indent=1, sort_keys=True) + "\n")
-    _atomic_text(prefix + ".md", markdown_table(result) + "\n")
-    from .plots import plot_predicted_vs_true
-
-    units = [None] * len(names)
-    for unit, idx in STATE_GROUPS.get(shards.env, {}).values():
-        for i in idx:
-            units[i] = unit
-    plot_predicted_vs_true(pred, true, names, prefix + "_scatter.png",
-                           title=f"{shards.env}, {result['domain']} domain, {n} images", units=units, seed=cfg.seed)
+    _write_results(result, pred, true, prefix, cfg)
     result["files"] = [prefix + ".json", prefix + ".md", prefix + "_scatter.png"]
     return result
+
+
+#: what an evaluation writes under its prefix; published in this order, the JSON (the record) last: it is there only
+#: with the other two (risp_data.atomic.publish_files)
+RESULT_SUFFIXES = ("_scatter.png", ".md", ".json")
+
+
+def _refuse_earlier_results(prefix: str) -> None:
+    """One line naming an earlier evaluation's file under ``prefix``: replacing it needs --overwrite."""
+    found = [prefix + s for s in RESULT_SUFFIXES[::-1] if os.path.lexists(prefix + s)]
+    if found:
+        raise RispError(f"{found[0]} already exists (an earlier evaluation's result); pass --overwrite to replace "
+                        "its .json, .md and _scatter.png, or choose another --out")
+
+
+def _write_results(result: dict, pred: np.ndarray, true: np.ndarray, prefix: str, cfg: EvalConfig) -> None:
+    """The JSON, the markdown table and the scatter plot, written into a temporary folder beside them and then
+    published as one set: a killed evaluation leaves the earlier set or the new one (or part of one), never a mix."""
+    import shutil
+
+    from risp_data.atomic import publish_files, temp_folder
+
+    from .plots import plot_predicted_vs_true
+
+    folder, base = os.path.split(os.path.abspath(prefix))
+    os.makedirs(folder, exist_ok=True)
+    tmp = temp_folder(folder)
+    try:
+        staged = os.path.join(tmp, base)
+        write_text_atomic(staged + ".json", json.dumps(result, indent=1, sort_keys=True) + "\n")
+        write_text_atomic(staged + ".md", markdown_table(result) + "\n")
+        names = list(result["state_names"])
+        units = [None] * len(names)
+        for unit, idx in STATE_GROUPS.get(result["env"], {}).values():
+            for i in idx:
+                units[i] = unit
+        plot_predicted_vs_true(pred, true, names, staged + "_scatter.png",
+                               title=f"{result['env']}, {result['domain']} domain, {result['n']} images", units=units,
+                               seed=cfg.seed)
+        if not cfg.overwrite:  # another evaluation may have written there since the start
+            _refuse_earlier_results(prefix)
+        publish_files(tmp, folder, [base + s for s in RESULT_SUFFIXES])
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _out_prefix(cfg: EvalConfig) -> str:
@@ -215,7 +252,3 @@ def _pm(mean: float, std: float, unit: str) -> str:
     if unit == "deg":
         return f"{mean:.1f} ± {std:.1f}"
     return f"{mean:.4f} ± {std:.4f}"
-
-
-def _atomic_text(path: str, text: str) -> None:
-    write_text_atomic(path, text)

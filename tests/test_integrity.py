@@ -440,6 +440,80 @@ def test_fit_refuses_a_folder_of_other_files_unless_overwrite(data, tmp_path):
     assert (folder / "eval.yaml").read_text() == "mine"
 
 
+def _eval_set(prefix):
+    """The bytes of the three files an evaluation writes under ``prefix`` (None where absent)."""
+    return {s: (open(prefix + s, "rb").read() if os.path.exists(prefix + s) else None)
+            for s in (".json", ".md", "_scatter.png")}
+
+
+def test_eval_refuses_to_replace_earlier_results_unless_overwrite(data, model, tmp_path):
+    """eval silently replaced the results an earlier evaluation wrote under its prefix (say another --limit or model):
+    now one line naming the existing file and --overwrite; with --overwrite all three files are the new evaluation's."""
+    prefix = str(tmp_path / "ev")
+    args = ["eval", model, data["train"], "--quiet", "--out", prefix]
+    runner = CliRunner()
+    r = runner.invoke(train_cli, args + ["--limit", "4"])
+    assert r.exit_code == 0, r.output
+    first = _eval_set(prefix)
+    line = _one_line_error(runner.invoke(train_cli, args + ["--limit", "8"]))
+    assert f"{prefix}.json already exists" in line and "--overwrite" in line, line
+    assert _eval_set(prefix) == first
+    r = runner.invoke(train_cli, args + ["--limit", "8", "--overwrite"])
+    assert r.exit_code == 0, r.output
+    now = _eval_set(prefix)
+    assert all(now[s] != first[s] for s in now)  # every file replaced: n = 8 in the JSON, the table and the plot
+    assert json.loads(now[".json"])["n"] == 8 and "n = 8 images" in now[".md"].decode()
+    assert sorted(os.listdir(tmp_path)) == ["ev.json", "ev.md", "ev_scatter.png"]  # no temporary left
+
+
+def test_an_eval_stopped_while_writing_leaves_the_earlier_results_whole(data, model, tmp_path, monkeypatch):
+    """eval wrote its JSON, then its table, then its plot, each in place: stopped at the plot (a kill, Ctrl-C, a full
+    disk) it left the new JSON and table beside the old plot.  The three are now written into a temporary folder and
+    published as a set."""
+    import risp_train.plots
+
+    prefix = str(tmp_path / "ev")
+    args = ["eval", model, data["train"], "--quiet", "--out", prefix, "--overwrite"]
+    r = CliRunner().invoke(train_cli, args + ["--limit", "4"])
+    assert r.exit_code == 0, r.output
+    first = _eval_set(prefix)
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(risp_train.plots, "plot_predicted_vs_true", interrupted)
+    r = CliRunner().invoke(train_cli, args + ["--limit", "8"])
+    assert r.exit_code != 0 and "Aborted" in r.output, r.output  # click's answer to Ctrl-C
+    assert _eval_set(prefix) == first and sorted(os.listdir(tmp_path)) == ["ev.json", "ev.md", "ev_scatter.png"]
+
+
+def test_publish_files_puts_the_old_set_back_when_a_rename_fails(tmp_path, monkeypatch):
+    """A rename that fails half-way through publishing (a folder in the way) leaves the old set, not a mix."""
+    from risp_data.atomic import publish_files, temp_folder
+
+    names = ["a.png", "a.md", "a.json"]
+    for n in names:
+        (tmp_path / n).write_text("old " + n)
+    tmp = temp_folder(tmp_path)
+    for n in names:
+        open(os.path.join(tmp, n), "w").write("new " + n)
+    real, calls = os.replace, []
+
+    def failing(src, dst):
+        calls.append(dst)
+        if str(dst).endswith("a.md") and str(src).startswith(tmp) and ".old" not in str(src):
+            raise OSError(21, "Is a directory", str(dst))
+        return real(src, dst)
+
+    monkeypatch.setattr(os, "replace", failing)
+    with pytest.raises(OSError):
+        publish_files(tmp, tmp_path, names)
+    monkeypatch.setattr(os, "replace", real)
+    assert {n: (tmp_path / n).read_text() for n in names} == {n: "old " + n for n in names}
+    publish_files(tmp, tmp_path, names)
+    assert {n: (tmp_path / n).read_text() for n in names} == {n: "new " + n for n in names}
+
+
 # ------------------------------------------------------------------------- 3. damaged render folder
 
 
