@@ -86,6 +86,10 @@ def _load_error(path: str, e: Exception) -> str:
     return f"corrupt or unreadable checkpoint {path}: {type(e).__name__}{': ' + first if first else ''}"
 
 
+#: where ``risp-train fit --overwrite`` keeps the run it replaces until the new run has written its first checkpoint
+SET_ASIDE = ".overwritten-run"
+
+
 def model_file(path: str) -> str:
     """The checkpoint that ``path`` names: the file itself, or a run folder's ``model.pt`` (what
     ``risp-train fit --out FOLDER`` writes when training ends)."""
@@ -94,6 +98,10 @@ def model_file(path: str) -> str:
     found = os.path.join(path, "model.pt")
     if os.path.isfile(found):
         return found
+    if os.path.isfile(os.path.join(path, SET_ASIDE, "model.pt")):  # a fit --overwrite killed before its checkpoint
+        raise RispError(f"{path} has no model.pt: a risp-train fit --overwrite set the previous run aside in "
+                        f"{os.path.join(path, SET_ASIDE)} and was stopped before its first checkpoint; move that "
+                        f"folder's files back into {path} to use the previous model")
     unfinished = os.path.isfile(os.path.join(path, "last.pt"))
     raise RispError(f"{path} is a folder without a model.pt" + (
         ": its training has not finished (last.pt is the resumable checkpoint; run the same fit again with --resume)"

@@ -35,6 +35,7 @@ from .config import RESUME_FIELDS, TrainConfig, resolved_gamma, resolved_gamma_s
 from .data import (ShardSet, check_complete, check_environment, iter_batches, make_loader, manifest_hash,
                    map_style_steps, open_shards, sample_counts, steps_per_epoch)
 from .memory import load_memory_set, memory_batches, resolve_cache
+from .checkpoint import SET_ASIDE
 from .model import ModelConfig, ResNet18, build_model, min_resolution, stem_for_resolution
 from .normalization import Normalization, StatsAccumulator
 from .regularizers import gamma_at, psi_scale, risp_loss
@@ -262,8 +263,64 @@ def _is_run_file(name: str) -> bool:
 def _is_bookkeeping(name: str) -> bool:
     """The lock and the temporaries (risp_data.atomic): in a run folder and a shard folder alike, so they say
     nothing about what a folder holds; remove_temporaries, not --overwrite, deletes the temporaries (a live
-    writer's stay)."""
-    return name == LOCK_FILE or name.startswith(TEMP_PREFIX)
+    writer's stay).  Also the replaced run that --overwrite keeps aside (:class:`SetAside`)."""
+    return name in (LOCK_FILE, SET_ASIDE) or name.startswith(TEMP_PREFIX)
+
+
+class SetAside:
+    """The run that ``fit --overwrite`` replaces, kept in ``RUN/.overwritten-run`` until the new run has written its
+    first checkpoint (:meth:`drop`): a fit that fails or is interrupted before that puts it back (:meth:`__exit__`,
+    pushed on the fit's ExitStack), so a user's model is never lost to a fit that produced none.  A SIGKILL leaves it
+    aside: the next fit on the folder and ``model_file`` name it."""
+
+    def __init__(self, out: str, echo=None):
+        self.out, self.folder, self.echo = out, os.path.join(out, SET_ASIDE), echo
+
+    @property
+    def pending(self) -> bool:
+        return os.path.isdir(self.folder)
+
+    def drop(self) -> None:
+        """The new run has a checkpoint: the replaced one goes."""
+        if self.pending:
+            import shutil
+
+            shutil.rmtree(self.folder)
+
+    def __exit__(self, kind, exc, tb) -> bool:
+        if kind is not None and self.pending:
+            self.restore()
+        return False  # the failure itself still propagates
+
+    def restore(self) -> None:
+        """The stopped fit's own files out (its config and logs: no checkpoint), the replaced run's back."""
+        for name in os.listdir(self.out):
+            path = os.path.join(self.out, name)
+            if _is_run_file(name) and (os.path.isfile(path) or os.path.islink(path)):
+                os.unlink(path)
+        for name in os.listdir(self.folder):
+            os.replace(os.path.join(self.folder, name), os.path.join(self.out, name))
+        os.rmdir(self.folder)
+        if self.echo is not None:
+            self.echo(f"note: the fit stopped before its first checkpoint: the run it was to replace is back in "
+                      f"{self.out}")
+
+
+def _set_aside_run(out: str, present: list[str], held: list[str]) -> None:
+    """--overwrite: move the earlier run's files (RUN_FILES and the evaluations written into it) into
+    ``out/.overwritten-run`` instead of deleting them (:class:`SetAside`).  One still there (check_run_folder has
+    deleted a stale one) is a killed fit's: the model to keep, and the folder's run files that fit's logs (deleted)."""
+    aside = os.path.join(out, SET_ASIDE)
+    keep = not os.path.isdir(aside) and held  # a model or a checkpoint: a config.json alone may be anyone's
+    if keep:
+        os.mkdir(aside)
+    for name in present:
+        path = os.path.join(out, name)
+        if _is_run_file(name) and (os.path.isfile(path) or os.path.islink(path)):
+            if keep:
+                os.replace(path, os.path.join(aside, name))
+            elif os.path.isdir(aside):
+                os.unlink(path)
 
 
 def _run_snapshot(out: str) -> tuple:
@@ -281,12 +338,22 @@ def _run_snapshot(out: str) -> tuple:
 
 def check_run_folder(out: str, resume: bool, overwrite: bool, remove: bool = True) -> None:
     """Refuse a run folder that holds a model or checkpoint unless ``--resume`` or ``--overwrite`` says what
-    to do with it; with ``--overwrite`` remove every file of the earlier run (after every other check has passed;
-    ``remove=False``: only check): its model and checkpoint, and also its history, losses, config and evaluations,
-    which would otherwise sit beside the new run's files and describe another model (a user's own files stay)."""
+    to do with it; with ``--overwrite`` set every file of the earlier run aside (after every other check has passed;
+    ``remove=False``: only check; :func:`_set_aside_run`): its model and checkpoint, and also its history, losses,
+    config and evaluations, which would otherwise sit beside the new run's files and describe another model (a user's
+    own files stay)."""
     held = [name for name in (MODEL, LAST) if os.path.exists(os.path.join(out, name))]
     if resume and overwrite:
         raise RispError("--resume and --overwrite exclude each other")
+    aside = os.path.join(out, SET_ASIDE)
+    if os.path.isdir(aside) and not held and not overwrite:  # a fit --overwrite killed before its first checkpoint
+        raise RispError(f"{aside} holds the run that a fit --overwrite set aside before it was stopped (it wrote no "
+                        f"checkpoint); move that folder's files back into {out} to keep the run, or pass --overwrite "
+                        "to replace it")
+    if remove and os.path.isdir(aside) and held:  # killed after its checkpoint, before it deleted the old run
+        import shutil
+
+        shutil.rmtree(aside)
     present = sorted(n for n in os.listdir(out) if not _is_bookkeeping(n)) if os.path.isdir(out) else []
     if present and not overwrite and not any(_is_run_file(name) for name in present):
         shown = ", ".join(present[:3]) + (", …" if len(present) > 3 else "")
@@ -296,12 +363,8 @@ def check_run_folder(out: str, resume: bool, overwrite: bool, remove: bool = Tru
         # only when the folder holds a run: its own files (RUN_FILES) and the evaluations risp-train eval wrote into
         # it — never a user's file that merely starts with "eval" (evaluate.py), nor anything in a folder of other
         # files that the run is written beside; the lock stays (a new file would lock nothing)
-        if remove and held:  # a model or a checkpoint: a config.json alone may be anyone's
-            for name in present:
-                if _is_run_file(name):
-                    path = os.path.join(out, name)
-                    if os.path.isfile(path) or os.path.islink(path):
-                        os.unlink(path)
+        if remove:
+            _set_aside_run(out, present, held)
     elif held and not resume:
         raise RispError(f"{out} already holds a run ({', '.join(held)}); pass --resume to continue it, "
                         "--overwrite to replace it, or choose another --out")
@@ -439,6 +502,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
     from risp_data.envs import get_environment
 
     rank, world = dist_info.rank, dist_info.world_size
+    aside: SetAside | None = None  # rank 0's, once the folder is locked
     shards = open_shards(cfg.shards, cfg.format)
     env = get_environment(shards.env)
     check_environment(shards, env)
@@ -574,6 +638,8 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
             raise RispError(f"{cfg.out} changed while this fit read its data (another fit wrote its {MODEL} or "
                             f"{LAST}); run the command again to decide on what it holds now")
         check_run_folder(cfg.out, resume, overwrite)
+        aside = SetAside(cfg.out, echo)  # put back if this fit stops before its first checkpoint
+        hold.push(aside.__exit__)
         remove_temporaries(cfg.out)  # half-written checkpoints/logs of a killed run (never under their names)
         if state is not None:
             _csv_keep_until(csv_path, step)
@@ -588,6 +654,11 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
 
     digests: list[str] | None = None  # the ranks' weight digests at the last epoch end (checked equal)
     sums = np.zeros(3)  # Σ loss, error, reg over the current epoch's steps (kept in mid-epoch checkpoints)
+
+    def save(path: str, p: dict) -> None:  # rank 0: a checkpoint, then the replaced run (if any) may go
+        ckpt_io.save_checkpoint(path, p)
+        if aside is not None:
+            aside.drop()
 
     def payload(epoch: int, batch: int, complete: bool) -> dict:
         return {
@@ -681,7 +752,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
                 bar.update(1)
                 bar.set_postfix(err=f"{row['error']:.3f}", reg=f"{row['reg']:.3g}")
                 if cfg.checkpoint_every and step % cfg.checkpoint_every == 0 and b + 1 < plan[epoch] and rank == 0:
-                    ckpt_io.save_checkpoint(last_path, payload(epoch, b + 1, False))
+                    save(last_path, payload(epoch, b + 1, False))
                 if stop_after_step is not None and step >= stop_after_step:
                     raise TrainingStopped(f"stopped after step {step}")
             n_done = plan[epoch] - (skip if partial_sums is None else 0)
@@ -694,7 +765,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
             history.append(summary)
             sums[:] = 0.0
             if rank == 0:
-                ckpt_io.save_checkpoint(last_path, payload(epoch + 1, 0, epoch + 1 == cfg.epochs))
+                save(last_path, payload(epoch + 1, 0, epoch + 1 == cfg.epochs))
                 from .plots import plot_losses
 
                 plot_losses(csv_path, os.path.join(cfg.out, "losses.png"), history, cfg.reg, seed=cfg.seed)
@@ -716,7 +787,7 @@ def _fit(cfg: TrainConfig, dist_info: Dist, *, device: torch.device, resume: boo
         # history.json first: model.pt is what marks a run finished (risp-task table reuses a run folder that has
         # it), so a run killed between the two must not look finished without its history
         _write_json(os.path.join(cfg.out, "history.json"), history)
-        ckpt_io.save_checkpoint(final, p)
+        save(final, p)
     return final
 
 

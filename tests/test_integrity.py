@@ -417,8 +417,8 @@ def test_fit_refuses_a_folder_holding_a_model_unless_overwrite(data, model, tmp_
                                   "--overwrite"])
     assert r.exit_code == 0, r.output
     assert hashlib.sha256((run / "model.pt").read_bytes()).hexdigest() != before
-    # the old run's evaluation went with it (it named the replaced model); a user's file stays
-    assert not (run / "eval-old.json").exists()
+    # the old run's evaluation went with it (it named the replaced model); a user's file stays; nothing kept aside
+    assert not (run / "eval-old.json").exists() and not (run / ".overwritten-run").exists()
     assert all((run / mine).read_text() == "mine" for mine in ("notes.txt", "evaluate.py", "eval_notes.md"))
 
 
@@ -438,6 +438,50 @@ def test_fit_refuses_a_folder_of_other_files_unless_overwrite(data, tmp_path):
     assert r.exit_code == 0, r.output
     assert (folder / "model.pt").is_file() and (folder / "a.txt").read_text() == "mine"
     assert (folder / "eval.yaml").read_text() == "mine"
+
+
+def _sha(path):
+    return hashlib.sha256(open(path, "rb").read()).hexdigest()
+
+
+def test_fit_overwrite_keeps_the_old_run_until_its_first_checkpoint(data, model, tmp_path, monkeypatch):
+    """fit --overwrite deleted the old run when training started: a fit that then failed or was stopped before it
+    wrote a checkpoint left the folder with no model at all.  The old run now waits in RUN/.overwritten-run and is put
+    back when the fit stops early; a SIGKILL (no restore) leaves it there, named by eval and by the next fit, and
+    the next fit --overwrite that checkpoints deletes it."""
+    from risp_train.config import make_config
+    from risp_train.train import TrainingStopped, fit
+
+    run = tmp_path / "run"
+    run.mkdir()
+    shutil.copy(model, run / "model.pt")
+    (run / "eval-old.json").write_text("of the old model")
+    old = _sha(run / "model.pt")
+    cfg = make_config(data["train"], str(run), preset="cpu", epochs=1, batch_size=4, width=4, workers=0, seed=7)
+    notes = []
+    with pytest.raises(TrainingStopped):  # stopped at its first step, before any checkpoint
+        fit(cfg, progress=False, overwrite=True, stop_after_step=1, echo=notes.append)
+    assert _sha(run / "model.pt") == old and (run / "eval-old.json").read_text() == "of the old model"
+    assert not (run / ".overwritten-run").exists() and not (run / "losses.csv").exists()  # the stopped fit's log
+    assert any("the run it was to replace is back in" in n for n in notes), notes
+
+    from risp_train.train import SetAside
+
+    monkeypatch.setattr(SetAside, "restore", lambda self: None)  # what a SIGKILL leaves: no restore ran
+    with pytest.raises(TrainingStopped):
+        fit(cfg, progress=False, overwrite=True, stop_after_step=1)
+    assert _sha(run / ".overwritten-run" / "model.pt") == old and not (run / "model.pt").exists()
+    runner = CliRunner()
+    line = _one_line_error(runner.invoke(train_cli, ["eval", str(run), data["train"], "--quiet"]))
+    assert ".overwritten-run" in line and "move that folder's files back" in line, line
+    args = ["fit", data["train"], "--out", str(run), *_TINY, "--epochs", "1", "--seed", "7"]
+    line = _one_line_error(runner.invoke(train_cli, args))
+    assert ".overwritten-run holds the run that a fit --overwrite set aside" in line and "--overwrite" in line, line
+    assert _sha(run / ".overwritten-run" / "model.pt") == old
+    r = runner.invoke(train_cli, args + ["--overwrite"])  # replaces it for good: its checkpoint deletes the old run
+    assert r.exit_code == 0, r.output
+    assert _sha(run / "model.pt") != old and not (run / ".overwritten-run").exists()
+    assert not (run / "eval-old.json").exists()
 
 
 def _eval_set(prefix):
