@@ -525,6 +525,22 @@ def test_make_video_refuses_a_truth_path_that_is_a_folder_before_rendering(tmp_p
     assert sorted(os.listdir(tmp_path)) == ["y.truth.json"]
 
 
+def test_make_video_refuses_an_out_that_is_a_folder_before_rendering(tmp_path, monkeypatch):
+    """--out v.mp4 where v.mp4 is a folder: refused before the render (with --overwrite it rendered every frame and
+    then failed to publish the file; without it the line called the folder a reference video's file)."""
+    import risp_data.render as render_mod
+    from risp_tasks.cli import cli
+
+    (tmp_path / "v.mp4").mkdir()
+    monkeypatch.setattr(render_mod, "Renderer", lambda *a, **k: pytest.fail("rendered before checking --out"))
+    for extra in ([], ["--overwrite"]):
+        res = CliRunner().invoke(cli, ["make-video", "--env", "quadrotor", "--frames", "2", "--quiet", *extra,
+                                       "--out", str(tmp_path / "v.mp4")])
+        line = _error_line(res)
+        assert "v.mp4: an existing folder, not a video file" in line, line
+    assert os.listdir(tmp_path) == ["v.mp4"] and not os.listdir(tmp_path / "v.mp4")
+
+
 def test_make_video_refuses_a_suffix_it_cannot_write(tmp_path):
     """--out v.gif is one line before any rendering, not a folder of PNGs named v.gif."""
     from risp_tasks.cli import cli
