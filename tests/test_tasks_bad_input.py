@@ -304,6 +304,19 @@ def test_action_knots_with_the_tracking_init_is_one_error_line(quad, tmp_path):
     assert "--action-knots parametrises the commands themselves" in line
 
 
+def test_more_action_knots_than_action_rows_is_one_error_line(quad, tmp_path):
+    """K knots over fewer frames fell back to one row per frame while result.json said K: refused, one line —
+    imitate against the video's 6 frames, control against --horizon + 1 rows before any work."""
+    line = _invoke(["imitate", quad[1], "--model", quad[0], "--action-knots", "7"], tmp_path)
+    assert "--action-knots 7 is more than the 6 action rows" in line, line
+    from risp_data.errors import RispError
+    from risp_tasks.tasks.config import TaskConfig
+
+    with pytest.raises(RispError, match=r"--action-knots 5 is more than the 4 action rows of --horizon 3"):
+        TaskConfig(task="control", video="goal.png", horizon=3, action_knots=5)
+    assert TaskConfig(task="control", video="goal.png", horizon=3, action_knots=4).action_knots == 4
+
+
 def test_imitate_with_an_unknown_parameter_is_one_error_line(quad, tmp_path):
     """`--params` names the quadrotor's parameters: a misspelt one stops imitate with the known names, one line."""
     line = _invoke(["imitate", quad[1], "--model", quad[0], "--params", '{"mas": 3.0}'], tmp_path)

@@ -37,8 +37,8 @@ def initial_actions(ctx: Context, params: torch.Tensor, n_frames: int) -> torch.
 
 def knot_basis(n_frames: int, knots: int) -> torch.Tensor:
     """W (n_frames, K): the hat functions of K knots evenly spaced over the frames, t_j = j·(n − 1)/(K − 1), so
-    that actions = W @ z interpolates the knot values z (K, A) linearly (K = 0 or K ≥ n: the identity, one row per
-    frame).  Rows sum to 1; W has full column rank for 2 ≤ K ≤ n."""
+    that actions = W @ z interpolates the knot values z (K, A) linearly (K = 0 or K = n: the identity, one row per
+    frame; the tasks refuse K > n, build).  Rows sum to 1; W has full column rank for 2 ≤ K ≤ n."""
     if knots == 0 or knots >= n_frames:
         return torch.eye(n_frames, dtype=torch.float64)
     t = torch.arange(n_frames, dtype=torch.float64) * (knots - 1) / max(n_frames - 1, 1)  # frame → knot coordinate
@@ -125,6 +125,10 @@ def build(ctx: Context, n_frames: int | None = None, s0: torch.Tensor | None = N
     physics = free if free is not None else (lambda: params)
     with torch.no_grad():
         start = physics()  # the parameters the optimisation starts from (free ones at their start values)
+    if ctx.cfg.action_knots > n_frames:  # knot_basis would fall back to one row per frame, with result.json saying K
+        raise RispError(f"--action-knots {ctx.cfg.action_knots} is more than the {n_frames} action rows (one per "
+                        f"frame{' of the horizon and the start' if ctx.cfg.task == 'control' else ' of ' + ctx.cfg.video}"
+                        f"): give at most {n_frames}, or 0 for one row per frame")
     W = knot_basis(n_frames, ctx.cfg.action_knots)
     knots = W.shape[1] < n_frames
     # with knots: the per-frame start (the same random draw as without), projected onto them by least squares
