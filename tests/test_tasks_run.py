@@ -46,20 +46,22 @@ def test_make_video_writes_video_truth_and_actions(quad):
     assert np.ptp(np.asarray(truth["env_states"])[:, :3], 0).max() > 0.01
 
 
-def test_imitate_prints_the_parameters_params_gave(quad, tmp_path):
+@pytest.mark.parametrize("init", ["default", "track"])
+def test_imitate_prints_the_parameters_params_gave(quad, tmp_path, init):
     """imitate --params: the values it simulated with are printed (they were only in result.json), the fitted
-    ones where they ended instead."""
+    ones where they ended instead; with --init track too (its result.json recorded neither)."""
     from click.testing import CliRunner
 
     from risp_tasks.cli import cli
 
     model, video = quad
     res = CliRunner().invoke(cli, ["imitate", video, "--model", model, "--params", '{"mass": 3.05}', "--iterations", "1",
-                                   "--out", str(tmp_path / "o"), "--quiet", "--no-plots"])
+                                   "--init", init, "--out", str(tmp_path / "o"), "--quiet", "--no-plots"])
     assert res.exit_code == 0, res.output
     assert "  mass = 3.05 (from --params)" in res.output.splitlines()
     saved = json.load(open(tmp_path / "o" / "result.json"))
     assert saved["info"]["given_parameters"] == {"mass": 3.05}
+    assert saved["info"]["parameters"]["mass"] == 3.05
 
 
 def test_a_truth_file_beside_the_video_is_pointed_at_not_read(quad, tmp_path):

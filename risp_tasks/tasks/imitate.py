@@ -81,7 +81,7 @@ def tracked_rollout(ctx: Context, params: torch.Tensor, s0: torch.Tensor, ref_p:
     return sim.to_env_state(torch.cat(states)), torch.stack(commands)
 
 
-def _track_problem(ctx: Context, params: torch.Tensor, s0, n_frames: int) -> Problem:
+def _track_problem(ctx: Context, params: torch.Tensor, s0, n_frames: int, given: dict[str, float]) -> Problem:
     """``--init track``: the tracking controller's reference path is what is refined (offsets δ_t = 0.1 m · x_t
     added to the estimated path); the controller keeps the long open-loop horizon stable, and the actions are
     the commands it issues.  (Refining raw commands over 14 s diverged in one step: the open loop is chaotic.)"""
@@ -102,9 +102,17 @@ def _track_problem(ctx: Context, params: torch.Tensor, s0, n_frames: int) -> Pro
         return {"actions": to_file_actions(ctx.sim, params, commands).tolist(), "initial_actions": initial.tolist(),
                 "path_offsets_m": (TRACK_SCALE * x.detach()).tolist()}
 
+    info = {**s0.info(), "parametrisation": "tracking-controller reference path",
+            **_parameter_info(ctx.sim, params, given)}
     return Problem(variables={"path_offsets": x, **s0.variables}, states=lambda: run()[0],
-                   estimates=lambda: {**estimates(), **s0.info()},
-                   info={**s0.info(), "parametrisation": "tracking-controller reference path"})
+                   estimates=lambda: {**estimates(), **s0.info()}, info=info)
+
+
+def _parameter_info(sim, params: torch.Tensor, given: dict[str, float]) -> dict:
+    """result.json's record of the physical parameters simulated with (``params``: the start's, free ones at their
+    start values) and of those ``--params`` set (printed by the CLI, so a user sees which values were used)."""
+    return {"parameters": {n: float(params[0, i]) for i, n in enumerate(sim.param_names)},
+            **({"given_parameters": dict(given)} if given else {})}
 
 
 def build(ctx: Context, n_frames: int | None = None, s0: torch.Tensor | None = None) -> Problem:
@@ -118,7 +126,7 @@ def build(ctx: Context, n_frames: int | None = None, s0: torch.Tensor | None = N
         if ctx.cfg.action_knots:
             raise RispError("--action-knots parametrises the commands themselves; with --init track the controller's "
                             "reference path is optimised instead (leave one of them out)")
-        return _track_problem(ctx, params, s0, n_frames)
+        return _track_problem(ctx, params, s0, n_frames, given)
     centre, scale = action_centre(sim, params), ACTION_SCALE[sim.env]
     x0 = initial_actions(ctx, params, n_frames)
     free = _free_parameters(ctx, params, given) if fits_params(ctx.cfg, sim.env) else None
@@ -146,11 +154,9 @@ def build(ctx: Context, n_frames: int | None = None, s0: torch.Tensor | None = N
         return {**found, **(free.estimates() if free is not None else {})}
 
     info = {**s0.info(), "parametrisation": f"{W.shape[1]} knots, piecewise linear" if knots else "one row per frame",
-            "parameters": {n: float(start[0, i]) for i, n in enumerate(sim.param_names)}}
+            **_parameter_info(sim, start, given)}
     if free is not None:
         info["fitted_parameters"] = list(free.names)
-    if given:  # what --params set (the rest nominal): printed by the CLI, so a user sees which values were used
-        info["given_parameters"] = dict(given)
     return Problem(variables={"actions": z, **({"x": free.x} if free is not None else {}), **s0.variables},
                    states=lambda: frame_states(sim, physics(), s0(), actions(z), n_frames, ctx.k),
                    estimates=lambda: {**estimates(), **s0.info()}, info=info,
