@@ -117,6 +117,25 @@ def test_model_for_another_environment(quad, tmp_path):
     assert "model.pt" in line and "'quadrotor', not 'hand'" in line
 
 
+@pytest.mark.parametrize("change, words", [
+    (dict(env="pendulum"), "trained for environment 'pendulum', which risp does not know"),
+    (dict(state_names=["x", "y", "z", "roll", "pitch", "yaw"]), "state names ['x', 'y', 'z', 'roll', 'pitch', 'yaw'] differ"),
+    (dict(target_names=["t0", "t1"]), "target names ['t0', 't1'] differ from the quadrotor's"),
+])
+def test_model_of_another_state_layout_is_refused(quad, tmp_path, change, words):
+    """A checkpoint whose environment or state/target names are not risp's (another system, an older state layout)
+    is one line naming the model file — it was read as the environment's states, or failed deep inside a task."""
+    import torch
+
+    from risp_train.checkpoint import save_checkpoint
+
+    model, video = quad
+    ckpt = torch.load(model, map_location="cpu", weights_only=True)
+    save_checkpoint(str(tmp_path / "other.pt"), {**ckpt, **change})
+    line = _invoke(["estimate", video, "--model", str(tmp_path / "other.pt")], tmp_path)
+    assert "other.pt" in line and words in line, line
+
+
 def test_corrupt_model_file(quad, tmp_path):
     (tmp_path / "model.pt").write_bytes(b"\x00garbage")
     line = _invoke(["imitate", quad[1], "--model", str(tmp_path / "model.pt")], tmp_path)
