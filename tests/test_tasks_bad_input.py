@@ -943,6 +943,18 @@ def test_a_primal_spp_below_one_is_one_line(quad, tmp_path):
 HUGE = 10 ** 400  # a JSON integer literal beyond float's range: float() raises OverflowError, not ValueError
 
 
+@pytest.mark.parametrize("option", ["--spp", "--primal-spp"])
+def test_a_sample_count_beyond_mitsubas_limit_is_one_line_before_any_work(quad, tmp_path, monkeypatch, option):
+    """Mitsuba counts one render's samples in a uint32: 2^24 spp × 16×16 pixels (the model's) is 2^32, refused
+    before the video is read (it failed inside Mitsuba, after the reading and the network's pass)."""
+    import risp_tasks.tasks.run as run_mod
+
+    monkeypatch.setattr(run_mod, "_reference", lambda *a, **k: pytest.fail("read the video before checking"))
+    line = _invoke(["sysid", quad[1], "--model", quad[0], "--loss", "render", option, str(2**24)], tmp_path)
+    assert f"{option} 16777216 needs 4,294,967,296 samples per rendered frame (16×16 pixels" in line, line
+    assert "limit of 2^32" in line
+
+
 @pytest.mark.parametrize("params", ["3.0", None, [3.0], {"mass": HUGE}, {"mass": True}])
 def test_truth_with_bad_params_is_refused_before_any_work(quad, tmp_path, params):
     """The truth's hidden parameters are what the errors are measured against: a string, null, a list or an

@@ -129,6 +129,19 @@ def task_rng(seed: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence([int(seed), TASK_STREAM]))
 
 
+def check_samples(cfg: TaskConfig, resolution: int) -> None:
+    """Refuse, before any work, an ``--spp`` or ``--primal-spp`` Mitsuba cannot render: it counts the samples of one
+    render launch in a uint32, and the tasks' renderer launches one frame at a time at the model's resolution in the
+    train domain (no spp factor), i.e. spp × resolution² samples (a larger count failed deep inside Mitsuba)."""
+    from risp_data.generate import MITSUBA_MAX_SAMPLES
+
+    for option, spp in (("--spp", cfg.spp), ("--primal-spp", cfg.primal_spp)):
+        samples = spp * resolution * resolution
+        if samples >= MITSUBA_MAX_SAMPLES:
+            raise RispError(f"{option} {spp} needs {samples:,} samples per rendered frame ({resolution}×{resolution} "
+                            f"pixels, the model's), beyond Mitsuba's limit of 2^32 per render: lower {option}")
+
+
 def run_task(cfg: TaskConfig, echo=print) -> dict:
     """Run ``cfg.task``; returns the result dict (also written to ``<out>/result.json``)."""
     if cfg.task not in TASKS:
@@ -140,6 +153,7 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
     model_path, model_line = resolve_model(cfg)
     echo(model_line)
     predictor = load_model(model_path, cfg.env)
+    check_samples(cfg, predictor.resolution)
     note = look_note(predictor, model_path, cfg.loss, cfg.mesh)
     if note:
         echo(note)
