@@ -12,7 +12,9 @@ Documentation: docs/cli-task.md.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import re
 
 import click
 
@@ -190,6 +192,37 @@ def _loss_change(result: dict) -> str:
     return f"loss {loss[0] if loss else result['final_loss']:.4g} -> {result['final_loss']:.4g}"
 
 
+def out_of_memory_line(e: BaseException) -> str | None:
+    """"out of GPU memory (tried to allocate 2.00 GiB)" for torch's out-of-memory errors — torch.OutOfMemoryError
+    (CUDA), the CPU allocator's RuntimeError, Dr.Jit's "out of memory", MemoryError — else None."""
+    import torch
+
+    text = str(e)
+    if not (isinstance(e, (MemoryError, torch.OutOfMemoryError)) or isinstance(e, RuntimeError) and (
+            "can't allocate memory" in text or "out of memory" in text.lower())):
+        return None
+    where = "GPU memory" if isinstance(e, torch.OutOfMemoryError) or "CUDA" in text else "memory"
+    cpu = re.search(r"allocate (\d+) bytes", text)  # DefaultCPUAllocator: "you tried to allocate N bytes"
+    gpu = re.search(r"[Tt]ried to allocate ([\d.]+ [KMGT]?i?B)", text)  # CUDA: "Tried to allocate 2.00 GiB"
+    size = f"{int(cpu.group(1)) / 2**30:.3g} GiB" if cpu else gpu.group(1) if gpu else None
+    return f"out of {where}" + (f" (tried to allocate {size})" if size else "")
+
+
+@contextlib.contextmanager
+def _memory_hint(what: str, hint: str):
+    """Torch's out-of-memory errors inside the block as one line saying what ran out and what to lower, not a
+    traceback (the generic MemoryError line speaks of risp-data's --res and --workers)."""
+    try:
+        yield
+    except Exception as e:
+        line = out_of_memory_line(e)
+        if line is None:
+            raise
+        from risp_data.errors import RispError
+
+        raise RispError(f"{line} while {what}; {hint}") from None
+
+
 def _run(task, video, **kw):
     from risp_tasks.tasks.config import TaskConfig
     from risp_tasks.tasks.run import run_task
@@ -197,7 +230,10 @@ def _run(task, video, **kw):
     iterations = kw.pop("iterations")
     cfg = TaskConfig(task=task, video=video, iterations=(0 if task == "estimate" else 100) if iterations is None else iterations,
                      plots=not kw.pop("no_plots"), progress=not kw.pop("quiet"), **kw)
-    result = run_task(cfg, echo=click.echo)
+    fewer = "--horizon" if task == "control" else "--every or --fps, or a shorter video"
+    with _memory_hint(f"running {task} on {video}", f"use fewer frames ({fewer}), a lower --spp/--primal-spp, "
+                      "or --no-plots"):
+        result = run_task(cfg, echo=click.echo)
     loss = result["loss"]
     click.echo(f"{task} ({result['env']}): {_loss_change(result)} in {len(loss)} iterations; results: {result['out']}")
     first = _first_full(result)
@@ -280,7 +316,8 @@ def make_video(env, out, frames, fps, resolution, spp, domain, params, effect, c
     cfg = ReferenceConfig(env=env, out=out, frames=frames, fps=fps, resolution=resolution, spp=spp, domain=domain,
                           params=params, effect=effect, camera=camera, mesh=mesh, seed=seed, progress=not quiet,
                           overwrite=overwrite)
-    truth = make_reference(cfg)
+    with _memory_hint(f"making {out}", "lower --frames, --resolution or --spp"):
+        truth = make_reference(cfg)
     actions = f", actions {truth['actions_path']}" if truth.get("actions_path") else ""
     click.echo(f"wrote {out} ({frames} frames, {resolution}×{resolution}, {fps:g} fps), ground truth "
                f"{truth['truth_path']}{actions}")
@@ -330,7 +367,8 @@ def table(table, preset, repeats, quick, out, envs, methods, reg, perceptual_wei
                       methods=names(methods), reg=reg, perceptual_weights=perceptual_weights, n_train=n_train,
                       n_test=n_test, iterations=iterations, control_start=control_start, residual=residual, seed=seed,
                       executor=executor, jobs=jobs, progress=not quiet)
-    report = run_table(cfg, echo=click.echo)
+    with _memory_hint(f"computing the {table} table", "use fewer --jobs, a smaller --n-train, or --preset cpu"):
+        report = run_table(cfg, echo=click.echo)
     with open(report["files"][0]) as f:
         click.echo(f.read())
     click.echo(f"wrote {report['files'][0]} and {report['files'][1]}")

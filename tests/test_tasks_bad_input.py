@@ -6,6 +6,7 @@ import os
 import time
 import numpy as np
 import pytest
+import torch
 from click.testing import CliRunner
 
 from tasks_helpers import shared_model, shared_video
@@ -275,6 +276,43 @@ def test_existing_result_folder_is_not_overwritten(quad, tmp_path):
     assert res.exit_code == 0, res.output
     assert json.load(open(tmp_path / "res" / "result.json"))["seed"] == 2
     assert sorted(os.listdir(tmp_path)) == ["res"]  # the old folder went, no temporaries stayed
+
+
+CPU_OOM = ("[enforce fail at alloc_cpu.cpp:127] err == 0. DefaultCPUAllocator: can't allocate memory: you tried to "
+           "allocate 3221225472 bytes. Error code 12 (Cannot allocate memory)")
+
+
+@pytest.mark.parametrize("error, words", [
+    (RuntimeError(CPU_OOM), "out of memory (tried to allocate 3 GiB) while running estimate on"),
+    (torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 2.00 GiB. GPU 0 has a total capacity of 79 GiB"),
+     "out of GPU memory (tried to allocate 2.00 GiB) while running estimate on"),
+])
+def test_running_out_of_memory_in_a_task_is_one_line(quad, tmp_path, monkeypatch, error, words):
+    """torch's out-of-memory errors mid-task (a RuntimeError on the CPU, torch.OutOfMemoryError on a GPU) were a
+    traceback: one line saying what ran out and what to lower, and no result folder."""
+    import risp_tasks.tasks.run as run_mod
+
+    def oom(*a, **k):
+        raise error
+
+    monkeypatch.setattr(run_mod, "optimize", oom)
+    line = _invoke(["estimate", quad[1], "--model", quad[0]], tmp_path)
+    assert words in line and "--every or --fps" in line and "--spp" in line, line
+
+
+def test_running_out_of_memory_in_make_video_is_one_line(tmp_path, monkeypatch):
+    import risp_tasks.tasks.reference as reference
+    from risp_tasks.cli import cli
+
+    def oom(*a, **k):
+        raise RuntimeError(CPU_OOM)
+
+    monkeypatch.setattr(reference, "_motion", oom)
+    res = CliRunner().invoke(cli, ["make-video", "--env", "quadrotor", "--frames", "2", "--quiet",
+                                   "--out", str(tmp_path / "v.mp4")])
+    line = _error_line(res)
+    assert "out of memory (tried to allocate 3 GiB) while making" in line and "--frames, --resolution or --spp" in line
+    assert not os.listdir(tmp_path)
 
 
 def test_failure_mid_run_leaves_no_result_folder(quad, tmp_path, monkeypatch):
