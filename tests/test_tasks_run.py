@@ -551,6 +551,34 @@ def test_loading_a_model_leaves_the_global_torch_stream_alone(quad):
     assert torch.equal(torch.rand(3), expected)
 
 
+def test_the_network_reads_a_video_in_batches_with_the_numbers_of_one_batch(quad, tmp_path, monkeypatch):
+    """N read every frame of a video in one call (its activations grew with the video's length): batches of
+    PREDICT_BATCH frames now, whose readings equal one call's on all frames; the task reads in such batches."""
+    from risp_train.predictor import RispPredictor, load
+
+    import risp_tasks.tasks.run as run_mod
+    from risp_tasks.video import read_video
+
+    model, video = quad
+    predictor = load(model)
+    frames = torch.from_numpy(read_video(video, resolution=RES).frames)
+    with torch.no_grad():
+        whole = predictor.predict(frames)
+    for got, expected in zip(run_mod.predict_frames(predictor, frames, batch=4, progress=False), whole):
+        assert got.shape == expected.shape and torch.allclose(got, expected, rtol=0, atol=1e-6)
+    sizes, predict = [], RispPredictor.predict
+
+    def spy(self, images):
+        sizes.append(len(images))
+        return predict(self, images)
+
+    monkeypatch.setattr(run_mod, "PREDICT_BATCH", 4)
+    monkeypatch.setattr(RispPredictor, "predict", spy)
+    result = _run("estimate", video, tmp_path / "o", model=model, iterations=0, plots=False)
+    assert sizes[:2] == [4, 2]  # the video's 6 frames in two batches
+    assert np.allclose(result["estimates"]["env_states"], whole[0].double().numpy(), atol=1e-6)
+
+
 def test_outside_sampled_states_counts_frames_beyond_the_training_box():
     """Which frames leave the sampler's box, per state; the boundary itself (the cube on the floor), and up to 1 %
     of a state's range beyond it, is inside."""

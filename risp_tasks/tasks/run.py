@@ -129,6 +129,26 @@ def task_rng(seed: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence([int(seed), TASK_STREAM]))
 
 
+PREDICT_BATCH = 256  # frames N reads at once: its activations for a whole long video at once did not fit in memory
+
+
+def predict_frames(predictor, frames: torch.Tensor, batch: int | None = None, progress: bool = True
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+    """N's readings (states (T, S), targets (T, T')) of the frames (T, r, r, 3), ``batch`` (default PREDICT_BATCH)
+    frames at a time; the same numbers as one call on all of them (eval mode: no frame sees another)."""
+    from tqdm import tqdm
+
+    batch = batch or PREDICT_BATCH
+    states, targets = [], []
+    with torch.no_grad():
+        for start in tqdm(range(0, len(frames), batch), desc="reading the frames", unit="batch", leave=False,
+                          disable=not progress):
+            s, t = predictor.predict(frames[start:start + batch])
+            states.append(s)
+            targets.append(t)
+    return torch.cat(states), torch.cat(targets)
+
+
 def check_samples(cfg: TaskConfig, resolution: int) -> None:
     """Refuse, before any work, an ``--spp`` or ``--primal-spp`` Mitsuba cannot render: it counts the samples of one
     render launch in a uint32, and the tasks' renderer launches one frame at a time at the model's resolution in the
@@ -187,8 +207,7 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
                         f"{f' / --fps {cfg.fps:g}' if cfg.fps is not None else ''}")
     sim, k = timeline(env_name, fps) if cfg.task != "estimate" else (get_simulator(env_name), 1)
     frames_t = torch.from_numpy(frames)
-    with torch.no_grad():
-        predicted, predicted_targets = predictor.predict(frames_t)
+    predicted, predicted_targets = predict_frames(predictor, frames_t, progress=cfg.progress)
     file_actions = None
     if sim.action_dim == 0 and (cfg.actions is not None or cfg.task in ("imitate", "control")):
         what = f"{cfg.actions}: the {env_name} has no actions" if cfg.actions is not None else \
