@@ -109,6 +109,8 @@ def test_estimate_writes_measured_csv_that_diagnose_reads(quad, tmp_path):
     by = traj.sidecar.get("estimated_by")
     assert by["task"] == "risp-task estimate" and by["model"]["sha256"] == saved["model"]["sha256"]
     assert by["video"]["sha256"] == saved["video"]["sha256"] and by["video"]["frames"] == 6
+    # and the run that made them: its seed and settings, as result.json's
+    assert by["seed"] == saved["seed"] == 0 and by["config"] == saved["config"] and by["config"]["loss"] == "state"
 
 
 @pytest.mark.parametrize("task, loss, extra", [

@@ -332,7 +332,9 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
         if cfg.task == "estimate":
             _write_estimate_csv(folder.path("trajectory.csv"), ctx, final_states,
                                 {"task": "risp-task estimate", "model": result["model"],
-                                 "video": {k: result["video"][k] for k in ("path", "sha256", "frames", "fps")}})
+                                 "video": {k: result["video"][k] for k in ("path", "sha256", "frames", "fps")},
+                                 # the run that made them, as result.json: the CSV may travel without its folder
+                                 "seed": cfg.seed, "config": result["config"]})
         if cfg.task in ("imitate", "control"):
             from .inputs import write_actions
 
@@ -410,8 +412,8 @@ def held_commands(actions: np.ndarray, keep: list[int]) -> np.ndarray:
 
 def _write_estimate_csv(path: str, ctx: Context, states: torch.Tensor, provenance: dict) -> None:
     """docs/measured-data.md columns for the quadrotor, cube and hand (the rod: t, z0 … z9).  The sidecar's
-    ``estimated_by`` records that these are a network's readings of a video (which network, which video), so
-    that ``diagnose`` can say so when it cannot explain them (select.estimate_note)."""
+    ``estimated_by`` records that these are a network's readings of a video (which network, which video, the seed
+    and settings), so that ``diagnose`` can say so when it cannot explain them (select.estimate_note)."""
     from risp_data.envs.rotations import euler_to_quat
 
     from ..measured import write_trajectory_csv
