@@ -354,11 +354,14 @@ def make_video(env, out, frames, fps, resolution, spp, domain, params, effect, c
 @click.option("--jobs", type=int, default=0, show_default=True,
               help="local: cells computed at once, one single-threaded process each (0: one per available CPU)")
 @click.option("--quiet", is_flag=True, help="no progress bar")
-def table(table, preset, repeats, quick, out, envs, methods, reg, perceptual_weights, n_train, n_test, iterations,
+@click.pass_context
+def table(ctx, table, preset, repeats, quick, out, envs, methods, reg, perceptual_weights, n_train, n_test, iterations,
           control_start, residual, seed, executor, jobs, quiet):
     """One of the paper's tables: every method on every environment, mean ± std over repeats (resumable)."""
     from risp_tasks.tables.config import make_config
     from risp_tasks.tables.grid import run_table
+
+    _refuse_unread(ctx, table)
 
     def names(value):
         return None if value is None else tuple(v.strip() for v in value.split(",") if v.strip())
@@ -372,6 +375,23 @@ def table(table, preset, repeats, quick, out, envs, methods, reg, perceptual_wei
     with open(report["files"][0]) as f:
         click.echo(f.read())
     click.echo(f"wrote {report['files'][0]} and {report['files'][1]}")
+
+
+def _refuse_unread(ctx: click.Context, table: str) -> None:
+    """Options given on the command line that ``--table`` never reads (tables.grid.UNUSED_BY: e.g. --n-test for the
+    task tables, --control-start outside control) are refused in one line: they were dropped without a word.
+    Defaults are not "given" (click's parameter source tells them apart)."""
+    from click.core import ParameterSource
+
+    from risp_data.errors import RispError
+    from risp_tasks.tables.grid import UNUSED_BY
+
+    unread = UNUSED_BY.get(table, ())  # an unknown --table: make_config names the choices
+    given = [p.opts[0] for p in ctx.command.params
+             if p.name in unread and ctx.get_parameter_source(p.name) is ParameterSource.COMMANDLINE]
+    if given:
+        raise RispError(f"{', '.join(given)}: not read by --table {table} (docs/tables.md); leave "
+                        f"{'it' if len(given) == 1 else 'them'} out")
 # ---- END table command ---------------------------------------------------------------------------------------
 
 
