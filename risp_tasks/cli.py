@@ -25,7 +25,8 @@ from risp_data.envs import ENV_NAMES
 @click.group(cls=RispGroup)
 @click.version_option(package_name="risp", message="%(prog)s (risp) %(version)s")
 def cli():
-    """From a video to states, physical parameters and actions (estimate, sysid, imitate, control); diagnose."""
+    """From a video to states, physical parameters and actions (estimate, sysid, imitate, control); diagnose
+    measured data; make reference videos (make-video); the paper's tables (table)."""
 
 
 @cli.command()
@@ -41,7 +42,7 @@ def cli():
 @click.option("--max-iters", type=int, default=25, show_default=True, help="Levenberg–Marquardt iterations per model")
 @click.option("--pairs-top", type=int, default=3, show_default=True, help="pairs are formed among this many best single effects")
 @click.option("--effects", default=None, help="comma-separated subset of the effect library to try (default: all)")
-@click.option("--limit", type=int, default=None, help="use only the first N files (sorted by name)")
+@click.option("--limit", type=int, default=None, help="use only the first N files: in the order given, a folder's CSVs in name order")
 @click.option("--floor-offset", default="auto", show_default=True,
               help="cube: floor height in the data's frame [m], or 'auto' (median lowest corner of resting frames)")
 @click.option("--side", type=float, default=None, help="cube side [m] (overrides the sidecar)")
@@ -96,7 +97,8 @@ def _task_options(task: str):
 
     opts = [
         click.option("--model", default=None, help="risp-train checkpoint or run folder (default: the most recent "
-                     "runs/*/model.pt of the system --env or the video's make-video tag names, else the most recent)"),
+                     "runs/*/model.pt of the system --env " + ("names" if task == "control" else "or the video's "
+                     "make-video tag names") + ", else the most recent)"),
         click.option("--runs", default="runs", show_default=True, help="where to look for the most recent model"),
         click.option("--env", type=click.Choice(ENV_NAMES), default=None, help="the system: picks the newest run of "
                      "it without --model, checks the model with it (default: the model's)"),
@@ -301,7 +303,9 @@ def control(target, **kw):
 @click.option("--resolution", "--res", "resolution", type=int, default=64, show_default=True,
               help="frame side in pixels (--res as in risp-data)")
 @click.option("--spp", type=int, default=16, show_default=True, help="samples per pixel (×4 in the target domain)")
-@click.option("--domain", type=click.Choice(("target", "train")), default="target", show_default=True)
+@click.option("--domain", type=click.Choice(("target", "train")), default="target", show_default=True,
+              help="target: the test look (random looks outside the training ranges, longer light paths, 4× --spp); "
+                   "train: a look drawn as the networks' training images are")
 @click.option("--params", default=None, help="JSON object of simulator parameters (default: random in the paper's ranges)")
 @click.option("--effect", default=None, help="hidden effect NAME or NAME:v1,v2,… (e.g. wind:3,0,0)")
 @click.option("--camera", default=None, help="camera JSON replacing the environment's camera")
