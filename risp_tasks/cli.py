@@ -12,7 +12,9 @@ Documentation: docs/cli-task.md.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import re
 
 import click
 
@@ -23,7 +25,8 @@ from risp_data.envs import ENV_NAMES
 @click.group(cls=RispGroup)
 @click.version_option(package_name="risp", message="%(prog)s (risp) %(version)s")
 def cli():
-    """From a video to states, physical parameters and actions (estimate, sysid, imitate, control); diagnose."""
+    """From a video to states, physical parameters and actions (estimate, sysid, imitate, control); diagnose
+    measured data; make reference videos (make-video); the paper's tables (table)."""
 
 
 @cli.command()
@@ -39,7 +42,7 @@ def cli():
 @click.option("--max-iters", type=int, default=25, show_default=True, help="Levenberg–Marquardt iterations per model")
 @click.option("--pairs-top", type=int, default=3, show_default=True, help="pairs are formed among this many best single effects")
 @click.option("--effects", default=None, help="comma-separated subset of the effect library to try (default: all)")
-@click.option("--limit", type=int, default=None, help="use only the first N files (sorted by name)")
+@click.option("--limit", type=int, default=None, help="use only the first N files: in the order given, a folder's CSVs in name order")
 @click.option("--floor-offset", default="auto", show_default=True,
               help="cube: floor height in the data's frame [m], or 'auto' (median lowest corner of resting frames)")
 @click.option("--side", type=float, default=None, help="cube side [m] (overrides the sidecar)")
@@ -94,7 +97,8 @@ def _task_options(task: str):
 
     opts = [
         click.option("--model", default=None, help="risp-train checkpoint or run folder (default: the most recent "
-                     "runs/*/model.pt of the system --env or the video's make-video tag names, else the most recent)"),
+                     "runs/*/model.pt of the system --env " + ("names" if task == "control" else "or the video's "
+                     "make-video tag names") + ", else the most recent)"),
         click.option("--runs", default="runs", show_default=True, help="where to look for the most recent model"),
         click.option("--env", type=click.Choice(ENV_NAMES), default=None, help="the system: picks the newest run of "
                      "it without --model, checks the model with it (default: the model's)"),
@@ -190,6 +194,37 @@ def _loss_change(result: dict) -> str:
     return f"loss {loss[0] if loss else result['final_loss']:.4g} -> {result['final_loss']:.4g}"
 
 
+def out_of_memory_line(e: BaseException) -> str | None:
+    """"out of GPU memory (tried to allocate 2.00 GiB)" for torch's out-of-memory errors — torch.OutOfMemoryError
+    (CUDA), the CPU allocator's RuntimeError, Dr.Jit's "out of memory", MemoryError — else None."""
+    import torch
+
+    text = str(e)
+    if not (isinstance(e, (MemoryError, torch.OutOfMemoryError)) or isinstance(e, RuntimeError) and (
+            "can't allocate memory" in text or "out of memory" in text.lower())):
+        return None
+    where = "GPU memory" if isinstance(e, torch.OutOfMemoryError) or "CUDA" in text else "memory"
+    cpu = re.search(r"allocate (\d+) bytes", text)  # DefaultCPUAllocator: "you tried to allocate N bytes"
+    gpu = re.search(r"[Tt]ried to allocate ([\d.]+ [KMGT]?i?B)", text)  # CUDA: "Tried to allocate 2.00 GiB"
+    size = f"{int(cpu.group(1)) / 2**30:.3g} GiB" if cpu else gpu.group(1) if gpu else None
+    return f"out of {where}" + (f" (tried to allocate {size})" if size else "")
+
+
+@contextlib.contextmanager
+def _memory_hint(what: str, hint: str):
+    """Torch's out-of-memory errors inside the block as one line saying what ran out and what to lower, not a
+    traceback (the generic MemoryError line speaks of risp-data's --res and --workers)."""
+    try:
+        yield
+    except Exception as e:
+        line = out_of_memory_line(e)
+        if line is None:
+            raise
+        from risp_data.errors import RispError
+
+        raise RispError(f"{line} while {what}; {hint}") from None
+
+
 def _run(task, video, **kw):
     from risp_tasks.tasks.config import TaskConfig
     from risp_tasks.tasks.run import run_task
@@ -197,7 +232,10 @@ def _run(task, video, **kw):
     iterations = kw.pop("iterations")
     cfg = TaskConfig(task=task, video=video, iterations=(0 if task == "estimate" else 100) if iterations is None else iterations,
                      plots=not kw.pop("no_plots"), progress=not kw.pop("quiet"), **kw)
-    result = run_task(cfg, echo=click.echo)
+    fewer = "--horizon" if task == "control" else "--every or --fps, or a shorter video"
+    with _memory_hint(f"running {task} on {video}", f"use fewer frames ({fewer}), a lower --spp/--primal-spp, "
+                      "or --no-plots"):
+        result = run_task(cfg, echo=click.echo)
     loss = result["loss"]
     click.echo(f"{task} ({result['env']}): {_loss_change(result)} in {len(loss)} iterations; results: {result['out']}")
     first = _first_full(result)
@@ -265,7 +303,9 @@ def control(target, **kw):
 @click.option("--resolution", "--res", "resolution", type=int, default=64, show_default=True,
               help="frame side in pixels (--res as in risp-data)")
 @click.option("--spp", type=int, default=16, show_default=True, help="samples per pixel (×4 in the target domain)")
-@click.option("--domain", type=click.Choice(("target", "train")), default="target", show_default=True)
+@click.option("--domain", type=click.Choice(("target", "train")), default="target", show_default=True,
+              help="target: the test look (random looks outside the training ranges, longer light paths, 4× --spp); "
+                   "train: a look drawn as the networks' training images are")
 @click.option("--params", default=None, help="JSON object of simulator parameters (default: random in the paper's ranges)")
 @click.option("--effect", default=None, help="hidden effect NAME or NAME:v1,v2,… (e.g. wind:3,0,0)")
 @click.option("--camera", default=None, help="camera JSON replacing the environment's camera")
@@ -280,7 +320,8 @@ def make_video(env, out, frames, fps, resolution, spp, domain, params, effect, c
     cfg = ReferenceConfig(env=env, out=out, frames=frames, fps=fps, resolution=resolution, spp=spp, domain=domain,
                           params=params, effect=effect, camera=camera, mesh=mesh, seed=seed, progress=not quiet,
                           overwrite=overwrite)
-    truth = make_reference(cfg)
+    with _memory_hint(f"making {out}", "lower --frames, --resolution or --spp"):
+        truth = make_reference(cfg)
     actions = f", actions {truth['actions_path']}" if truth.get("actions_path") else ""
     click.echo(f"wrote {out} ({frames} frames, {resolution}×{resolution}, {fps:g} fps), ground truth "
                f"{truth['truth_path']}{actions}")
@@ -317,11 +358,14 @@ def make_video(env, out, frames, fps, resolution, spp, domain, params, effect, c
 @click.option("--jobs", type=int, default=0, show_default=True,
               help="local: cells computed at once, one single-threaded process each (0: one per available CPU)")
 @click.option("--quiet", is_flag=True, help="no progress bar")
-def table(table, preset, repeats, quick, out, envs, methods, reg, perceptual_weights, n_train, n_test, iterations,
+@click.pass_context
+def table(ctx, table, preset, repeats, quick, out, envs, methods, reg, perceptual_weights, n_train, n_test, iterations,
           control_start, residual, seed, executor, jobs, quiet):
     """One of the paper's tables: every method on every environment, mean ± std over repeats (resumable)."""
     from risp_tasks.tables.config import make_config
     from risp_tasks.tables.grid import run_table
+
+    _refuse_unread(ctx, table)
 
     def names(value):
         return None if value is None else tuple(v.strip() for v in value.split(",") if v.strip())
@@ -330,10 +374,28 @@ def table(table, preset, repeats, quick, out, envs, methods, reg, perceptual_wei
                       methods=names(methods), reg=reg, perceptual_weights=perceptual_weights, n_train=n_train,
                       n_test=n_test, iterations=iterations, control_start=control_start, residual=residual, seed=seed,
                       executor=executor, jobs=jobs, progress=not quiet)
-    report = run_table(cfg, echo=click.echo)
+    with _memory_hint(f"computing the {table} table", "use fewer --jobs, a smaller --n-train, or --preset cpu"):
+        report = run_table(cfg, echo=click.echo)
     with open(report["files"][0]) as f:
         click.echo(f.read())
     click.echo(f"wrote {report['files'][0]} and {report['files'][1]}")
+
+
+def _refuse_unread(ctx: click.Context, table: str) -> None:
+    """Options given on the command line that ``--table`` never reads (tables.grid.UNUSED_BY: e.g. --n-test for the
+    task tables, --control-start outside control) are refused in one line: they were dropped without a word.
+    Defaults are not "given" (click's parameter source tells them apart)."""
+    from click.core import ParameterSource
+
+    from risp_data.errors import RispError
+    from risp_tasks.tables.grid import UNUSED_BY
+
+    unread = UNUSED_BY.get(table, ())  # an unknown --table: make_config names the choices
+    given = [p.opts[0] for p in ctx.command.params
+             if p.name in unread and ctx.get_parameter_source(p.name) is ParameterSource.COMMANDLINE]
+    if given:
+        raise RispError(f"{', '.join(given)}: not read by --table {table} (docs/tables.md); leave "
+                        f"{'it' if len(given) == 1 else 'them'} out")
 # ---- END table command ---------------------------------------------------------------------------------------
 
 

@@ -529,6 +529,9 @@ def check_video_path(path: str | os.PathLike, overwrite: bool = False) -> None:
     if p.suffix.lower() in OTHER_MEDIA_SUFFIXES:
         raise RispError(f"{p}: cannot write {p.suffix} videos; give a path ending in "
                         f"{', '.join(VIDEO_SUFFIXES)}, or a folder name for PNG frames")
+    if p.suffix.lower() in VIDEO_SUFFIXES and p.is_dir():  # found only when the rendered video is published
+        raise RispError(f"{p}: an existing folder, not a video file; give a new file name (or a folder name "
+                        f"without {p.suffix} for PNG frames)")
     if p.suffix.lower() in VIDEO_SUFFIXES or not p.exists():
         return
     if not p.is_dir():

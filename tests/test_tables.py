@@ -559,6 +559,35 @@ def test_bad_input_is_one_error_line(tmp_path, args, message):
     assert not os.path.exists(tmp_path / "t")
 
 
+@pytest.mark.parametrize("args, refused", [
+    (["--table", "estimation", "--control-start", "random"], "--control-start"),
+    (["--table", "sysid", "--n-test", "3"], "--n-test"),
+    (["--table", "regularizers", "--reg", "surrogate", "--iterations", "5"], "--reg, --iterations"),
+    (["--table", "sampling", "--residual", "l2"], "--residual"),  # given, even at its default value
+])
+def test_options_the_table_never_reads_are_refused_when_given(tmp_path, monkeypatch, args, refused):
+    """They were dropped without a word (the table ran as if they were not there); left at their defaults they
+    are no error (run_table is reached)."""
+    import risp_tasks.tables.grid as grid
+    from risp_tasks.cli import cli
+
+    class Reached(Exception):
+        pass
+
+    def reached(*a, **k):
+        raise Reached
+
+    monkeypatch.setattr(grid, "run_table", reached)  # computing no table
+    r = CliRunner().invoke(cli, ["table", *args, "--out", str(tmp_path / "t")])
+    lines = r.output.strip().splitlines()
+    assert r.exit_code == 1 and len(lines) == 1, r.output
+    assert lines[0] == f"Error: {refused}: not read by --table {args[1]} (docs/tables.md); leave " \
+                       f"{'them' if ',' in refused else 'it'} out", r.output
+    assert not os.path.exists(tmp_path / "t")
+    r = CliRunner().invoke(cli, ["table", *args[:2], "--out", str(tmp_path / "t")])
+    assert isinstance(r.exception, Reached), r.output  # left at their defaults, the options pass the check
+
+
 def test_cli_writes_and_prints_the_table(tmp_path):
     from risp_tasks.cli import cli
 

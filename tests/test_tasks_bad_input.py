@@ -6,6 +6,7 @@ import os
 import time
 import numpy as np
 import pytest
+import torch
 from click.testing import CliRunner
 
 from tasks_helpers import shared_model, shared_video
@@ -115,6 +116,25 @@ def test_model_for_another_environment(quad, tmp_path):
     model, video = quad
     line = _invoke(["imitate", video, "--model", model, "--env", "hand"], tmp_path)
     assert "model.pt" in line and "'quadrotor', not 'hand'" in line
+
+
+@pytest.mark.parametrize("change, words", [
+    (dict(env="pendulum"), "trained for environment 'pendulum', which risp does not know"),
+    (dict(state_names=["x", "y", "z", "roll", "pitch", "yaw"]), "state names ['x', 'y', 'z', 'roll', 'pitch', 'yaw'] differ"),
+    (dict(target_names=["t0", "t1"]), "target names ['t0', 't1'] differ from the quadrotor's"),
+])
+def test_model_of_another_state_layout_is_refused(quad, tmp_path, change, words):
+    """A checkpoint whose environment or state/target names are not risp's (another system, an older state layout)
+    is one line naming the model file — it was read as the environment's states, or failed deep inside a task."""
+    import torch
+
+    from risp_train.checkpoint import save_checkpoint
+
+    model, video = quad
+    ckpt = torch.load(model, map_location="cpu", weights_only=True)
+    save_checkpoint(str(tmp_path / "other.pt"), {**ckpt, **change})
+    line = _invoke(["estimate", video, "--model", str(tmp_path / "other.pt")], tmp_path)
+    assert "other.pt" in line and words in line, line
 
 
 def test_corrupt_model_file(quad, tmp_path):
@@ -258,6 +278,43 @@ def test_existing_result_folder_is_not_overwritten(quad, tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["res"]  # the old folder went, no temporaries stayed
 
 
+CPU_OOM = ("[enforce fail at alloc_cpu.cpp:127] err == 0. DefaultCPUAllocator: can't allocate memory: you tried to "
+           "allocate 3221225472 bytes. Error code 12 (Cannot allocate memory)")
+
+
+@pytest.mark.parametrize("error, words", [
+    (RuntimeError(CPU_OOM), "out of memory (tried to allocate 3 GiB) while running estimate on"),
+    (torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 2.00 GiB. GPU 0 has a total capacity of 79 GiB"),
+     "out of GPU memory (tried to allocate 2.00 GiB) while running estimate on"),
+])
+def test_running_out_of_memory_in_a_task_is_one_line(quad, tmp_path, monkeypatch, error, words):
+    """torch's out-of-memory errors mid-task (a RuntimeError on the CPU, torch.OutOfMemoryError on a GPU) were a
+    traceback: one line saying what ran out and what to lower, and no result folder."""
+    import risp_tasks.tasks.run as run_mod
+
+    def oom(*a, **k):
+        raise error
+
+    monkeypatch.setattr(run_mod, "optimize", oom)
+    line = _invoke(["estimate", quad[1], "--model", quad[0]], tmp_path)
+    assert words in line and "--every or --fps" in line and "--spp" in line, line
+
+
+def test_running_out_of_memory_in_make_video_is_one_line(tmp_path, monkeypatch):
+    import risp_tasks.tasks.reference as reference
+    from risp_tasks.cli import cli
+
+    def oom(*a, **k):
+        raise RuntimeError(CPU_OOM)
+
+    monkeypatch.setattr(reference, "_motion", oom)
+    res = CliRunner().invoke(cli, ["make-video", "--env", "quadrotor", "--frames", "2", "--quiet",
+                                   "--out", str(tmp_path / "v.mp4")])
+    line = _error_line(res)
+    assert "out of memory (tried to allocate 3 GiB) while making" in line and "--frames, --resolution or --spp" in line
+    assert not os.listdir(tmp_path)
+
+
 def test_failure_mid_run_leaves_no_result_folder(quad, tmp_path, monkeypatch):
     """An exception while writing the results removes the temporary folder."""
     import risp_tasks.tasks.run as run
@@ -302,6 +359,19 @@ def test_action_knots_with_the_tracking_init_is_one_error_line(quad, tmp_path):
     """`--init track` optimises the controller's reference path, not the commands: knots on them are refused."""
     line = _invoke(["imitate", quad[1], "--model", quad[0], "--init", "track", "--action-knots", "4"], tmp_path)
     assert "--action-knots parametrises the commands themselves" in line
+
+
+def test_more_action_knots_than_action_rows_is_one_error_line(quad, tmp_path):
+    """K knots over fewer frames fell back to one row per frame while result.json said K: refused, one line —
+    imitate against the video's 6 frames, control against --horizon + 1 rows before any work."""
+    line = _invoke(["imitate", quad[1], "--model", quad[0], "--action-knots", "7"], tmp_path)
+    assert "--action-knots 7 is more than the 6 action rows" in line, line
+    from risp_data.errors import RispError
+    from risp_tasks.tasks.config import TaskConfig
+
+    with pytest.raises(RispError, match=r"--action-knots 5 is more than the 4 action rows of --horizon 3"):
+        TaskConfig(task="control", video="goal.png", horizon=3, action_knots=5)
+    assert TaskConfig(task="control", video="goal.png", horizon=3, action_knots=4).action_knots == 4
 
 
 def test_imitate_with_an_unknown_parameter_is_one_error_line(quad, tmp_path):
@@ -523,6 +593,22 @@ def test_make_video_refuses_a_truth_path_that_is_a_folder_before_rendering(tmp_p
     line = _error_line(res)
     assert "y.truth.json: exists and is not a file (the video's ground truth file goes there)" in line, line
     assert sorted(os.listdir(tmp_path)) == ["y.truth.json"]
+
+
+def test_make_video_refuses_an_out_that_is_a_folder_before_rendering(tmp_path, monkeypatch):
+    """--out v.mp4 where v.mp4 is a folder: refused before the render (with --overwrite it rendered every frame and
+    then failed to publish the file; without it the line called the folder a reference video's file)."""
+    import risp_data.render as render_mod
+    from risp_tasks.cli import cli
+
+    (tmp_path / "v.mp4").mkdir()
+    monkeypatch.setattr(render_mod, "Renderer", lambda *a, **k: pytest.fail("rendered before checking --out"))
+    for extra in ([], ["--overwrite"]):
+        res = CliRunner().invoke(cli, ["make-video", "--env", "quadrotor", "--frames", "2", "--quiet", *extra,
+                                       "--out", str(tmp_path / "v.mp4")])
+        line = _error_line(res)
+        assert "v.mp4: an existing folder, not a video file" in line, line
+    assert os.listdir(tmp_path) == ["v.mp4"] and not os.listdir(tmp_path / "v.mp4")
 
 
 def test_make_video_refuses_a_suffix_it_cannot_write(tmp_path):
@@ -893,6 +979,18 @@ def test_a_primal_spp_below_one_is_one_line(quad, tmp_path):
 
 
 HUGE = 10 ** 400  # a JSON integer literal beyond float's range: float() raises OverflowError, not ValueError
+
+
+@pytest.mark.parametrize("option", ["--spp", "--primal-spp"])
+def test_a_sample_count_beyond_mitsubas_limit_is_one_line_before_any_work(quad, tmp_path, monkeypatch, option):
+    """Mitsuba counts one render's samples in a uint32: 2^24 spp × 16×16 pixels (the model's) is 2^32, refused
+    before the video is read (it failed inside Mitsuba, after the reading and the network's pass)."""
+    import risp_tasks.tasks.run as run_mod
+
+    monkeypatch.setattr(run_mod, "_reference", lambda *a, **k: pytest.fail("read the video before checking"))
+    line = _invoke(["sysid", quad[1], "--model", quad[0], "--loss", "render", option, str(2**24)], tmp_path)
+    assert f"{option} 16777216 needs 4,294,967,296 samples per rendered frame (16×16 pixels" in line, line
+    assert "limit of 2^32" in line
 
 
 @pytest.mark.parametrize("params", ["3.0", None, [3.0], {"mass": HUGE}, {"mass": True}])

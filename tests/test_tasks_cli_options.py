@@ -47,3 +47,23 @@ def test_the_boolean_options_of_sysid_and_imitate_are_refused_by_the_others(task
     """Before: click's usage error ("No such option", exit 2) instead of the line saying whose option it is."""
     res = CliRunner().invoke(cli, [task, str(tmp_path / "v.mp4"), *args, "--quiet"])
     assert res.exit_code == 1 and "is for" in res.output and "No such option" not in res.output, res.output
+
+
+def test_the_help_says_what_the_code_does(tmp_path):
+    """--limit keeps the first N files in the order given (not sorted by name: measured.expand_paths); make-video's
+    --domain says what each look is; control's --model has no video tag to follow; the group names every command."""
+    from risp_tasks.measured import expand_paths
+
+    for name in ("b.csv", "a.csv"):
+        (tmp_path / name).write_text("t\n0\n")
+    assert [p.name for p in expand_paths([str(tmp_path / "b.csv"), str(tmp_path / "a.csv")])] == ["b.csv", "a.csv"]
+
+    def helptext(*args):
+        res = CliRunner().invoke(cli, [*args, "--help"], terminal_width=400)
+        assert res.exit_code == 0, res.output
+        return " ".join(res.output.split())
+
+    assert "the first N files: in the order given, a folder's CSVs in name order" in helptext("diagnose")
+    assert "train: a look drawn as the networks' training images are" in helptext("make-video")
+    assert "make-video tag" not in helptext("control") and "make-video tag" in helptext("imitate")
+    assert "make-video" in helptext() and "table" in helptext().split("Commands:")[0]

@@ -46,20 +46,22 @@ def test_make_video_writes_video_truth_and_actions(quad):
     assert np.ptp(np.asarray(truth["env_states"])[:, :3], 0).max() > 0.01
 
 
-def test_imitate_prints_the_parameters_params_gave(quad, tmp_path):
+@pytest.mark.parametrize("init", ["default", "track"])
+def test_imitate_prints_the_parameters_params_gave(quad, tmp_path, init):
     """imitate --params: the values it simulated with are printed (they were only in result.json), the fitted
-    ones where they ended instead."""
+    ones where they ended instead; with --init track too (its result.json recorded neither)."""
     from click.testing import CliRunner
 
     from risp_tasks.cli import cli
 
     model, video = quad
     res = CliRunner().invoke(cli, ["imitate", video, "--model", model, "--params", '{"mass": 3.05}', "--iterations", "1",
-                                   "--out", str(tmp_path / "o"), "--quiet", "--no-plots"])
+                                   "--init", init, "--out", str(tmp_path / "o"), "--quiet", "--no-plots"])
     assert res.exit_code == 0, res.output
     assert "  mass = 3.05 (from --params)" in res.output.splitlines()
     saved = json.load(open(tmp_path / "o" / "result.json"))
     assert saved["info"]["given_parameters"] == {"mass": 3.05}
+    assert saved["info"]["parameters"]["mass"] == 3.05
 
 
 def test_a_truth_file_beside_the_video_is_pointed_at_not_read(quad, tmp_path):
@@ -107,6 +109,8 @@ def test_estimate_writes_measured_csv_that_diagnose_reads(quad, tmp_path):
     by = traj.sidecar.get("estimated_by")
     assert by["task"] == "risp-task estimate" and by["model"]["sha256"] == saved["model"]["sha256"]
     assert by["video"]["sha256"] == saved["video"]["sha256"] and by["video"]["frames"] == 6
+    # and the run that made them: its seed and settings, as result.json's
+    assert by["seed"] == saved["seed"] == 0 and by["config"] == saved["config"] and by["config"]["loss"] == "state"
 
 
 @pytest.mark.parametrize("task, loss, extra", [
@@ -547,6 +551,34 @@ def test_loading_a_model_leaves_the_global_torch_stream_alone(quad):
     torch.manual_seed(5)
     load(quad[0])
     assert torch.equal(torch.rand(3), expected)
+
+
+def test_the_network_reads_a_video_in_batches_with_the_numbers_of_one_batch(quad, tmp_path, monkeypatch):
+    """N read every frame of a video in one call (its activations grew with the video's length): batches of
+    PREDICT_BATCH frames now, whose readings equal one call's on all frames; the task reads in such batches."""
+    from risp_train.predictor import RispPredictor, load
+
+    import risp_tasks.tasks.run as run_mod
+    from risp_tasks.video import read_video
+
+    model, video = quad
+    predictor = load(model)
+    frames = torch.from_numpy(read_video(video, resolution=RES).frames)
+    with torch.no_grad():
+        whole = predictor.predict(frames)
+    for got, expected in zip(run_mod.predict_frames(predictor, frames, batch=4, progress=False), whole):
+        assert got.shape == expected.shape and torch.allclose(got, expected, rtol=0, atol=1e-6)
+    sizes, predict = [], RispPredictor.predict
+
+    def spy(self, images):
+        sizes.append(len(images))
+        return predict(self, images)
+
+    monkeypatch.setattr(run_mod, "PREDICT_BATCH", 4)
+    monkeypatch.setattr(RispPredictor, "predict", spy)
+    result = _run("estimate", video, tmp_path / "o", model=model, iterations=0, plots=False)
+    assert sizes[:2] == [4, 2]  # the video's 6 frames in two batches
+    assert np.allclose(result["estimates"]["env_states"], whole[0].double().numpy(), atol=1e-6)
 
 
 def test_outside_sampled_states_counts_frames_beyond_the_training_box():

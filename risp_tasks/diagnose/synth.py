@@ -10,7 +10,8 @@ as measured CSVs + sidecars exactly like real data, with white measurement noise
   ``stiffness_error`` — the hand's joint stiffness 1.6× the simulator's fixed value (a wrong base
   parameter that diagnose does not fit);
 * quadrotor: a geometric position/attitude controller tracks a random smooth reference (heights down to
-  0.1 m so ground effect shows, speeds of 1–2 m/s so drag shows, a varying command so motor lag shows);
+  0.1 m so ground effect shows, horizontal reference speeds peaking at 1.5–6 m/s per axis so drag shows, a
+  varying command so motor lag shows);
   the controller's rotor thrusts [N] are the measured commands f0…f3;
 * cube: random tosses from 0.15–0.35 m with random linear and angular velocities;
 * hand: random smooth finger torques.
@@ -113,7 +114,7 @@ def _simulate_quadrotor(sim, params, k, n_traj, samples, dt, rng, periodic: bool
     from risp_data.envs.quadrotor import ARM_LENGTH
 
     t = np.arange(samples) * dt
-    amp = rng.uniform([0.8, 0.8, 0.25], [1.6, 1.6, 0.45], size=(B, 3))  # m: speeds of 2–5 m/s
+    amp = rng.uniform([0.8, 0.8, 0.25], [1.6, 1.6, 0.45], size=(B, 3))  # m; at 0.3–0.6 Hz: peaks of 1.5–6 m/s (x, y), 0.5–1.7 m/s (z)
     freq = rng.uniform(0.3, 0.6, size=(B, 3))
     phase = rng.uniform(0, 2 * math.pi, size=(B, 3))
     centre = np.concatenate([rng.uniform(-0.5, 0.5, size=(B, 2)), rng.uniform(0.35, 0.55, size=(B, 1))], 1)

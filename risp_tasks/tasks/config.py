@@ -148,6 +148,10 @@ class TaskConfig:
             raise RispError(f"--action-knots must be 0 (one row per frame) or >= 2, got {self.action_knots}")
         if self.action_knots and self.task not in ("imitate", "control"):
             raise RispError(f"--action-knots is for imitate and control (the actions), not {self.task}")
+        if self.task == "control" and self.horizon is not None and self.action_knots > self.horizon + 1:
+            raise RispError(f"--action-knots {self.action_knots} is more than the {self.horizon + 1} action rows of "
+                            f"--horizon {self.horizon} (one per frame, the start included): give at most "
+                            f"{self.horizon + 1}, or 0 for one row per frame")
         if self.params and self.task not in ("imitate", "control"):
             raise RispError(f"--params is for imitate and control (sysid identifies them), not {self.task}")
         if self.fit_params is not None and self.task != "imitate":

@@ -37,8 +37,8 @@ def initial_actions(ctx: Context, params: torch.Tensor, n_frames: int) -> torch.
 
 def knot_basis(n_frames: int, knots: int) -> torch.Tensor:
     """W (n_frames, K): the hat functions of K knots evenly spaced over the frames, t_j = j·(n − 1)/(K − 1), so
-    that actions = W @ z interpolates the knot values z (K, A) linearly (K = 0 or K ≥ n: the identity, one row per
-    frame).  Rows sum to 1; W has full column rank for 2 ≤ K ≤ n."""
+    that actions = W @ z interpolates the knot values z (K, A) linearly (K = 0 or K = n: the identity, one row per
+    frame; the tasks refuse K > n, build).  Rows sum to 1; W has full column rank for 2 ≤ K ≤ n."""
     if knots == 0 or knots >= n_frames:
         return torch.eye(n_frames, dtype=torch.float64)
     t = torch.arange(n_frames, dtype=torch.float64) * (knots - 1) / max(n_frames - 1, 1)  # frame → knot coordinate
@@ -81,7 +81,7 @@ def tracked_rollout(ctx: Context, params: torch.Tensor, s0: torch.Tensor, ref_p:
     return sim.to_env_state(torch.cat(states)), torch.stack(commands)
 
 
-def _track_problem(ctx: Context, params: torch.Tensor, s0, n_frames: int) -> Problem:
+def _track_problem(ctx: Context, params: torch.Tensor, s0, n_frames: int, given: dict[str, float]) -> Problem:
     """``--init track``: the tracking controller's reference path is what is refined (offsets δ_t = 0.1 m · x_t
     added to the estimated path); the controller keeps the long open-loop horizon stable, and the actions are
     the commands it issues.  (Refining raw commands over 14 s diverged in one step: the open loop is chaotic.)"""
@@ -102,9 +102,17 @@ def _track_problem(ctx: Context, params: torch.Tensor, s0, n_frames: int) -> Pro
         return {"actions": to_file_actions(ctx.sim, params, commands).tolist(), "initial_actions": initial.tolist(),
                 "path_offsets_m": (TRACK_SCALE * x.detach()).tolist()}
 
+    info = {**s0.info(), "parametrisation": "tracking-controller reference path",
+            **_parameter_info(ctx.sim, params, given)}
     return Problem(variables={"path_offsets": x, **s0.variables}, states=lambda: run()[0],
-                   estimates=lambda: {**estimates(), **s0.info()},
-                   info={**s0.info(), "parametrisation": "tracking-controller reference path"})
+                   estimates=lambda: {**estimates(), **s0.info()}, info=info)
+
+
+def _parameter_info(sim, params: torch.Tensor, given: dict[str, float]) -> dict:
+    """result.json's record of the physical parameters simulated with (``params``: the start's, free ones at their
+    start values) and of those ``--params`` set (printed by the CLI, so a user sees which values were used)."""
+    return {"parameters": {n: float(params[0, i]) for i, n in enumerate(sim.param_names)},
+            **({"given_parameters": dict(given)} if given else {})}
 
 
 def build(ctx: Context, n_frames: int | None = None, s0: torch.Tensor | None = None) -> Problem:
@@ -118,13 +126,17 @@ def build(ctx: Context, n_frames: int | None = None, s0: torch.Tensor | None = N
         if ctx.cfg.action_knots:
             raise RispError("--action-knots parametrises the commands themselves; with --init track the controller's "
                             "reference path is optimised instead (leave one of them out)")
-        return _track_problem(ctx, params, s0, n_frames)
+        return _track_problem(ctx, params, s0, n_frames, given)
     centre, scale = action_centre(sim, params), ACTION_SCALE[sim.env]
     x0 = initial_actions(ctx, params, n_frames)
     free = _free_parameters(ctx, params, given) if fits_params(ctx.cfg, sim.env) else None
     physics = free if free is not None else (lambda: params)
     with torch.no_grad():
         start = physics()  # the parameters the optimisation starts from (free ones at their start values)
+    if ctx.cfg.action_knots > n_frames:  # knot_basis would fall back to one row per frame, with result.json saying K
+        raise RispError(f"--action-knots {ctx.cfg.action_knots} is more than the {n_frames} action rows (one per "
+                        f"frame{' of the horizon and the start' if ctx.cfg.task == 'control' else ' of ' + ctx.cfg.video}"
+                        f"): give at most {n_frames}, or 0 for one row per frame")
     W = knot_basis(n_frames, ctx.cfg.action_knots)
     knots = W.shape[1] < n_frames
     # with knots: the per-frame start (the same random draw as without), projected onto them by least squares
@@ -142,11 +154,9 @@ def build(ctx: Context, n_frames: int | None = None, s0: torch.Tensor | None = N
         return {**found, **(free.estimates() if free is not None else {})}
 
     info = {**s0.info(), "parametrisation": f"{W.shape[1]} knots, piecewise linear" if knots else "one row per frame",
-            "parameters": {n: float(start[0, i]) for i, n in enumerate(sim.param_names)}}
+            **_parameter_info(sim, start, given)}
     if free is not None:
         info["fitted_parameters"] = list(free.names)
-    if given:  # what --params set (the rest nominal): printed by the CLI, so a user sees which values were used
-        info["given_parameters"] = dict(given)
     return Problem(variables={"actions": z, **({"x": free.x} if free is not None else {}), **s0.variables},
                    states=lambda: frame_states(sim, physics(), s0(), actions(z), n_frames, ctx.k),
                    estimates=lambda: {**estimates(), **s0.info()}, info=info,

@@ -59,12 +59,27 @@ def model_env(path: str) -> str | None:
 
 
 def load_model(path: str, env: str | None):
-    """A frozen predictor; RispError when its environment is not ``env``."""
-    from risp_train.predictor import load
+    """A frozen predictor; RispError naming ``path`` when its environment is not ``env``, or its state and target
+    names are not its environment's as risp defines it now (a model of an unknown system, or of another state
+    layout: its readings would be taken for states they are not, or fail deep inside a task)."""
+    from risp_data.envs import ENV_NAMES, get_environment
+    from risp_train.checkpoint import check_compatible, read_checkpoint
+    from risp_train.predictor import predictor_from_checkpoint
 
-    predictor = load(path)
-    if env is not None and predictor.env_name != env:
-        raise RispError(f"{path}: the model was trained for environment {predictor.env_name!r}, not {env!r}")
+    ckpt, sha = read_checkpoint(path)
+    trained_for = ckpt["env"]
+    if env is not None and trained_for != env:
+        raise RispError(f"{path}: the model was trained for environment {trained_for!r}, not {env!r}")
+    if trained_for not in ENV_NAMES:
+        raise RispError(f"{path}: the model was trained for environment {trained_for!r}, which risp does not know "
+                        f"(it knows: {', '.join(ENV_NAMES)})")
+    expected = get_environment(trained_for)
+    check_compatible(ckpt, path, env=trained_for, state_names=expected.state_names)  # the state layout
+    if list(ckpt["target_names"]) != list(expected.target_names):  # what the network outputs (check_compatible: states)
+        raise RispError(f"checkpoint {path}: target names {list(ckpt['target_names'])} differ from the "
+                        f"{trained_for}'s {list(expected.target_names)} (a model of another state layout: retrain it)")
+    predictor = predictor_from_checkpoint(ckpt, path)
+    predictor.sha256 = sha  # of the bytes loaded (risp_train.predictor.load)
     return predictor
 
 

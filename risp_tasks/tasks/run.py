@@ -129,6 +129,39 @@ def task_rng(seed: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence([int(seed), TASK_STREAM]))
 
 
+PREDICT_BATCH = 256  # frames N reads at once: its activations for a whole long video at once did not fit in memory
+
+
+def predict_frames(predictor, frames: torch.Tensor, batch: int | None = None, progress: bool = True
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+    """N's readings (states (T, S), targets (T, T')) of the frames (T, r, r, 3), ``batch`` (default PREDICT_BATCH)
+    frames at a time; the same numbers as one call on all of them (eval mode: no frame sees another)."""
+    from tqdm import tqdm
+
+    batch = batch or PREDICT_BATCH
+    states, targets = [], []
+    with torch.no_grad():
+        for start in tqdm(range(0, len(frames), batch), desc="reading the frames", unit="batch", leave=False,
+                          disable=not progress):
+            s, t = predictor.predict(frames[start:start + batch])
+            states.append(s)
+            targets.append(t)
+    return torch.cat(states), torch.cat(targets)
+
+
+def check_samples(cfg: TaskConfig, resolution: int) -> None:
+    """Refuse, before any work, an ``--spp`` or ``--primal-spp`` Mitsuba cannot render: it counts the samples of one
+    render launch in a uint32, and the tasks' renderer launches one frame at a time at the model's resolution in the
+    train domain (no spp factor), i.e. spp × resolution² samples (a larger count failed deep inside Mitsuba)."""
+    from risp_data.generate import MITSUBA_MAX_SAMPLES
+
+    for option, spp in (("--spp", cfg.spp), ("--primal-spp", cfg.primal_spp)):
+        samples = spp * resolution * resolution
+        if samples >= MITSUBA_MAX_SAMPLES:
+            raise RispError(f"{option} {spp} needs {samples:,} samples per rendered frame ({resolution}×{resolution} "
+                            f"pixels, the model's), beyond Mitsuba's limit of 2^32 per render: lower {option}")
+
+
 def run_task(cfg: TaskConfig, echo=print) -> dict:
     """Run ``cfg.task``; returns the result dict (also written to ``<out>/result.json``)."""
     if cfg.task not in TASKS:
@@ -140,6 +173,7 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
     model_path, model_line = resolve_model(cfg)
     echo(model_line)
     predictor = load_model(model_path, cfg.env)
+    check_samples(cfg, predictor.resolution)
     note = look_note(predictor, model_path, cfg.loss, cfg.mesh)
     if note:
         echo(note)
@@ -173,8 +207,7 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
                         f"{f' / --fps {cfg.fps:g}' if cfg.fps is not None else ''}")
     sim, k = timeline(env_name, fps) if cfg.task != "estimate" else (get_simulator(env_name), 1)
     frames_t = torch.from_numpy(frames)
-    with torch.no_grad():
-        predicted, predicted_targets = predictor.predict(frames_t)
+    predicted, predicted_targets = predict_frames(predictor, frames_t, progress=cfg.progress)
     file_actions = None
     if sim.action_dim == 0 and (cfg.actions is not None or cfg.task in ("imitate", "control")):
         what = f"{cfg.actions}: the {env_name} has no actions" if cfg.actions is not None else \
@@ -299,7 +332,9 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
         if cfg.task == "estimate":
             _write_estimate_csv(folder.path("trajectory.csv"), ctx, final_states,
                                 {"task": "risp-task estimate", "model": result["model"],
-                                 "video": {k: result["video"][k] for k in ("path", "sha256", "frames", "fps")}})
+                                 "video": {k: result["video"][k] for k in ("path", "sha256", "frames", "fps")},
+                                 # the run that made them, as result.json: the CSV may travel without its folder
+                                 "seed": cfg.seed, "config": result["config"]})
         if cfg.task in ("imitate", "control"):
             from .inputs import write_actions
 
@@ -377,8 +412,8 @@ def held_commands(actions: np.ndarray, keep: list[int]) -> np.ndarray:
 
 def _write_estimate_csv(path: str, ctx: Context, states: torch.Tensor, provenance: dict) -> None:
     """docs/measured-data.md columns for the quadrotor, cube and hand (the rod: t, z0 … z9).  The sidecar's
-    ``estimated_by`` records that these are a network's readings of a video (which network, which video), so
-    that ``diagnose`` can say so when it cannot explain them (select.estimate_note)."""
+    ``estimated_by`` records that these are a network's readings of a video (which network, which video, the seed
+    and settings), so that ``diagnose`` can say so when it cannot explain them (select.estimate_note)."""
     from risp_data.envs.rotations import euler_to_quat
 
     from ..measured import write_trajectory_csv
