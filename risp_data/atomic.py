@@ -196,13 +196,13 @@ def publish_files(tmp: "str | os.PathLike", dest: "str | os.PathLike", names: "l
     tmp, dest = os.fspath(tmp), os.fspath(dest)
     old = os.path.join(tmp, ".old")  # the names are taken by the new files
     os.makedirs(old, exist_ok=True)  # exists when a failed publication is tried again
-    for name in reversed(names):
-        try:
-            os.replace(os.path.join(dest, name), os.path.join(old, name))
-        except FileNotFoundError:
-            pass
     placed: list[str] = []
-    try:
+    try:  # both loops: a failure (or Ctrl-C) while the old set moves out must put it back too
+        for name in reversed(names):
+            try:
+                os.replace(os.path.join(dest, name), os.path.join(old, name))
+            except FileNotFoundError:
+                pass
         for name in names:
             os.replace(os.path.join(tmp, name), os.path.join(dest, name))
             placed.append(name)

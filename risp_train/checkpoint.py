@@ -98,11 +98,13 @@ def model_file(path: str) -> str:
     found = os.path.join(path, "model.pt")
     if os.path.isfile(found):
         return found
-    if os.path.isfile(os.path.join(path, SET_ASIDE, "model.pt")):  # a fit --overwrite killed before its checkpoint
-        raise RispError(f"{path} has no model.pt: a risp-train fit --overwrite set the previous run aside in "
-                        f"{os.path.join(path, SET_ASIDE)} and was stopped before its first checkpoint; move that "
-                        f"folder's files back into {path} to use the previous model")
     unfinished = os.path.isfile(os.path.join(path, "last.pt"))
+    if not unfinished and os.path.isfile(os.path.join(path, SET_ASIDE, "model.pt")):  # fit --overwrite before its
+        # first checkpoint: still running, or killed (SIGKILL, SIGTERM) — the earlier model waits in SET_ASIDE
+        raise RispError(f"{path} has no model.pt: a risp-train fit --overwrite set the previous run aside in "
+                        f"{os.path.join(path, SET_ASIDE)} and has written no checkpoint yet (it is still running, or "
+                        f"was stopped); to use the previous model once no fit runs there, move that folder's files "
+                        f"back into {path}")
     raise RispError(f"{path} is a folder without a model.pt" + (
         ": its training has not finished (last.pt is the resumable checkpoint; run the same fit again with --resume)"
         if unfinished else "; pass a risp-train checkpoint or a run folder that holds one"))

@@ -34,8 +34,8 @@ from . import checkpoint as ckpt_io
 from .config import RESUME_FIELDS, TrainConfig, resolved_gamma, resolved_gamma_start
 from .data import (ShardSet, check_complete, check_environment, iter_batches, make_loader, manifest_hash,
                    map_style_steps, open_shards, sample_counts, steps_per_epoch)
-from .memory import load_memory_set, memory_batches, resolve_cache
 from .checkpoint import SET_ASIDE
+from .memory import load_memory_set, memory_batches, resolve_cache
 from .model import ModelConfig, ResNet18, build_model, min_resolution, stem_for_resolution
 from .normalization import Normalization, StatsAccumulator
 from .regularizers import gamma_at, psi_scale, risp_loss
@@ -270,8 +270,8 @@ def _is_bookkeeping(name: str) -> bool:
 class SetAside:
     """The run that ``fit --overwrite`` replaces, kept in ``RUN/.overwritten-run`` until the new run has written its
     first checkpoint (:meth:`drop`): a fit that fails or is interrupted before that puts it back (:meth:`__exit__`,
-    pushed on the fit's ExitStack), so a user's model is never lost to a fit that produced none.  A SIGKILL leaves it
-    aside: the next fit on the folder and ``model_file`` name it."""
+    pushed on the fit's ExitStack), so a user's model is never lost to a fit that produced none.  A SIGKILL or a
+    SIGTERM (no handler runs) leaves it aside: the next fit on the folder and ``model_file`` name it."""
 
     def __init__(self, out: str, echo=None):
         self.out, self.folder, self.echo = out, os.path.join(out, SET_ASIDE), echo
@@ -281,11 +281,17 @@ class SetAside:
         return os.path.isdir(self.folder)
 
     def drop(self) -> None:
-        """The new run has a checkpoint: the replaced one goes."""
+        """The new run has a checkpoint: the replaced one goes.  Renamed to a temporary first (one atomic step, after
+        which nothing is pending), then deleted: a deletion that fails or is interrupted half-way must not make
+        ``__exit__`` restore a half-deleted old run over the new checkpoint (remove_temporaries drops the rest)."""
         if self.pending:
             import shutil
 
-            shutil.rmtree(self.folder)
+            from risp_data.atomic import temp_prefix
+
+            doomed = os.path.join(self.out, temp_prefix() + "overwritten-run")
+            os.replace(self.folder, doomed)
+            shutil.rmtree(doomed, ignore_errors=True)
 
     def __exit__(self, kind, exc, tb) -> bool:
         if kind is not None and self.pending:

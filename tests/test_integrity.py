@@ -6,6 +6,7 @@ The kill/resume matrix is in tests/test_kill_matrix.py.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import io
 import json
@@ -484,6 +485,40 @@ def test_fit_overwrite_keeps_the_old_run_until_its_first_checkpoint(data, model,
     assert not (run / "eval-old.json").exists()
 
 
+def test_a_set_aside_run_interrupted_while_deleted_never_replaces_the_new_checkpoint(tmp_path, monkeypatch):
+    """The new run's first checkpoint is written, then the replaced run is deleted; Ctrl-C (or an error) during that
+    deletion must leave the new checkpoint, not restore a half-deleted old run over it.  And while the new run's
+    last.pt is there, eval's error speaks of that unfinished run, not of the set-aside one."""
+    import shutil as shutil_module
+
+    from risp_data.errors import RispError
+    from risp_train.checkpoint import SET_ASIDE, model_file
+    from risp_train.train import SetAside
+
+    run = tmp_path / "run"
+    (run / SET_ASIDE).mkdir(parents=True)
+    (run / SET_ASIDE / "model.pt").write_bytes(b"old model")
+    (run / "last.pt").write_bytes(b"new checkpoint")
+    (run / "config.json").write_text("{}")
+    aside = SetAside(str(run))
+
+    def interrupted(path, *a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(shutil_module, "rmtree", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        with contextlib.ExitStack() as hold:
+            hold.push(aside.__exit__)
+            aside.drop()
+    monkeypatch.undo()
+    assert (run / "last.pt").read_bytes() == b"new checkpoint" and (run / "config.json").exists()
+    assert not (run / "model.pt").exists() and not aside.pending
+    (run / SET_ASIDE).mkdir()  # a fit killed between its checkpoint and the deletion
+    (run / SET_ASIDE / "model.pt").write_bytes(b"old model")
+    with pytest.raises(RispError, match="has not finished"):
+        model_file(str(run))
+
+
 def _eval_set(prefix):
     """The bytes of the three files an evaluation writes under ``prefix`` (None where absent)."""
     return {s: (open(prefix + s, "rb").read() if os.path.exists(prefix + s) else None)
@@ -531,8 +566,10 @@ def test_an_eval_stopped_while_writing_leaves_the_earlier_results_whole(data, mo
     assert _eval_set(prefix) == first and sorted(os.listdir(tmp_path)) == ["ev.json", "ev.md", "ev_scatter.png"]
 
 
-def test_publish_files_puts_the_old_set_back_when_a_rename_fails(tmp_path, monkeypatch):
-    """A rename that fails half-way through publishing (a folder in the way) leaves the old set, not a mix."""
+@pytest.mark.parametrize("failing_move", ["new file in", "old file out"])
+def test_publish_files_puts_the_old_set_back_when_a_rename_fails(tmp_path, monkeypatch, failing_move):
+    """A rename that fails half-way through publishing (a folder in the way, a permission) leaves the old set, not a
+    mix, whether it fails while the new files move in or while the old ones move out."""
     from risp_data.atomic import publish_files, temp_folder
 
     names = ["a.png", "a.md", "a.json"]
@@ -545,7 +582,9 @@ def test_publish_files_puts_the_old_set_back_when_a_rename_fails(tmp_path, monke
 
     def failing(src, dst):
         calls.append(dst)
-        if str(dst).endswith("a.md") and str(src).startswith(tmp) and ".old" not in str(src):
+        moving_in = str(src).startswith(tmp) and ".old" not in str(src)
+        moving_out = ".old" in str(dst)
+        if str(dst).endswith("a.md") and (moving_in if failing_move == "new file in" else moving_out):
             raise OSError(21, "Is a directory", str(dst))
         return real(src, dst)
 
