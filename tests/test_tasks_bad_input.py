@@ -121,7 +121,10 @@ def test_model_for_another_environment(quad, tmp_path):
 @pytest.mark.parametrize("change, words", [
     (dict(env="pendulum"), "trained for environment 'pendulum', which risp does not know"),
     (dict(state_names=["x", "y", "z", "roll", "pitch", "yaw"]), "state names ['x', 'y', 'z', 'roll', 'pitch', 'yaw'] differ"),
-    (dict(target_names=["t0", "t1"]), "target names ['t0', 't1'] differ from the quadrotor's"),
+    (dict(target_names=[f"t{i}" for i in range(9)]), "target names ['t0', 't1', 't2', 't3', 't4', 't5', 't6', 't7', "
+                                                      "'t8'] differ from the quadrotor's"),
+    # fewer names than the network's outputs: refused when the checkpoint is read, before the layout is compared
+    (dict(target_names=["t0", "t1"]), "normalization target_mean has 9 entries, the checkpoint has 2 target_names"),
 ])
 def test_model_of_another_state_layout_is_refused(quad, tmp_path, change, words):
     """A checkpoint whose environment or state/target names are not risp's (another system, an older state layout)
