@@ -27,7 +27,11 @@ f_in − f_out = L_A(p) − L_B(p) both shaded at the edge point p (so convex an
 The estimator of (1) is Mitsuba's: ΔL · (∂p/∂θ · n) / pdf · J with J the camera Jacobian of
 ``ProjectiveDetail.sensor_jacobian``.  Two more kinds of curve are added (methods below): shadow edges cast
 by point lights (Mitsuba cannot produce them: a boundary ray never hits a point light), and the curves
-where two parts interpenetrate (a sticker entering the cube), which are no mesh edges.  Indirect discontinuities
+where two parts interpenetrate (a sticker entering the cube), which are no mesh edges; each side of such a curve
+is shaded a ray epsilon into its own visible wing (at the curve itself a side's rays start on the other part's
+surface, and rounding put them inside it about half of the time).  Edges of a part that run inside a coplanar
+face of another part (parts built flush: a rotor's crossed blades, one height) are no boundary and are skipped
+(:func:`coplanar_cover`), for primary edges and point-light shadows alike.  Indirect discontinuities
 (shadows of area lights and of the environment, reflections) stay Mitsuba's, with the receiver's motion added to
 the edge's speed (:func:`indirect_integrand`).
 """
@@ -106,8 +110,14 @@ def intersection_segments(Vs: list, Fs: list, eps: float = 1e-9):
         return n, np.einsum("kj,kj->k", n, X[:, 0])
 
     def clip(X, n, c):
-        """The part of triangle X on the plane (n, c): the segment between its two crossing points."""
+        """The part of triangle X on the plane (n, c): the segment between its two crossing points.  Only a
+        triangle with vertices on both sides of the plane crosses it: one that touches it with a vertex or an
+        edge (a blade's side face ending in the plane of the other blade's top) makes no curve of its own
+        there (that edge is a mesh edge, sampled as such).  Distances within ``tol`` of the plane count as in
+        it: parts built coplanar meet the plane to within rounding, not exactly."""
         d = np.einsum("kvj,kj->kv", X, n) - c[:, None]
+        d = np.where(np.abs(d) <= tol[:, None], 0.0, d)
+        straddles = (d.max(1) > 0) & (d.min(1) < 0)
         pts, count = np.zeros((len(X), 2, 3)), np.zeros(len(X), np.int64)
         candidates = [(d[:, a] == 0, X[:, a]) for a in range(3)]  # a vertex on the plane counts once
         for a, b in ((0, 1), (1, 2), (2, 0)):
@@ -118,10 +128,12 @@ def intersection_segments(Vs: list, Fs: list, eps: float = 1e-9):
             m = hit & (count < 2)
             pts[m, np.minimum(count, 1)[m]] = p[m]
             count += hit
-        return pts, count == 2
+        return pts, (count == 2) & straddles
 
     nA, cA = plane(A)
     nB, cB = plane(B)
+    # float32 vertices of parts built to share a plane lie in it to ~1e-7 of their coordinates
+    tol = 1e-6 * (1 + np.maximum(np.abs(A).max((1, 2)), np.abs(B).max((1, 2))))
     segA, okA = clip(A, nB, cB)
     segB, okB = clip(B, nA, cA)
     t = np.cross(nA, nB)
@@ -148,6 +160,132 @@ def intersection_segments(Vs: list, Fs: list, eps: float = 1e-9):
     A, B, x0, x1 = A[k], B[k], x0[k], x1[k]
     return (x0, x1, owner[i][k], face[i][k], owner[j][k], face[j][k],
             bary(A, x0), bary(A, x1), bary(B, x0), bary(B, x1))
+
+
+def coplanar_cover(meshes: list, shape_idx: np.ndarray, dedge: np.ndarray, faces: list, k_max: int = 4):
+    """Where discontinuity edges run inside a coplanar face of another part: no discontinuity there.
+
+    Parts built flush (a rotor's two crossed blades, both tops at one height; arms as thick as the body) have
+    coplanar faces.  An edge of part A inside such a face of part B is no curve of the image: on both sides the
+    camera sees the same plane (A's top, then B's), and A's side face below the edge lies inside B.  Its
+    samples would add (f_in − f_out) v·n with f_out the radiance of a hidden face.
+
+    ``meshes``: [(V, F)] per shape; edge e is the directed edge ``dedge[e]`` (3·face + k, from vertex F[face, k]
+    to F[face, (k + 1) % 3]) of shape ``shape_idx[e]``; ``faces``: arrays of face indices of that shape whose
+    planes are tested (the edge's in-face, and for a crease its out-face too).  A triangle covers the part of
+    the edge that lies strictly inside it when the two are coplanar and face the same way (normals within
+    1e-6, plane offsets within 1e-6 of the coordinates) and it belongs to another part (connected component of
+    the meshes' faces).
+
+    Returns lo, hi (E, k_max): intervals of the sample parameter u ∈ [0, 1] (``sample_precomputed_silhouette``:
+    p = lerp(F[face, k], F[face, k + 1], u)) that are covered; unused slots are (2, 2)."""
+    E = len(dedge)
+    lo_out, hi_out = np.full((E, k_max), 2.0), np.full((E, k_max), 2.0)
+    if E == 0:
+        return lo_out, hi_out
+    Vs = [np.asarray(V, np.float64).reshape(-1, 3) for V, _ in meshes]
+    Fs = [np.asarray(F, np.int64).reshape(-1, 3) for _, F in meshes]
+    T = np.concatenate([V[F] for V, F in zip(Vs, Fs)])
+    face_base = np.cumsum([0] + [len(F) for F in Fs])
+    nT = np.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0])
+    nT /= np.maximum(np.linalg.norm(nT, axis=1, keepdims=True), 1e-30)
+    f_edge, k_edge = dedge // 3, dedge % 3
+    g_edge = face_base[shape_idx] + f_edge  # the edge's face in T
+    a = T[g_edge, k_edge]
+    b = T[g_edge, (k_edge + 1) % 3]
+    tol = 1e-6 * (1 + np.abs(T).max())
+    part = np.concatenate([_face_parts(F) + o for F, o in zip(Fs, face_base[:-1])])  # a part id per triangle
+    # the tested faces: each edge's in-face, and the other faces given (a crease's out-face)
+    entry_edge = np.tile(np.arange(E), len(faces))
+    g_test = face_base[np.tile(np.asarray(shape_idx, np.int64), len(faces))] + np.concatenate(
+        [np.asarray(f, np.int64) for f in faces])
+    # coplanar candidates: faces × triangles of other parts with parallel normals and equal plane offsets (dense,
+    # ~10² × 10³: a few ms, cheaper than a broad phase over the edges' and triangles' boxes), then every vertex
+    g_u, inverse = np.unique(g_test, return_inverse=True)
+    n32, c32 = nT.astype(np.float32), np.einsum("kj,kj->k", nT, T[:, 0]).astype(np.float32)  # planes
+    lo32, hi32 = (T.min(1) - tol).astype(np.float32), (T.max(1) + tol).astype(np.float32)
+    candidate = (n32[g_u] @ n32.T > 1 - 1e-6) & (np.abs(c32[g_u][:, None] - c32[None, :]) <= 4 * tol)
+    candidate &= part[g_u][:, None] != part[None, :]
+    for axis in range(3):  # the face's and the triangle's boxes overlap
+        candidate &= (lo32[g_u, axis][:, None] <= hi32[None, :, axis]) & (lo32[None, :, axis] <= hi32[g_u, axis][:, None])
+    gi, t = np.nonzero(candidate)
+    g = g_u[gi]
+    close = np.abs(np.einsum("kj,kvj->kv", nT[g], T[t] - T[g, :1])).max(1) <= tol
+    gi, t = gi[close], t[close]
+    # every edge whose tested face is one of those faces, with each of the face's coplanar triangles
+    count = np.bincount(gi, minlength=len(g_u))[inverse]
+    intervals = [[] for _ in range(E)]
+    if count.sum() > 0:
+        order = np.argsort(gi, kind="stable")
+        gi, t = gi[order], t[order]
+        entry = np.repeat(np.arange(len(g_test)), count)
+        within = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+        ee, tt = entry_edge[entry], t[np.searchsorted(gi, inverse[entry]) + within]
+        u0, u1 = np.zeros(len(ee)), np.ones(len(ee))
+        for v in range(3):  # Cyrus–Beck: strictly inside each of the triangle's three edges
+            p0, p1 = T[tt, v], T[tt, (v + 1) % 3]
+            m = np.cross(nT[tt], p1 - p0)  # in-plane, pointing into the triangle
+            m /= np.maximum(np.linalg.norm(m, axis=1, keepdims=True), 1e-30)
+            f0 = np.einsum("kj,kj->k", m, a[ee] - p0) - tol
+            df = np.einsum("kj,kj->k", m, b[ee] - a[ee])
+            root = -f0 / np.where(df == 0, 1, df)
+            u0 = np.where(df > 0, np.maximum(u0, root), u0)
+            u1 = np.where(df < 0, np.minimum(u1, root), u1)
+            outside = (df == 0) & (f0 <= 0)
+            u1 = np.where(outside, -1.0, u1)
+        ok = u1 - u0 > 1e-9
+        for k, l, h in zip(ee[ok], u0[ok], u1[ok]):
+            intervals[k].append((l, h))
+    for k, iv in enumerate(intervals):
+        if not iv:
+            continue
+        iv.sort()
+        merged = [list(iv[0])]
+        for l, h in iv[1:]:
+            if l <= merged[-1][1]:
+                merged[-1][1] = max(merged[-1][1], h)
+            else:
+                merged.append([l, h])
+        merged.sort(key=lambda x: x[0] - x[1])  # the longest first, if more than k_max remain
+        for slot, (l, h) in enumerate(merged[:k_max]):
+            lo_out[k, slot], hi_out[k, slot] = l, h
+    return lo_out, hi_out
+
+
+_PARTS_CACHE: dict = {}
+
+
+def _face_parts(F: np.ndarray) -> np.ndarray:
+    """Connected component of every face of one mesh (faces joined by shared vertices): its parts.  A mesh's
+    faces do not change from frame to frame, so the labels are kept (by the faces' bytes, a few meshes)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    key = F.tobytes()
+    if key not in _PARTS_CACHE:
+        n = int(F.max()) + 1 if len(F) else 0
+        rows = np.repeat(F[:, 0], 2)
+        cols = F[:, 1:].ravel()
+        graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
+        _, label = connected_components(graph, directed=False)
+        if len(_PARTS_CACHE) > 64:
+            _PARTS_CACHE.clear()
+        _PARTS_CACHE[key] = label[F[:, 0]]
+    return _PARTS_CACHE[key]
+
+
+def _covered(lo: np.ndarray, hi: np.ndarray, idx, u):
+    """Dr.Jit mask: sample parameter ``u`` of edge ``idx`` lies in one of its covered intervals (coplanar_cover)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    k_max = lo.shape[1]
+    lo_d, hi_d = mi.Float(lo.ravel().astype(np.float32)), mi.Float(hi.ravel().astype(np.float32))
+    out = mi.Bool(False)
+    for slot in range(k_max):
+        at = idx * k_max + slot
+        out |= (u >= dr.gather(mi.Float, lo_d, at)) & (u <= dr.gather(mi.Float, hi_d, at))
+    return out
 
 
 def overlapping_boxes(lo: np.ndarray, hi: np.ndarray):
@@ -224,6 +362,8 @@ class FlatEdgesMixin:
             ss_out = shape.sample_precomputed_silhouette(sensor_center, dr.gather(mi.UInt32, mi.UInt32(dout), idx),
                                                          1 - s2.y, is_crease)
             active = (pmf > 0) & (ss.pdf > 0)
+            lo, hi = coplanar_cover(meshes, shape_idx, din, [din // 3, dout // 3])
+            active &= ~_covered(lo, hi, idx, s2.y)
 
             J = self.proj_detail.sensor_jacobian(sensor, ss)
             ΔL, wavelengths = self._radiance_difference(scene, sampler, sensor, ss, ss_out, is_crease, active)
@@ -315,7 +455,14 @@ class FlatEdgesMixin:
             active = (pmf > 0) & (dr.dot(wa, n) < 0) & (dr.dot(na, to_cam) > 0) & (dr.dot(nb, to_cam) > 0)
             ss_a.n, ss_a.silhouette_d, ss_a.pdf = n, t, pdf
             J = self.proj_detail.sensor_jacobian(sensor, ss_a)
+            # f_in and f_out are the image's limits on either side of the curve.  x lies on both planes, so a ray
+            # spawned at x (offset along its own face's normal only) starts on the other part's surface, and
+            # rounding puts it inside that part about half of the time: every ray blocked, a black side (ΔL off by
+            # the whole radiance).  Each side is shaded a ray epsilon into its own visible wing instead.
+            nudge = (1 + dr.max(dr.abs(x))) * mi.math.RayEpsilon
+            ss_a.p, ss_b.p = x + nudge * wa, x + nudge * wb
             ΔL, wavelengths = self._radiance_difference(scene, sampler, sensor, ss_a, ss_b, mi.Bool(True), active)
+            ss_a.p, ss_b.p = x, x
             c = dr.dot(na, nb)
             it = dr.zeros(mi.Interaction3f)
             it.p = x
@@ -362,6 +509,7 @@ class FlatEdgesMixin:
         pi.prim_uv = ss.uv
         pi.shape = ss.shape
         si = pi.compute_surface_interaction(mi.Ray3f(ss.p - ss.d, ss.d), mi.RayFlags.All, active)
+        si.p = ss.p  # the face's point from its barycentrics, or a crossing's point moved into its wing
         L, _, _, _ = self.sample(dr.ADMode.Primal, scene, sampler, ray, 0, None, None, active, False, si)
         return L
 
@@ -454,10 +602,12 @@ class FlatEdgesMixin:
             shape_idx, din, w = [np.concatenate(c) for c in zip(*tables)]
             if len(w) == 0 or w.sum() <= 0:
                 continue
-            out += self._shadow_splat(scene, sensor, sampler, spp, shapes, light, mi.Point3f(*[float(c) for c in L]), shape_idx, din, w)
+            cover = coplanar_cover(meshes, shape_idx, din, [din // 3])
+            out += self._shadow_splat(scene, sensor, sampler, spp, shapes, light, mi.Point3f(*[float(c) for c in L]),
+                                      shape_idx, din, w, cover)
         return out
 
-    def _shadow_splat(self, scene, sensor, sampler, spp, shapes, light, L, shape_idx, din, w):
+    def _shadow_splat(self, scene, sensor, sampler, spp, shapes, light, L, shape_idx, din, w, cover):
         import drjit as dr
         import mitsuba as mi
 
@@ -469,7 +619,7 @@ class FlatEdgesMixin:
             idx, pmf = distr.sample_pmf(s2.x)
             shape = dr.gather(mi.ShapePtr, mi.ShapePtr(shapes), dr.gather(mi.UInt32, mi.UInt32(shape_idx), idx))
             ss = shape.sample_precomputed_silhouette(L, dr.gather(mi.UInt32, mi.UInt32(din), idx), s2.y, pmf > 0)
-            active = (pmf > 0) & (ss.pdf > 0)
+            active = (pmf > 0) & (ss.pdf > 0) & ~_covered(*cover, idx, s2.y)
             pdf_p = ss.pdf * pmf
             # the light must reach p, and the ray must go on to hit a receiver q
             to_p = ss.p - L

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from risp_data.flat_projective import edge_table, intersection_segments, overlapping_boxes
+from risp_data.flat_projective import coplanar_cover, edge_table, intersection_segments, overlapping_boxes
 
 # unit cube, outward-wound triangles (two per face)
 CUBE_V = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float)
@@ -37,6 +37,65 @@ def test_crossing_triangles_give_their_common_segment():
         assert np.allclose(p, x0[0], atol=1e-9)
     # triangles of one mesh that share a vertex are not crossings
     assert len(intersection_segments([np.r_[a, b[:2]]], [np.array([[0, 1, 2], [2, 3, 4]])])[0]) == 0
+
+
+def test_a_triangle_that_only_touches_a_plane_makes_no_crossing():
+    """A blade's side face ends in the plane of the other blade's top (flush parts): it touches that plane along
+    an edge, to within float32 rounding, without crossing it, so no crossing segment (its edge is a mesh edge).
+    Moved 1 mm up it crosses the plane, and the segment is there."""
+    top = np.array([[-1.0, -1, 0.1], [1, -1, 0.1], [0, 1, 0.1]])
+    side = np.array([[0.0, -0.5, 0.1 + 3e-9], [0, 0.5, 0.1 - 3e-9], [0, 0, -0.2]])  # its top edge in z = 0.1
+    face = np.array([[0, 1, 2]])
+    assert len(intersection_segments([top, side], [face, face])[0]) == 0
+    assert len(intersection_segments([top, side + [0, 0, 1e-3]], [face, face])[0]) == 1
+
+
+def _box(extents, centre):
+    import trimesh
+
+    b = trimesh.creation.box(extents=extents)
+    b.apply_translation(centre)
+    return np.asarray(b.vertices), np.asarray(b.faces)
+
+
+def _cover_of_crossed_bars(height_b):
+    """Bar A along x (0.4 × 0.05 × 0.03), bar B along y, crossing at the origin, B's height ``height_b``; both
+    bars in one mesh.  Returns A's top edges along x (seen from above: creases), their end points, and the
+    covered intervals of every edge."""
+    (Va, Fa), (Vb, Fb) = _box([0.4, 0.05, 0.03], [0, 0, 0]), _box([0.05, 0.4, height_b], [0, 0, 0])
+    V, F = np.r_[Va, Vb], np.r_[Fa, Fb + len(Va)]
+    din, dout, crease, _ = edge_table(V, F, np.array([0.3, -0.2, 3.0]))
+    lo, hi = coplanar_cover([(V, F)], np.zeros(len(din), np.int64), din, [din // 3, dout // 3])
+    a, b = V[F[din // 3, din % 3]], V[F[din // 3, (din % 3 + 1) % 3]]
+    on_a_top = (din // 3 < len(Fa)) & np.isclose(a[:, 2], 0.015) & np.isclose(b[:, 2], 0.015) & \
+        np.isclose(a[:, 1], b[:, 1])
+    return on_a_top, a, b, lo, hi
+
+
+def test_edges_inside_a_coplanar_face_of_another_part_are_covered():
+    """Two crossed bars of one height: each top edge of bar A runs through bar B's top for |x| < 0.025, where the
+    image shows the same plane on both sides.  That stretch (and no other) is covered; with B 6 mm taller the
+    planes differ and nothing is."""
+    on_a_top, a, b, lo, hi = _cover_of_crossed_bars(0.03)
+    assert on_a_top.sum() == 2  # A's two long top edges (each a crease or a silhouette from this viewpoint)
+    for k in np.nonzero(on_a_top)[0]:
+        slots = lo[k] < 2
+        covered = [(a[k] + u * (b[k] - a[k]))[0] for u in np.r_[lo[k][slots], hi[k][slots]]]
+        assert np.isclose(min(covered), -0.025, atol=1e-5) and np.isclose(max(covered), 0.025, atol=1e-5)
+        # (less a margin of 1e-6 of the coordinates at each triangle boundary, B's diagonal included)
+        assert np.sum(hi[k][slots] - lo[k][slots]) == pytest.approx(0.05 / 0.4, abs=1e-4)
+    covered_edges = (lo < 2).any(1)
+    # the only covered edges are top and bottom edges of the two bars, inside the other bar's face
+    assert covered_edges.sum() >= 2 and np.all(np.isclose(np.abs(a[covered_edges, 2]), 0.015))
+    _, _, _, lo_taller, _ = _cover_of_crossed_bars(0.036)
+    assert not (lo_taller < 2).any()
+
+
+def test_a_part_does_not_cover_its_own_edges():
+    """One box: every face is coplanar with its neighbour triangle, none covers an edge (same part)."""
+    din, dout, _, _ = edge_table(CUBE_V, CUBE_F, np.array([3.0, 2.5, 2.0]))
+    lo, _ = coplanar_cover([(CUBE_V, CUBE_F)], np.zeros(len(din), np.int64), din, [din // 3, dout // 3])
+    assert not (lo < 2).any()
 
 
 @pytest.mark.parametrize("n", [0, 1, 2, 7, 300])
