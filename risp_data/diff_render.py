@@ -16,9 +16,10 @@ backward pass took 6–9 s at 64×64 on a 2-core machine, without it ≈0.1 s.
 The scene is the one :class:`risp_data.render.Renderer` builds (same meshes, materials, lights, camera,
 ψ bindings), and the primal image is rendered by its own integrator, so images have the shards'
 expectation.  The gradient's interior term uses paths of at most ``grad_max_depth`` = 2 segments (direct
-light): with the data's indirect bounce it was heavy-tailed near concave contacts (the die pips the cube had then); the boundary
-radiances use the primal's path length.  What is still biased (thin interpenetrating parts, the
-quadrotor): docs/tasks.md §Render-mode gradients.
+light): with the data's indirect bounce it was heavy-tailed near concave contacts (the die pips the cube had then).
+The boundary radiances f_in, f_out use the primal's paths, except for the environments of ``BOUNDARY_PATHS``
+(the cube, the quadrotor), whose lit concave corners make the bounce's near-field peak a jump the 2-segment
+interior cannot cancel (the cube's whole-image derivative 138 against FD 70 with 3 segments, 78 with 2).
 """
 
 from __future__ import annotations
@@ -31,6 +32,16 @@ from .psi import RenderConfig, nominal_rendering
 from .render import Renderer
 
 INTEGRATORS: tuple[str, ...] = ("prb_projective", "direct_projective")
+# Path length (segments) of the boundary radiances f_in, f_out where it is not the primal's (the data's 3, one
+# bounce): the interior's 2 for the environments whose parts meet in lit concave corners (the cube's stickers,
+# the quadrotor's rotors and arms).  There the bounce brightens a face at a corner's foot over a fraction of a
+# millimetre, and a jump that counted it would count that near-field peak without the decay that cancels it, an
+# interior derivative of the bounce the 2-segment gradient paths drop; elsewhere the bounce is a real part of a
+# silhouette's jump (the hand and the rod against the floor).  Measured, not derived: ‖g − fd‖ / ‖fd‖ of the whole
+# state gradient (benchmarks/diff_render_fd.py, 8 seeds) with 2 / 3 segments — cube 0.35 / 1.58, quadrotor
+# 0.03 / 0.84, hand 0.31 / 0.20, rod 1.02 / 0.40 at state seed 1; rod 0.56 / 0.19 at seed 2 (docs/tasks.md
+# §Shadows, bounces, stickers).
+BOUNDARY_PATHS: dict[str, int] = {"cube": 2, "quadrotor": 2}
 BOUNDARIES: tuple[str, ...] = ("flat", "mitsuba")  # whose primary-visibility boundary term (docs/tasks.md)
 
 
@@ -40,19 +51,23 @@ class StateRenderer:
     ``config``: the look ψ (and its aux); None gives the domain's nominal look
     (:func:`risp_data.psi.nominal_rendering`).  ``spp``: samples per pixel of the gradient pass;
     ``primal_spp`` (None: ``spp``) those of the images returned, which a render loss's network reads
-    (docs/tasks.md §Primal spp).  Frame t of a call is rendered with the random stream
+    (docs/tasks.md §Primal spp).  ``boundary_max_depth``: path length of the flat boundary term's radiances
+    (None: ``BOUNDARY_PATHS``, else the primal's).  Frame t of a call is rendered with the random stream
     ``frame_seed(seed, t)``, so the same (states, seed) give the same images; the gradient pass uses an
     independent stream (Mitsuba's ``seed_grad``), which keeps the gradient estimate unbiased.
     """
 
     def __init__(self, env: str, resolution: int = 64, spp: int = 8, domain: str = "train",
                  config: RenderConfig | None = None, integrator: str = "prb_projective", variant: str | None = None,
-                 grad_max_depth: int = 2, boundary: str = "flat", primal_spp: int | None = None):
+                 grad_max_depth: int = 2, boundary: str = "flat", primal_spp: int | None = None,
+                 boundary_max_depth: int | None = None):
         if integrator not in INTEGRATORS:
             raise RispError(f"unknown differentiable integrator {integrator!r}; choose one of: {', '.join(INTEGRATORS)}")
         if boundary not in BOUNDARIES:
             raise RispError(f"unknown gradient boundary term {boundary!r}; choose one of: {', '.join(BOUNDARIES)}")
         self.boundary = boundary
+        if boundary_max_depth is not None and (int(boundary_max_depth) != boundary_max_depth or boundary_max_depth < 1):
+            raise RispError(f"boundary_max_depth must be a positive integer, got {boundary_max_depth!r}")
         self.renderer = Renderer(env, domain=domain, resolution=resolution, spp=spp, variant=variant)
         self.env = self.renderer.env
         self.resolution = self.renderer.resolution
@@ -72,6 +87,8 @@ class StateRenderer:
         # flat-shaded meshes, point-light shadows), with paths of at most ``grad_max_depth`` segments
         self.primal_integrator = self.renderer.integrator
         settings = self.renderer.settings
+        self.boundary_max_depth = (int(boundary_max_depth) if boundary_max_depth is not None
+                                   else BOUNDARY_PATHS.get(self.env.name, settings.max_depth))
         # (boundary="mitsuba": Mitsuba's own integrator, biased for flat-shaded meshes but cheaper and less
         # noisy at a few spp; kept selectable so the two can be compared on a task)
         flat = boundary == "flat"
@@ -80,7 +97,7 @@ class StateRenderer:
         if integrator == "prb_projective":
             props["rr_depth"] = settings.rr_depth
             if flat:
-                props["boundary_max_depth"] = settings.max_depth  # boundary radiances as long as the primal's
+                props["boundary_max_depth"] = self.boundary_max_depth
         self.integrator = mi.load_dict(props)
         self.set_look(config if config is not None else nominal_rendering(env, domain))
         self._render_frame = self._make_frame_renderer()

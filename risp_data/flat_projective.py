@@ -28,8 +28,10 @@ The estimator of (1) is Mitsuba's: ΔL · (∂p/∂θ · n) / pdf · J with J th
 ``ProjectiveDetail.sensor_jacobian``.  Two more kinds of curve are added (methods below): shadow edges cast
 by point lights (Mitsuba cannot produce them: a boundary ray never hits a point light), and the curves
 where two parts interpenetrate (a sticker entering the cube), which are no mesh edges; each side of such a curve
-is shaded a ray epsilon into its own visible wing (at the curve itself a side's rays start on the other part's
-surface, and rounding put them inside it about half of the time).  Edges of a part that run inside a coplanar
+is shaded an eighth of a ray epsilon into its own visible wing (at the curve itself a side's rays start on the
+other part's surface, and rounding put them inside it about half of the time).  Point-light shadow edges lie where
+the primal's shadow rays, spawned a ray epsilon off the receiver, graze the edge (not on the geometric shadow line),
+and their visibility is the camera's own ray's.  Edges of a part that run inside a coplanar
 face of another part (parts built flush: a rotor's crossed blades, one height) are no boundary and are skipped
 (:func:`coplanar_cover`), for primary edges and point-light shadows alike.  Indirect discontinuities
 (shadows of area lights and of the environment, reflections) stay Mitsuba's, with the receiver's motion added to
@@ -458,8 +460,12 @@ class FlatEdgesMixin:
             # f_in and f_out are the image's limits on either side of the curve.  x lies on both planes, so a ray
             # spawned at x (offset along its own face's normal only) starts on the other part's surface, and
             # rounding puts it inside that part about half of the time: every ray blocked, a black side (ΔL off by
-            # the whole radiance).  Each side is shaded a ray epsilon into its own visible wing instead.
-            nudge = (1 + dr.max(dr.abs(x))) * mi.math.RayEpsilon
+            # the whole radiance).  Each side is shaded a little into its own visible wing instead: an eighth of a ray
+            # epsilon, still ~100 float32 ulps of |x| (the rounding is gone), and small against a 1 mm sticker
+            # wall, at whose foot the face's sky occlusion changes within a fraction of a millimetre (one ray
+            # epsilon, a seventh of the wall in the cube's scene, biased its derivative: docs/tasks.md §Shadows,
+            # bounces, stickers).
+            nudge = (1 + dr.max(dr.abs(x))) * mi.math.RayEpsilon / 8
             ss_a.p, ss_b.p = x + nudge * wa, x + nudge * wb
             ΔL, wavelengths = self._radiance_difference(scene, sampler, sensor, ss_a, ss_b, mi.Bool(True), active)
             ss_a.p, ss_b.p = x, x
@@ -555,8 +561,8 @@ class FlatEdgesMixin:
         weight = _take(weight, keep) if dr.width(weight) > 1 else weight
         ray_bg = ss.spawn_ray(wl)
         on = mi.Bool(True)
-        # the radiance on either side is the image's: paths as long as the primal's (boundary_max_depth), even
-        # where the interior term uses shorter ones
+        # the radiance on either side: paths of boundary_max_depth segments (default: the interior term's;
+        # StateRenderer sets the primal's, or the interior's for the scenes of diff_render.BOUNDARY_PATHS)
         depth, self.max_depth = self.max_depth, getattr(self, "boundary_max_depth", self.max_depth)
         try:
             L_in = self._shade(scene, shading, ss, ray_bg, on)
@@ -631,16 +637,31 @@ class FlatEdgesMixin:
             pi = scene.ray_intersect_preliminary(ray_on, active=active & lit)
             active &= lit & pi.is_valid()
             si_q = pi.compute_surface_interaction(ray_on, mi.RayFlags.All, active)
-            q, n_r = si_q.p, si_q.n
-            # camera side: q visible and in the frustum; the receiver faces the camera
+            n_r = si_q.n
+            # The image's shadow boundary is the primal's: its shadow ray from a receiver point x starts a ray
+            # epsilon ε = (1 + |x|∞)·RayEpsilon off the surface on the light's side (Interaction.spawn_ray_to), so
+            # x is lit when x + ε n clears the edge, and the boundary is where the line from L through p, moved
+            # by −ε n, meets the receiver: from the hit, −ε n and then ε / cos back along the light's ray (cos
+            # its incidence; a grazing receiver keeps the hit).  ε is a seventh of a 1 mm sticker's height: the
+            # geometric boundary lay up to 0.2 mm beyond the image's (docs/tasks.md §Shadows, bounces, stickers)
+            n_l = dr.select(dr.dot(n_r, L - si_q.p) > 0, n_r, -n_r)
+            cos_l = -dr.dot(n_l, ray_on.d)
+            eps = dr.select(cos_l > 1e-2, (1 + dr.max(dr.abs(si_q.p))) * mi.math.RayEpsilon, 0)
+            shift = -eps * n_l
+            back = eps / dr.maximum(cos_l, 1e-2)
+            q = si_q.p + shift - back * ray_on.d
+            lam = (dr.norm(si_q.p - L) - back) / dist_p  # the moved line L + shift + λ (p − L) meets q at λ
+            si_q.p = q
+            # camera side: the camera's own ray reaches q (the test the image makes; a ray from q, lifted ε off
+            # the receiver, cleared a sticker's rim the camera's ray does not), q is in the frustum, and the
+            # receiver faces the camera
             center = sensor.world_transform() @ mi.Point3f(0)
             to_cam = center - q
             dist_c = dr.norm(to_cam)
             w_cam = to_cam / dist_c
             active &= dr.dot(n_r, w_cam) * dr.dot(n_r, -ss.d) > 0  # camera and light on the same side of it
-            ray_c = si_q.spawn_ray(w_cam)
-            ray_c.maxt = dist_c * (1 - mi.math.ShadowEpsilon)
-            active &= ~scene.ray_test(ray_c, active)
+            pi_c = scene.ray_intersect_preliminary(mi.Ray3f(center, -w_cam), coherent=False, active=active)
+            active &= pi_c.is_valid() & (pi_c.t >= dist_c * (1 - 1e-5))
             it = dr.zeros(mi.Interaction3f)
             it.p = q
             sensor_ds, _ = sensor.sample_direction(it, mi.Point2f(0), active)
@@ -655,7 +676,6 @@ class FlatEdgesMixin:
             bsdf_val = si_q.bsdf().eval(mi.BSDFContext(), si_q, si_q.to_local(ds.d), active)
             ΔL = dr.select(active, bsdf_val * light_val * wl_weight, 0)
             # geometry of the shadow curve at q
-            lam = dr.norm(q - L) / dist_p
             e = ss.silhouette_d
             dq_ds = lam * (e - to_p * (dr.dot(e, n_r) / dr.dot(to_p, n_r)))
             speed = dr.norm(dq_ds)
@@ -675,20 +695,21 @@ class FlatEdgesMixin:
                 return dr.zeros(mi.TensorXf, (film.crop_size()[1], film.crop_size()[0],
                                               film.base_channels_count() + len(aovs)))
             ss, pi = dr.gather(type(ss), ss, keep), dr.gather(type(pi), pi, keep)
-            ΔL, n = _take(ΔL, keep), _take(n, keep)
+            ΔL, n, shift = _take(ΔL, keep), _take(n, keep), _take(shift, keep)
             weight = dr.gather(mi.Float, J / pdf_q, keep)
             lam = dr.gather(mi.Float, lam, keep)
             uv = _take(sensor_ds.uv, keep)
             wavelengths = _take(wavelengths, keep) if dr.width(wavelengths) > 1 else wavelengths
 
-        # ∂q/∂θ: the receiver hit of the line from L through the moving edge point (Möller–Trumbore attaches it)
+        # ∂q/∂θ: the receiver hit of the (moved) line from L through the moving edge point (Möller–Trumbore
+        # attaches it)
         si = dr.zeros(mi.SurfaceInteraction3f)
         si.p = ss.p
         si.prim_index = ss.prim_index
         si.uv = ss.uv
         p_att = ss.shape.differential_motion(dr.detach(si))
         pi.t = lam
-        q_att = pi.compute_surface_interaction(mi.Ray3f(L, p_att - L), mi.RayFlags.All).p
+        q_att = pi.compute_surface_interaction(mi.Ray3f(L + shift, p_att - L), mi.RayFlags.All).p
         derivative = ΔL * dr.dot(q_att, n) * weight
 
         film.prepare(aovs)
