@@ -653,8 +653,9 @@ class FlatEdgesMixin:
             lam = (dr.norm(si_q.p - L) - back) / dist_p  # the moved line L + shift + λ (p − L) meets q at λ
             si_q.p = q
             # camera side: the camera's own ray reaches q (the test the image makes; a ray from q, lifted ε off
-            # the receiver, cleared a sticker's rim the camera's ray does not), q is in the frustum, and the
-            # receiver faces the camera
+            # the receiver, can be blocked or clear where the camera's ray grazes an edge: a stretch of the cube's
+            # floor shadow just past its silhouette was missed), q is in the frustum, and the receiver faces the
+            # camera
             center = sensor.world_transform() @ mi.Point3f(0)
             to_cam = center - q
             dist_c = dr.norm(to_cam)
