@@ -24,6 +24,8 @@ interior cannot cancel (the cube's whole-image derivative 138 against FD 70 with
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 
@@ -43,6 +45,13 @@ INTEGRATORS: tuple[str, ...] = ("prb_projective", "direct_projective")
 # §Shadows, bounces, stickers).
 BOUNDARY_PATHS: dict[str, int] = {"cube": 2, "quadrotor": 2}
 BOUNDARIES: tuple[str, ...] = ("flat", "mitsuba")  # whose primary-visibility boundary term (docs/tasks.md)
+
+
+def _positive_int(value) -> bool:
+    """Whether ``value`` is a whole number >= 1 (3 and 3.0, not 2.5, "3", None, NaN or inf): for a one-line RispError
+    instead of the ValueError or TypeError that int() raises on a string."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and \
+        value >= 1 and int(value) == value
 
 
 class StateRenderer:
@@ -66,12 +75,12 @@ class StateRenderer:
         if boundary not in BOUNDARIES:
             raise RispError(f"unknown gradient boundary term {boundary!r}; choose one of: {', '.join(BOUNDARIES)}")
         self.boundary = boundary
-        if boundary_max_depth is not None and (int(boundary_max_depth) != boundary_max_depth or boundary_max_depth < 1):
+        if boundary_max_depth is not None and not _positive_int(boundary_max_depth):
             raise RispError(f"boundary_max_depth must be a positive integer, got {boundary_max_depth!r}")
         self.renderer = Renderer(env, domain=domain, resolution=resolution, spp=spp, variant=variant)
         self.env = self.renderer.env
         self.resolution = self.renderer.resolution
-        if primal_spp is not None and (int(primal_spp) != primal_spp or primal_spp < 1):
+        if primal_spp is not None and not _positive_int(primal_spp):
             raise RispError(f"primal_spp must be a positive integer, got {primal_spp!r}")
         self.spp = self.renderer.spp * self.renderer.settings.spp_factor
         self.primal_spp = (int(primal_spp) if primal_spp is not None else spp) * self.renderer.settings.spp_factor

@@ -80,6 +80,21 @@ def diagnose(data, env, out, seed, held_out, horizon, rollout_horizon, max_segme
     click.echo(f"held-out normalised RSS gain: {report['gain']['normalized_rss']:+.1%}; report: {os.path.join(os.path.normpath(out), 'report.md')}")
 
 
+class _Knots(click.ParamType):
+    """--action-knots: a whole number, or ``auto`` (imitate's cross-validated choice)."""
+
+    name = "K|auto"
+
+    def convert(self, value, param, ctx):
+        try:
+            return int(value)
+        except (TypeError, ValueError):  # "auto", or a word TaskConfig refuses in its one error line
+            return value
+
+
+KNOTS = _Knots()
+
+
 # The options of _task_options that only some tasks use, and those tasks.  The others still accept them (hidden
 # from their --help), so that TaskConfig can say in one line why the option is not theirs.
 ONLY_FOR = {"--grow-horizon": ("sysid", "imitate"), "--action-knots": ("imitate", "control"),
@@ -125,9 +140,10 @@ def _task_options(task: str):
         click.option("--grow-horizon", type=int, default=0, show_default=True, **shown("--grow-horizon"),
                      help="sysid, imitate: over this many iterations the loss compares the first 2, 3, … frames, "
                           "then all (docs/tasks.md §Horizon curriculum)"),
-        click.option("--action-knots", type=int, default=0, show_default=True, **shown("--action-knots"),
+        click.option("--action-knots", type=KNOTS, default="0", show_default=True, **shown("--action-knots"),
                      help="imitate, control: K >= 2 knots of a piecewise-linear command per action instead of one "
-                          "row per frame (docs/tasks.md §Smooth commands)"),
+                          "row per frame; imitate: auto chooses K by cross-validation over the video's frames "
+                          "(docs/tasks.md §Smooth commands)"),
         click.option("--params", default=None, **shown("--params"),
                      help="imitate, control: known physical parameters — a JSON object, a JSON file, or a sysid "
                           "result.json (default: the simulator's nominal ones)"),

@@ -201,8 +201,9 @@ def test_primal_spp_sets_the_images_and_spp_the_gradient(one_torch_thread):
     assert torch.equal(images[0], images[1]) and not torch.equal(images[0], images[2])
     assert torch.allclose(grads[0], grads[2], rtol=1e-4, atol=1e-4) and grads[0].abs().sum() > 0
     assert (grads[0] - grads[1]).abs().max() > 100 * (grads[0] - grads[2]).abs().max() + 1e-3
-    with pytest.raises(RispError, match="primal_spp"):
-        StateRenderer("cube", resolution=8, spp=1, primal_spp=0)
+    for bad in (0, 2.5, "8", float("nan"), float("inf")):  # a string was a ValueError from int(), inf an OverflowError
+        with pytest.raises(RispError, match="primal_spp"):
+            StateRenderer("cube", resolution=8, spp=1, primal_spp=bad)
 
 
 def test_images_match_the_data_renderer_in_expectation(one_torch_thread):
@@ -448,7 +449,7 @@ def test_boundary_radiance_paths_per_environment():
         expected = BOUNDARY_PATHS.get(env, r.renderer.settings.max_depth)
         assert r.boundary_max_depth == expected == r.integrator.boundary_max_depth
     assert StateRenderer("cube", resolution=8, spp=1, boundary_max_depth=3).integrator.boundary_max_depth == 3
-    for bad in (0, 1.5):
+    for bad in (0, 1.5, "3", float("nan"), float("inf"), True):
         with pytest.raises(RispError, match="boundary_max_depth"):
             StateRenderer("cube", resolution=8, spp=1, boundary_max_depth=bad)
 

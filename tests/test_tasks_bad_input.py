@@ -377,6 +377,16 @@ def test_more_action_knots_than_action_rows_is_one_error_line(quad, tmp_path):
     assert TaskConfig(task="control", video="goal.png", horizon=3, action_knots=4).action_knots == 4
 
 
+@pytest.mark.parametrize("args, expected", [
+    (["--action-knots", "often"], "--action-knots must be a whole number (0, or >= 2) or auto, got 'often'"),
+    (["--action-knots", "auto", "--init", "track"], "--action-knots auto chooses how the commands are parametrised"),
+])
+def test_bad_action_knots_are_one_error_line(quad, tmp_path, args, expected):
+    """`--action-knots` takes a number or `auto`: anything else, or auto with the tracking controller, one line."""
+    line = _invoke(["imitate", quad[1], "--model", quad[0], *args], tmp_path)
+    assert expected in line, line
+
+
 def test_imitate_with_an_unknown_parameter_is_one_error_line(quad, tmp_path):
     """`--params` names the quadrotor's parameters: a misspelt one stops imitate with the known names, one line."""
     line = _invoke(["imitate", quad[1], "--model", quad[0], "--params", '{"mas": 3.0}'], tmp_path)

@@ -418,6 +418,50 @@ def test_imitate_with_action_knots_optimises_a_piecewise_linear_command(tmp_path
     assert np.allclose(r["estimates"]["initial_actions"], projected, atol=1e-9)
 
 
+def test_imitate_chooses_its_knots_by_cross_validation(tmp_path_factory, tmp_path):
+    """--action-knots auto on the hand's 6 frames: every candidate K is scored on held-out frames, the one with the
+    smallest held-out loss is the one fitted (its commands lie on K knots' curve, or one row per frame), the start is
+    the same random draw as a plain run's, and a fixed K's fit of the same configuration ends where the chosen one does."""
+    from risp_tasks.tasks.imitate import knot_candidates
+
+    model, video = shared_model(tmp_path_factory, "hand"), shared_video(tmp_path_factory, "hand")
+    kw = dict(model=model, loss="state", iterations=5, plots=False, init="random", seed=4)
+    r = _run("imitate", video, tmp_path / "auto", action_knots="auto", **kw)
+    sel = r["info"]["knot_selection"]
+    assert sel["candidates"] == knot_candidates(6) == [2, 4, 6]
+    assert len(sel["held_out_loss"]) == 3 and all(np.isfinite(sel["held_out_loss"]))
+    assert len(set(sel["held_out_loss"])) == 3  # each candidate was fitted, not one score copied
+    best = int(np.argmin(sel["held_out_loss"]))
+    assert sel["chosen"] == sel["candidates"][best]
+    assert r["config"]["action_knots"] == "auto"
+    fixed = _run("imitate", video, tmp_path / "fixed", action_knots=0 if sel["chosen"] == 6 else sel["chosen"], **kw)
+    assert r["estimates"]["actions"] == fixed["estimates"]["actions"]
+    assert r["info"]["parametrisation"] == fixed["info"]["parametrisation"]
+    plain = _run("imitate", video, tmp_path / "plain", **{**kw, "iterations": 0})
+    W_start = np.asarray(fixed["estimates"]["initial_actions"])
+    assert np.allclose(r["estimates"]["initial_actions"], W_start, atol=1e-12)
+    if sel["chosen"] == 6:
+        assert np.allclose(r["estimates"]["initial_actions"], plain["estimates"]["initial_actions"], atol=1e-12)
+
+
+def test_action_knots_auto_is_imitates_alone():
+    from risp_data.errors import RispError
+    from risp_tasks.tasks.config import TaskConfig
+
+    with pytest.raises(RispError, match="--action-knots auto is imitate's"):
+        TaskConfig(task="control", video="goal.png", action_knots="auto")
+    with pytest.raises(RispError, match="--action-knots auto chooses how the commands"):
+        TaskConfig(task="imitate", video="v.mp4", action_knots="auto", init="track")
+    with pytest.raises(RispError, match="a whole number"):
+        TaskConfig(task="imitate", video="v.mp4", action_knots="often")
+    for loss in ("pixelwise", "perceptual", "oracle"):  # a baseline must not choose by the network's readings
+        with pytest.raises(RispError, match=f"with --loss {loss} give a number"):
+            TaskConfig(task="imitate", video="v.mp4", action_knots="auto", loss=loss, truth="t.json")
+    assert TaskConfig(task="imitate", video="v.mp4", action_knots="auto", loss="render").action_knots == "auto"
+    with pytest.raises(RispError, match="--action-knots is for imitate and control"):
+        TaskConfig(task="sysid", video="v.mp4", action_knots="auto")
+
+
 def test_imitate_with_the_l1_residual_records_it_and_descends(tmp_path_factory, tmp_path):
     """--residual l1 through the whole task: the same start has another loss than with l2 (absolute, not squared,
     differences to N's readings), the l1 loss falls, and result.json records the residual."""

@@ -20,6 +20,8 @@ def default_residual(task: str, loss: str) -> str:
     return "l1" if task == "sysid" and loss in NETWORK_LOSSES else "l2"
 
 
+AUTO_KNOTS = "auto"  # --action-knots auto: chosen by cross-validation over the video's frames (imitate.choose_knots)
+
 CONTROL_HORIZON = 10  # control's default frames to reach the pictured state
 
 
@@ -56,8 +58,9 @@ class TaskConfig:
     # all of them (loop.horizon; docs/tasks.md §Horizon curriculum); 0: every iteration compares all frames
     grow_horizon: int = 0
     # imitate, control: K ≥ 2 knots of a piecewise-linear command per action instead of one row per frame
-    # (imitate.knot_basis; docs/tasks.md §Smooth commands); 0: one row per frame (the paper's)
-    action_knots: int = 0
+    # (imitate.knot_basis; docs/tasks.md §Smooth commands); 0: one row per frame (the paper's); imitate also takes
+    # "auto": K chosen among a few by cross-validation over the video's frames (imitate.choose_knots)
+    action_knots: int | str = 0
     # imitate, control: the simulator's physical parameters where known — a JSON object {name: value}, a JSON file,
     # or a task's result.json (e.g. sysid's); None: the nominal ones (simulate.set_params)
     params: str | None = None
@@ -144,7 +147,20 @@ class TaskConfig:
             raise RispError(f"--grow-horizon must be >= 0, got {self.grow_horizon}")
         if self.grow_horizon and self.task not in ("sysid", "imitate"):
             raise RispError(f"--grow-horizon is for sysid and imitate (a video's frames), not {self.task}")
-        if self.action_knots < 0 or self.action_knots == 1:
+        if isinstance(self.action_knots, str):
+            if self.action_knots != AUTO_KNOTS:
+                raise RispError(f"--action-knots must be a whole number (0, or >= 2) or {AUTO_KNOTS}, got "
+                                f"{self.action_knots!r}")
+            if self.task == "control":  # one pictured state: no frames to hold out
+                raise RispError(f"--action-knots {AUTO_KNOTS} is imitate's (it holds out the video's frames); give "
+                                "control a number")
+            if self.init == "track":
+                raise RispError(f"--action-knots {AUTO_KNOTS} chooses how the commands are parametrised; with --init "
+                                "track the controller's reference path is optimised instead (leave one of them out)")
+            if self.loss not in ("state", "render"):  # it scores held-out frames by N's readings of the video
+                raise RispError(f"--action-knots {AUTO_KNOTS} cross-validates on the network's readings of the video "
+                                f"(--loss state or render); with --loss {self.loss} give a number")
+        elif self.action_knots < 0 or self.action_knots == 1:
             raise RispError(f"--action-knots must be 0 (one row per frame) or >= 2, got {self.action_knots}")
         if self.action_knots and self.task not in ("imitate", "control"):
             raise RispError(f"--action-knots is for imitate and control (the actions), not {self.task}")

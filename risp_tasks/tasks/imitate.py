@@ -15,12 +15,17 @@ first two frames' estimates (``--fit-initial-state``: optimised jointly with the
 
 from __future__ import annotations
 
+import copy
+import dataclasses
+import time
+
 import torch
 
 from risp_data.errors import RispError
 
+from .config import AUTO_KNOTS
 from .context import Context
-from .loop import Problem
+from .loop import Problem, Timer, make_loss, optimize
 from .simulate import (ACTION_SCALE, InitialState, action_centre, frame_states, read_params, to_file_actions,
                        with_params)
 
@@ -43,6 +48,69 @@ def knot_basis(n_frames: int, knots: int) -> torch.Tensor:
         return torch.eye(n_frames, dtype=torch.float64)
     t = torch.arange(n_frames, dtype=torch.float64) * (knots - 1) / max(n_frames - 1, 1)  # frame → knot coordinate
     return torch.clamp(1 - (t[:, None] - torch.arange(knots, dtype=torch.float64)[None, :]).abs(), min=0)
+
+
+#: --action-knots auto: the candidates K = round(f·n) for these fractions f of the n action rows, and n itself (one
+#: row per frame, the paper's parametrisation), each K >= 2
+KNOT_FRACTIONS: tuple[float, ...] = (0.25, 0.4, 0.6)
+#: the frames held out in turn: every other compared frame after the first two (which the initial state is read from)
+KNOT_FOLDS = 2
+
+
+def knot_candidates(n_frames: int) -> list[int]:
+    """The K that ``--action-knots auto`` compares (ascending; n_frames = one row per frame)."""
+    return sorted({max(2, min(n_frames, round(f * n_frames))) for f in KNOT_FRACTIONS} | {n_frames})
+
+
+def choose_knots(ctx: Context, n_frames: int) -> tuple[int, dict]:
+    """``--action-knots auto``: K by two-fold cross-validation over the compared frames (docs/tasks.md §Smooth
+    commands).  The compared frames after the first two are split into two folds, alternate frames; for each
+    candidate K (:func:`knot_candidates`) and fold f the commands are fitted to N's readings of every compared frame
+    but fold f's — the task's own optimiser, iterations, start and residual, always with the ``state`` loss — and
+    scored by the same residual on fold f's readings.  CV(K) = Σ_f Σ_{t∈f} ρ(τ(s_t) − N(I_t)) / Σ_f |f| (ρ: the
+    squared or absolute norm of ``--residual``); the smallest CV(K) wins, ties the fewer knots.
+
+    Why: one row per frame lets the commands follow the readings' frame-to-frame error, few knots cannot follow fast
+    commands; which is worse depends on the video (its commands and how well N reads it), and the held-out frames'
+    readings measure it without ground truth.  Returns (K, the record result.json keeps); K = 0 when the video has too
+    few frames to hold any out."""
+    cfg, keep = ctx.cfg, ctx.keep
+    positions = list(range(2, len(keep)))
+    if len(positions) < 2 * KNOT_FOLDS:
+        return 0, {"chosen": 0, "reason": f"{len(keep)} compared frames: too few to hold out every other one after "
+                                          f"the first two (needs {2 + 2 * KNOT_FOLDS}); one row per frame"}
+    from tqdm import tqdm
+
+    started = time.perf_counter()
+    candidates = knot_candidates(n_frames)
+    folds = [positions[f::KNOT_FOLDS] for f in range(KNOT_FOLDS)]
+    targets = ctx.predicted_targets
+
+    def frames_loss(pos):
+        return make_loss("state", ctx.env, [keep[p] for p in pos], targets[pos], None, None, residual=cfg.residual)
+
+    scores = []
+    bar = tqdm(total=len(candidates) * KNOT_FOLDS, desc="choosing knots", unit="fit", disable=not cfg.progress,
+               leave=False)
+    for K in candidates:
+        held_sum = 0.0
+        for fold in folds:
+            trial_cfg = dataclasses.replace(cfg, action_knots=0 if K >= n_frames else K)
+            # the same random start as the final fit: a copy of the task's generator, not a draw from it
+            trial = build(dataclasses.replace(ctx, cfg=trial_cfg, rng=copy.deepcopy(ctx.rng)), n_frames)
+            train = [p for p in range(len(keep)) if p not in fold]
+            optimize(trial, frames_loss(train), optimizer=cfg.optimizer, lr=cfg.lr, momentum=cfg.momentum,
+                     iterations=cfg.iterations, timer=Timer(), progress=False)
+            with torch.no_grad():
+                held_sum += float(frames_loss(fold)(trial.states())) * len(fold)
+            bar.update()
+        scores.append(held_sum / len(positions))
+    bar.close()
+    best = min(range(len(candidates)), key=lambda i: (scores[i], candidates[i]))
+    chosen = candidates[best]
+    return (0 if chosen >= n_frames else chosen), {
+        "candidates": candidates, "held_out_loss": scores, "chosen": chosen, "folds": KNOT_FOLDS,
+        "loss": "state", "residual": cfg.residual, "seconds": time.perf_counter() - started}
 
 
 def estimated_path(ctx: Context, n_frames: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -119,6 +187,10 @@ def build(ctx: Context, n_frames: int | None = None, s0: torch.Tensor | None = N
     sim = ctx.sim
     # a system without actions (the cube) never gets here: run_task refuses it, naming how the model was chosen
     n_frames = ctx.n_source if n_frames is None else n_frames
+    selection = None
+    if ctx.cfg.action_knots == AUTO_KNOTS:  # resolved here, so that every caller of build gets the chosen K
+        knots, selection = choose_knots(ctx, n_frames)
+        ctx = dataclasses.replace(ctx, cfg=dataclasses.replace(ctx.cfg, action_knots=knots))
     given = read_params(sim, ctx.cfg.params) if ctx.cfg.params else {}  # known or identified ones, read once
     params = with_params(sim, sim.default_params(), given)
     s0 = InitialState(ctx, fit=ctx.cfg.fit_initial_state, given=s0)  # control passes its given state
@@ -157,6 +229,8 @@ def build(ctx: Context, n_frames: int | None = None, s0: torch.Tensor | None = N
             **_parameter_info(sim, start, given)}
     if free is not None:
         info["fitted_parameters"] = list(free.names)
+    if selection is not None:
+        info["knot_selection"] = selection
     return Problem(variables={"actions": z, **({"x": free.x} if free is not None else {}), **s0.variables},
                    states=lambda: frame_states(sim, physics(), s0(), actions(z), n_frames, ctx.k),
                    estimates=lambda: {**estimates(), **s0.info()}, info=info,

@@ -243,6 +243,13 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
     if cfg.fit_params is None and problem.info.get("fitted_parameters"):  # imitate's default for this environment
         echo(f"identifying the {env_name}'s {', '.join(problem.info['fitted_parameters'])} with the actions "
              "(--params to give them, --no-fit-params for the nominal ones)")
+    selection = problem.info.get("knot_selection")
+    if selection is not None:  # --action-knots auto: what the cross-validation chose, and from what
+        chosen = selection["chosen"]
+        scores = ", ".join(f"{k}: {v:.4g}" for k, v in zip(selection.get("candidates", []),
+                                                            selection.get("held_out_loss", [])))
+        echo(f"--action-knots auto: {'one row per frame' if chosen in (0, ctx.n_source) else f'{chosen} knots'}"
+             + (f" (held-out loss by K: {scores})" if scores else f" ({selection['reason']})"))
     loss_frames = problem.frames if problem.frames is not None else keep
 
     renderer, render_threads = None, None
