@@ -140,9 +140,10 @@ def _task_options(task: str):
         click.option("--grow-horizon", type=int, default=0, show_default=True, **shown("--grow-horizon"),
                      help="sysid, imitate: over this many iterations the loss compares the first 2, 3, … frames, "
                           "then all (docs/tasks.md §Horizon curriculum)"),
-        click.option("--action-knots", type=KNOTS, default="0", show_default=True, **shown("--action-knots"),
+        click.option("--action-knots", type=KNOTS, default=None, **shown("--action-knots"),
                      help="imitate, control: K >= 2 knots of a piecewise-linear command per action instead of one "
-                          "row per frame; imitate: auto chooses K by cross-validation over the video's frames "
+                          "row per frame (0); imitate: auto chooses K by cross-validation over the video's frames "
+                          "[default: auto for imitate on the hand with --loss state or render, else 0] "
                           "(docs/tasks.md §Smooth commands)"),
         click.option("--params", default=None, **shown("--params"),
                      help="imitate, control: known physical parameters — a JSON object, a JSON file, or a sysid "

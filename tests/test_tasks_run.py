@@ -437,11 +437,53 @@ def test_imitate_chooses_its_knots_by_cross_validation(tmp_path_factory, tmp_pat
     fixed = _run("imitate", video, tmp_path / "fixed", action_knots=0 if sel["chosen"] == 6 else sel["chosen"], **kw)
     assert r["estimates"]["actions"] == fixed["estimates"]["actions"]
     assert r["info"]["parametrisation"] == fixed["info"]["parametrisation"]
-    plain = _run("imitate", video, tmp_path / "plain", **{**kw, "iterations": 0})
+    plain = _run("imitate", video, tmp_path / "plain", **{**kw, "iterations": 0, "action_knots": 0})
     W_start = np.asarray(fixed["estimates"]["initial_actions"])
     assert np.allclose(r["estimates"]["initial_actions"], W_start, atol=1e-12)
     if sel["chosen"] == 6:
         assert np.allclose(r["estimates"]["initial_actions"], plain["estimates"]["initial_actions"], atol=1e-12)
+
+
+def test_imitate_on_the_hand_chooses_its_knots_unless_told(tmp_path_factory, tmp_path):
+    """Unset --action-knots on the hand's imitate (state loss): the knots are chosen by cross-validation, recorded
+    and said in the command's words, and the result is --action-knots auto's; --action-knots 0 keeps one row per frame
+    and chooses nothing."""
+    from risp_tasks.tasks.config import TaskConfig
+    from risp_tasks.tasks.run import run_task
+
+    model, video = shared_model(tmp_path_factory, "hand"), shared_video(tmp_path_factory, "hand")
+    kw = dict(model=model, loss="state", iterations=3, plots=False, init="random", seed=4)
+    said = []
+    default = run_task(TaskConfig(task="imitate", video=video, out=str(tmp_path / "default"), progress=False, **kw),
+                       echo=said.append)
+    assert default["config"]["action_knots"] is None
+    sel = default["info"]["knot_selection"]
+    assert sel["candidates"] == [2, 4, 6] and len(sel["held_out_loss"]) == 3
+    line = next(s for s in said if "chosen by cross-validation" in s)
+    assert "--action-knots 0 for one row per frame" in line and "held-out loss by K" in line
+    auto = _run("imitate", video, tmp_path / "auto", action_knots="auto", **kw)
+    assert default["estimates"]["actions"] == auto["estimates"]["actions"]
+    assert default["info"]["knot_selection"]["held_out_loss"] == auto["info"]["knot_selection"]["held_out_loss"]
+    rows = _run("imitate", video, tmp_path / "rows", action_knots=0, **kw)
+    assert "knot_selection" not in rows["info"] and rows["info"]["parametrisation"] == "one row per frame"
+
+
+@pytest.mark.parametrize("env, extra, knots", [
+    ("hand", {}, "auto"), ("hand", {"loss": "render"}, "auto"),  # imitate's default on the hand
+    ("quadrotor", {}, 0), ("rod", {}, 0),  # not measured there: one row per frame
+    ("hand", {"loss": "oracle", "truth": "t.json"}, 0), ("hand", {"loss": "pixelwise"}, 0),  # auto refuses these
+    ("hand", {"loss": "perceptual"}, 0),
+    ("hand", {"task": "control"}, 0),  # one pictured state: no frames to hold out
+    ("hand", {"action_knots": 0}, 0), ("hand", {"action_knots": 8}, 8),  # a given number is kept
+    ("quadrotor", {"action_knots": "auto"}, "auto"), ("quadrotor", {"init": "track"}, 0),
+])
+def test_imitate_chooses_knots_by_default_on_the_hand_alone(env, extra, knots):
+    from risp_tasks.tasks.config import TaskConfig
+    from risp_tasks.tasks.imitate import knots_setting
+
+    cfg = TaskConfig(**{"task": "imitate", "video": "goal.png" if extra.get("task") == "control" else "v.mp4",
+                        **extra})
+    assert knots_setting(cfg, env) == knots
 
 
 def test_action_knots_auto_is_imitates_alone():
@@ -466,7 +508,7 @@ def test_imitate_with_the_l1_residual_records_it_and_descends(tmp_path_factory, 
     """--residual l1 through the whole task: the same start has another loss than with l2 (absolute, not squared,
     differences to N's readings), the l1 loss falls, and result.json records the residual."""
     model, video = shared_model(tmp_path_factory, "hand"), shared_video(tmp_path_factory, "hand")
-    kw = dict(model=model, loss="state", iterations=5, plots=False, init="random", seed=2)
+    kw = dict(model=model, loss="state", iterations=5, plots=False, init="random", seed=2, action_knots=0)
     l1 = _run("imitate", video, tmp_path / "l1", residual="l1", **kw)
     l2 = _run("imitate", video, tmp_path / "l2", **kw)
     assert l1["final_loss"] < l1["loss"][0], l1["loss"]

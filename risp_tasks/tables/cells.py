@@ -160,9 +160,11 @@ def sysid(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> dict:
 def imitation(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> dict:
     if env_name == "cube":
         return {"na": "the cube has no actions"}
-    # the simulator's nominal parameters, as the table was made (imitate's default identifies the hand's and the
-    # rod's with the commands: docs/tasks.md §Unknown physical parameters)
-    result = _task_run(cfg, art, "imitate", env_name, method, repeat, fit_params=False)
+    # the simulator's nominal parameters and one command row per frame, as the table was made and as every method
+    # can be run (imitate's defaults identify the hand's and the rod's parameters with the commands, and choose the
+    # hand's knots by N's readings, which the image baselines have not: docs/tasks.md §Unknown physical parameters,
+    # §Knots chosen by cross-validation)
+    result = _task_run(cfg, art, "imitate", env_name, method, repeat, fit_params=False, action_knots=0)
     return {"value": float(result["errors"]["state_rmse_final"]), "metric": "state RMSE",
             "initial": result["errors"].get("state_rmse_initial"), "final_loss": result["final_loss"],
             **_extras(result)}

@@ -59,8 +59,9 @@ class TaskConfig:
     grow_horizon: int = 0
     # imitate, control: K ≥ 2 knots of a piecewise-linear command per action instead of one row per frame
     # (imitate.knot_basis; docs/tasks.md §Smooth commands); 0: one row per frame (the paper's); imitate also takes
-    # "auto": K chosen among a few by cross-validation over the video's frames (imitate.choose_knots)
-    action_knots: int | str = 0
+    # "auto": K chosen among a few by cross-validation over the video's frames (imitate.choose_knots); None: the
+    # task's default (imitate.knots_setting: auto for imitate on the hand with the state or render loss, else 0)
+    action_knots: int | str | None = None
     # imitate, control: the simulator's physical parameters where known — a JSON object {name: value}, a JSON file,
     # or a task's result.json (e.g. sysid's); None: the nominal ones (simulate.set_params)
     params: str | None = None
@@ -160,11 +161,14 @@ class TaskConfig:
             if self.loss not in ("state", "render"):  # it scores held-out frames by N's readings of the video
                 raise RispError(f"--action-knots {AUTO_KNOTS} cross-validates on the network's readings of the video "
                                 f"(--loss state or render); with --loss {self.loss} give a number")
+        elif self.action_knots is None:  # the task's default, resolved where the environment is known
+            pass
         elif self.action_knots < 0 or self.action_knots == 1:
             raise RispError(f"--action-knots must be 0 (one row per frame) or >= 2, got {self.action_knots}")
         if self.action_knots and self.task not in ("imitate", "control"):
             raise RispError(f"--action-knots is for imitate and control (the actions), not {self.task}")
-        if self.task == "control" and self.horizon is not None and self.action_knots > self.horizon + 1:
+        if self.task == "control" and self.horizon is not None and isinstance(self.action_knots, int) \
+                and self.action_knots > self.horizon + 1:
             raise RispError(f"--action-knots {self.action_knots} is more than the {self.horizon + 1} action rows of "
                             f"--horizon {self.horizon} (one per frame, the start included): give at most "
                             f"{self.horizon + 1}, or 0 for one row per frame")

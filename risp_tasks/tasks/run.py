@@ -248,7 +248,9 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
         chosen = selection["chosen"]
         scores = ", ".join(f"{k}: {v:.4g}" for k, v in zip(selection.get("candidates", []),
                                                             selection.get("held_out_loss", [])))
-        echo(f"--action-knots auto: {'one row per frame' if chosen in (0, ctx.n_source) else f'{chosen} knots'}"
+        how = "--action-knots auto" if cfg.action_knots is not None else \
+            f"the {env_name}'s command knots, chosen by cross-validation (--action-knots 0 for one row per frame)"
+        echo(f"{how}: {'one row per frame' if chosen in (0, ctx.n_source) else f'{chosen} knots'}"
              + (f" (held-out loss by K: {scores})" if scores else f" ({selection['reason']})"))
     loss_frames = problem.frames if problem.frames is not None else keep
 
