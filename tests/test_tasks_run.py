@@ -462,8 +462,11 @@ def test_imitate_on_the_hand_chooses_its_knots_unless_told(tmp_path_factory, tmp
     line = next(s for s in said if "chosen by cross-validation" in s)
     assert "--action-knots 0 for one row per frame" in line and "held-out loss by K" in line
     auto = _run("imitate", video, tmp_path / "auto", action_knots="auto", **kw)
-    assert default["estimates"]["actions"] == auto["estimates"]["actions"]
-    assert default["info"]["knot_selection"]["held_out_loss"] == auto["info"]["knot_selection"]["held_out_loss"]
+    # the same fits; torch's CPU sums may differ in the last bit from one run to the next (seen: 1 ulp)
+    assert np.allclose(default["estimates"]["actions"], auto["estimates"]["actions"], rtol=1e-12, atol=1e-12)
+    assert default["info"]["knot_selection"]["held_out_loss"] == pytest.approx(
+        auto["info"]["knot_selection"]["held_out_loss"], rel=1e-12)
+    assert default["info"]["knot_selection"]["chosen"] == auto["info"]["knot_selection"]["chosen"]
     rows = _run("imitate", video, tmp_path / "rows", action_knots=0, **kw)
     assert "knot_selection" not in rows["info"] and rows["info"]["parametrisation"] == "one row per frame"
 

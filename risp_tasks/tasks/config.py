@@ -21,6 +21,7 @@ def default_residual(task: str, loss: str) -> str:
 
 
 AUTO_KNOTS = "auto"  # --action-knots auto: chosen by cross-validation over the video's frames (imitate.choose_knots)
+AUTO_KNOTS_LOSSES: tuple[str, ...] = ("state", "render")  # the losses it takes: it scores by N's readings of the video
 
 CONTROL_HORIZON = 10  # control's default frames to reach the pictured state
 
@@ -158,12 +159,11 @@ class TaskConfig:
             if self.init == "track":
                 raise RispError(f"--action-knots {AUTO_KNOTS} chooses how the commands are parametrised; with --init "
                                 "track the controller's reference path is optimised instead (leave one of them out)")
-            if self.loss not in ("state", "render"):  # it scores held-out frames by N's readings of the video
+            if self.loss not in AUTO_KNOTS_LOSSES:  # it scores held-out frames by N's readings of the video
                 raise RispError(f"--action-knots {AUTO_KNOTS} cross-validates on the network's readings of the video "
                                 f"(--loss state or render); with --loss {self.loss} give a number")
-        elif self.action_knots is None:  # the task's default, resolved where the environment is known
-            pass
-        elif self.action_knots < 0 or self.action_knots == 1:
+        elif self.action_knots is not None and (self.action_knots < 0 or self.action_knots == 1):  # None: the
+            # task's default, resolved where the environment is known (imitate.knots_setting)
             raise RispError(f"--action-knots must be 0 (one row per frame) or >= 2, got {self.action_knots}")
         if self.action_knots and self.task not in ("imitate", "control"):
             raise RispError(f"--action-knots is for imitate and control (the actions), not {self.task}")

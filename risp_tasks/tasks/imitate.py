@@ -23,7 +23,7 @@ import torch
 
 from risp_data.errors import RispError
 
-from .config import AUTO_KNOTS
+from .config import AUTO_KNOTS, AUTO_KNOTS_LOSSES
 from .context import Context
 from .loop import Problem, Timer, make_loss, optimize
 from .simulate import (ACTION_SCALE, InitialState, action_centre, frame_states, read_params, to_file_actions,
@@ -251,7 +251,7 @@ def knots_setting(cfg, env_name: str) -> int | str:
     ``render`` loss and no ``--init track`` (the settings ``auto`` takes), else 0 (one row per frame)."""
     if cfg.action_knots is not None:
         return cfg.action_knots
-    takes_auto = cfg.task == "imitate" and cfg.init != "track" and cfg.loss in ("state", "render")
+    takes_auto = cfg.task == "imitate" and cfg.init != "track" and cfg.loss in AUTO_KNOTS_LOSSES
     return AUTO_KNOTS if takes_auto and env_name in AUTO_KNOTS_BY_DEFAULT else 0
 
 
