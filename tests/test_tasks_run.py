@@ -435,7 +435,8 @@ def test_imitate_chooses_its_knots_by_cross_validation(tmp_path_factory, tmp_pat
     assert sel["chosen"] == sel["candidates"][best]
     assert r["config"]["action_knots"] == "auto"
     fixed = _run("imitate", video, tmp_path / "fixed", action_knots=0 if sel["chosen"] == 6 else sel["chosen"], **kw)
-    assert r["estimates"]["actions"] == fixed["estimates"]["actions"]
+    # the same fit; torch's CPU sums may differ in the last bit from one run to the next (seen: 1 ulp)
+    assert np.allclose(r["estimates"]["actions"], fixed["estimates"]["actions"], rtol=1e-12, atol=1e-12)
     assert r["info"]["parametrisation"] == fixed["info"]["parametrisation"]
     plain = _run("imitate", video, tmp_path / "plain", **{**kw, "iterations": 0, "action_knots": 0})
     W_start = np.asarray(fixed["estimates"]["initial_actions"])
