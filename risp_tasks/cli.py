@@ -1,12 +1,12 @@
 """``risp-task``: tasks on measured or estimated trajectories (``risp task …`` is the same group).
 
     risp-task diagnose DATA… --env E --out report/ [--seed 0]
-    risp-task estimate|sysid|imitate VIDEO [--model M] [--loss render|state|oracle|pixelwise] …
+    risp-task estimate|sysid|imitate VIDEO [--model M] [--loss render|state|oracle|pixelwise|perceptual] …
     risp-task control TARGET.png [--model M] [--initial-state S.json] [--horizon 10]
     risp-task make-video --env E --out video.mp4 [--frames 20] [--fps 10] [--resolution 64] [--seed 0]
-    risp-task table --table estimation|sysid|imitation|control [--preset cpu|paper] [--repeats 4] [--quick]
+    risp-task table --table estimation|sysid|imitation|control|regularizers|sampling [--preset cpu|paper] …
 
-Thin layer: click options -> :class:`risp_tasks.diagnose.run.DiagnoseConfig` -> ``diagnose``.
+Thin layer: click options -> a config (``DiagnoseConfig``, ``TaskConfig``, the table's) -> the package's function.
 Documentation: docs/cli-task.md.
 """
 
@@ -129,7 +129,7 @@ def _task_options(task: str):
         click.option("--perceptual-weights", default=None, help="local torchvision vgg16 state dict for --loss "
                      "perceptual (default: the built-in filter bank)"),
         click.option("--init", type=click.Choice(("default", "random", "track")), default="default", show_default=True,
-                     help="initial guess" + (" (track: a tracking controller along the estimated path)"
+                     help="initial guess" + (" (track, quadrotor only: a tracking controller along the estimated path)"
                                              if task == "imitate" else "; track is imitate's")),
         click.option("--optimizer", type=click.Choice(("rmsprop", "adam", "sgd")), default="rmsprop", show_default=True),
         click.option("--lr", type=float, default=3e-3, show_default=True),
@@ -143,11 +143,12 @@ def _task_options(task: str):
         click.option("--action-knots", type=KNOTS, default=None, **shown("--action-knots"),
                      help="imitate, control: K >= 2 knots of a piecewise-linear command per action instead of one "
                           "row per frame (0); imitate: auto chooses K by cross-validation over the video's frames "
-                          "[default: auto for imitate on the hand with --loss state or render, else 0] "
+                          "[default: auto for imitate on the hand with --loss state or render and not --init track, else 0] "
                           "(docs/tasks.md §Smooth commands)"),
         click.option("--params", default=None, **shown("--params"),
-                     help="imitate, control: known physical parameters — a JSON object, a JSON file, or a sysid "
-                          "result.json (default: the simulator's nominal ones)"),
+                     help="imitate, control: known physical parameters — a JSON object, a JSON file, or a task's "
+                          "result.json or result folder with identified parameters (e.g. sysid's) (default: the "
+                          "simulator's nominal ones)"),
         click.option("--fit-initial-state/--fixed-initial-state", default=None, **shown("--fit-initial-state"),
                      help="sysid, imitate: identify the initial state read from the first two frames jointly, or keep "
                           "it fixed [default: fit; the rod starts at rest] (docs/tasks.md §Initial state)"),

@@ -1,6 +1,8 @@
 """``risp-task imitate``: the action sequence that reproduces a video's motion (paper Sec. 5.4/5.5).
 
-Actions are one row per source frame (held over the frame's k simulator steps), optimised in normalised
+Actions are one row per source frame (held over the frame's k simulator steps), or K knots of a piecewise-linear
+command per action (``--action-knots``; on the hand the default chooses K by cross-validation over the video's
+frames, ``knots_setting``), optimised in normalised
 coordinates u = centre + scale·x (centre: hover for the quadrotor, 0 otherwise; scale: ACTION_SCALE).
 Initialisation (``--init``): ``default`` x = 0; ``random`` x ~ U(−1, 1) (seeded); ``track`` (quadrotor) a
 geometric tracking controller (Lee et al. 2010) flown in the simulator along the network-estimated
