@@ -111,6 +111,7 @@ def _decode_file(path: Path, each=lambda img: img) -> tuple[list[np.ndarray], fl
             if not streams:
                 raise RispError(f"{path}: not a video (no video stream)")
             stream = streams[0]
+            _check_picture_codec(path, container, stream)
             rate = stream.average_rate or stream.base_rate or stream.guessed_rate
             frames, times, turns = [], [], set()
             for f in container.decode(stream):
@@ -125,7 +126,7 @@ def _decode_file(path: Path, each=lambda img: img) -> tuple[list[np.ndarray], fl
     except _Converting as e:
         raise e.__cause__ from None
     except Exception as e:  # noqa: BLE001 - PyAV raises many error types (InvalidDataError, …)
-        raise RispError(f"{path}: cannot decode as a video ({type(e).__name__}: {message_line(e)})") from None
+        raise RispError(f"{path}: cannot decode as a video ({_decoder_message(e)})") from None
     _check_complete(path, frames, times, announced)
     note = _check_constant_rate(path, times)
     notes = [note] if note else []
@@ -134,6 +135,28 @@ def _decode_file(path: Path, each=lambda img: img) -> tuple[list[np.ndarray], fl
         notes.append(f"{path.name}: frames turned {', '.join(said[t] for t in sorted(turns - {0}))}, as its display "
                      "matrix says (a phone held upright or upside down)")
     return (frames, float(rate) if rate else 0.0, comment, (first[1], first[0]) if first else None, notes)
+
+
+# FFmpeg's text-art demuxers (tty: ANSI art, also any plain text file of a few kB; bin, xbin, adf, idf) turn a
+# file of text into a "video" of rendered characters; a task must not read a README as footage.
+TEXT_ART_CODECS = frozenset({"ansi", "bintext", "xbin", "idf"})
+
+
+def _check_picture_codec(path: Path, container, stream) -> None:
+    """One line when FFmpeg decodes ``path`` only as text art (its codec renders characters), not as pictures."""
+    codec = (stream.codec_context.name or "").lower()
+    if codec in TEXT_ART_CODECS:
+        raise RispError(f"{path}: not a video (FFmpeg reads it as text drawn as characters: format "
+                        f"{container.format.name}, codec {codec})")
+
+
+def _decoder_message(error: BaseException) -> str:
+    """The decoder's own words for ``error``: PyAV's FFmpeg errors carry ``strerror`` (without the errno number
+    that their str() starts with); other errors their type and first line."""
+    said = getattr(error, "strerror", None)
+    if isinstance(said, str) and said.strip():
+        return said.strip()
+    return f"{type(error).__name__}: {message_line(error)}"
 
 
 def _display_matrix(frame) -> np.ndarray | None:

@@ -81,6 +81,20 @@ def test_bad_video_files(tmp_path, make, message):
     with pytest.raises(RispError, match=message) as e:
         read_video(path)
     assert str(path) in str(e.value) and "\n" not in str(e.value)
+    assert "Errno" not in str(e.value)  # the decoder's words, not its error number
+
+
+@pytest.mark.parametrize("name, message", [("notes.txt", "not a video .*format tty, codec ansi"),
+                                           ("notes.md", "cannot decode as a video"),
+                                           ("notes.mp4", "cannot decode as a video")])
+def test_a_text_file_is_not_footage(tmp_path, name, message):
+    """FFmpeg's tty demuxer reads a few kB of text as ANSI art, a "video" of drawn characters (a README passed
+    as the video used to run a whole task, exit 0): refused by its codec. Named .mp4, the mp4 demuxer refuses it."""
+    text = "".join(f"line {i}: a paragraph of notes, not footage of anything at all.\n" for i in range(80))
+    path = _make(tmp_path / name, text.encode())
+    with pytest.raises(RispError, match=message) as e:
+        read_video(path)
+    assert str(path) in str(e.value) and "\n" not in str(e.value)
 
 
 def test_truncated_video_is_refused_or_short(tmp_path):
