@@ -255,7 +255,12 @@ def _run(task, video, **kw):
                       "or --no-plots"):
         result = run_task(cfg, echo=click.echo)
     loss = result["loss"]
-    click.echo(f"{task} ({result['env']}): {_loss_change(result)} in {len(loss)} iterations; results: {result['out']}")
+    if loss:
+        click.echo(f"{task} ({result['env']}): {_loss_change(result)} in {len(loss)} iterations; results: {result['out']}")
+    else:  # --iterations 0 (estimate's default): nothing was optimised, so no "loss A -> A in 0 iterations"
+        what = (f"{result['video']['frames']} frames read by the network" if task == "estimate" else
+                f"no optimisation (--iterations 0), loss {result['final_loss']:.4g} at the start")
+        click.echo(f"{task} ({result['env']}): {what}; results: {result['out']}")
     first = _first_full(result)
     if loss and first is not None and first < len(loss) and result.get("best_iteration") == first:
         kept = ("the warm start's result is kept" if result["config"].get("warm_start") else

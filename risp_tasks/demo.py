@@ -220,6 +220,8 @@ def _write_summary(out: Path, cfg: DemoConfig, log: list[dict]) -> None:
                          f"{random_guess_error(true, *MASS_RANGE):.3f} on average "
                          f"(loss `{res.get('config', {}).get('loss')}`, residual "
                          f"`{res.get('config', {}).get('residual')}`, {len(res.get('loss', []))} iterations)")
+            lines += [f"  - note: {w}" for w in res.get("warnings", []) if w.startswith(f"{pname} = ")
+                      and "end of its range" in w]  # run.bound_warnings: a value the range's end held
         lines.append("")
     rep = _read_json(out / "diagnose" / "report.json")
     if rep:

@@ -10,6 +10,7 @@ docs/cli-train.md lists every option.
 
 from __future__ import annotations
 
+import json
 import os
 
 import click
@@ -86,7 +87,28 @@ def fit(shards, out, reg, gamma, gamma_ramp, gamma_start, preset, epochs, batch_
     path = run_fit(cfg, resume=resume, progress=not quiet, overwrite=overwrite, allow_incomplete=allow_incomplete,
                    echo=lambda line: click.echo(line, err=True))
     if rank0:
+        summary = last_epoch_summary(os.path.dirname(path))
+        if summary:
+            click.echo(summary, err=True)
         click.echo(f"model: {path}")
+
+
+def last_epoch_summary(run: str) -> str | None:
+    """One closing line from the run's history.json: the last epoch's training error (and regularizer) and, with
+    --val, the validation error — the normalized L1 of docs/training.md §Losses — and where the physical units are.
+    None when the history cannot be read (the model is written all the same)."""
+    try:
+        with open(os.path.join(run, "history.json")) as f:
+            last = json.load(f)[-1]
+        parts = [f"epoch {last['epoch'] + 1}: training error {last['train_error']:.4g}"]
+    except (OSError, ValueError, LookupError, TypeError):
+        return None
+    if last.get("train_reg"):
+        parts.append(f"regularizer {last['train_reg']:.4g}")
+    if last.get("val_error") is not None:
+        parts.append(f"validation error {last['val_error']:.4g}")
+    return ("; ".join(parts) + " (L1 on normalized targets; `risp-train eval MODEL SHARDS` gives metres and "
+            "degrees against the baselines)")
 
 
 def describe_regularizer(cfg, shards: str) -> str:

@@ -42,6 +42,23 @@ def test_render_then_fit_work_as_users_write_them(tmp_path):
     # the schedule is said as resolved for the cube: its γ starts at half the run (GAMMA_START_DEFAULTS)
     assert "γ 0.3 from 50% of the steps, ramped in over 50% of the rest" in r.stderr
     assert cfg["gamma_start"] is None and json.load(open(run / "config.json"))["gamma_start"] == 0.5
+    # a closing line with the last epoch's figures, read from the run's history
+    last = json.load(open(run / "history.json"))[-1]
+    assert f"epoch {last['epoch'] + 1}: training error {last['train_error']:.4g}" in r.stderr, r.stderr
+
+
+def test_fit_closes_with_the_last_epochs_errors(tmp_path):
+    """The closing line: training error, regularizer and validation error of the last epoch; none when the history
+    cannot be read."""
+    from risp_train.cli import last_epoch_summary
+
+    (tmp_path / "history.json").write_text(json.dumps([
+        {"epoch": 0, "train_error": 0.9, "train_reg": 0.2},
+        {"epoch": 1, "train_error": 0.31219, "train_loss": 0.33, "train_reg": 0.054, "val_error": 0.5456}]))
+    line = last_epoch_summary(str(tmp_path))
+    assert line.startswith("epoch 2: training error 0.3122; regularizer 0.054; validation error 0.5456 (L1 on ")
+    (tmp_path / "history.json").write_text("[]")
+    assert last_epoch_summary(str(tmp_path)) is None and last_epoch_summary(str(tmp_path / "nosuch")) is None
 
 
 def _dataset(folder, domain="train", jacobian=True, env="cube"):

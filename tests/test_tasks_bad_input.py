@@ -167,9 +167,16 @@ def test_model_given_as_its_run_folder(quad, tmp_path):
 
 
 def test_no_trained_model_under_runs(quad, tmp_path, monkeypatch):
+    """No runs/ folder at all (a fresh checkout), a --runs folder that does not exist, and an empty runs/: each one
+    line saying which, and how to get a model."""
     monkeypatch.chdir(tmp_path)
     line = _invoke(["imitate", quad[1]], tmp_path)
-    assert "no trained model under runs/" in line
+    assert "no folder runs/ here" in line and "risp-train fit" in line and "--model" in line
+    line = _invoke(["imitate", quad[1], "--runs", "nosuch"], tmp_path)
+    assert "no folder nosuch/ here" in line
+    (tmp_path / "runs").mkdir()
+    line = _invoke(["imitate", quad[1]], tmp_path)
+    assert "no trained model under runs/" in line and "risp-train fit SHARDS` (it writes runs/" in line
 
 
 def test_camera_json_with_missing_keys(quad, tmp_path):

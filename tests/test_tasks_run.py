@@ -769,3 +769,40 @@ def test_make_reference_gives_the_callers_thread_counts_back(tmp_path):
     finally:
         torch.set_num_threads(torch_before)
         dr.set_thread_count(drjit_before)
+
+
+def test_bound_warnings_name_a_parameter_held_at_an_end_of_its_range():
+    """A parameter the projection holds on an end of its range gets one line saying which end and that the figure
+    is a bound; one inside the range gets none."""
+    from risp_tasks.tasks.run import bound_warnings
+
+    est = {"parameters": {"mass": 2.8, "log10_E": 7.0, "stiffness_thumb": 0.3},
+           "ranges": {"mass": [2.8, 3.2], "log10_E": [4.0, 7.0], "stiffness_thumb": [0.0, 1.0]}}
+    lines = bound_warnings(est)
+    assert len(lines) == 2 and all("\n" not in s for s in lines)
+    assert lines[0].startswith("mass = 2.8 ended on the lower end of its range [2.8, 3.2]") and "bound" in lines[0]
+    assert lines[1].startswith("log10_E = 7 ended on the upper end of its range [4, 7]")
+    assert bound_warnings({"parameters": {"mass": 2.9}, "ranges": {"mass": [2.8, 3.2]}}) == []
+    assert bound_warnings({"estimates": {}}) == [] and bound_warnings({}) == []
+
+
+def test_sysid_driven_onto_a_range_end_says_so(quad, tmp_path, monkeypatch):
+    """With a mass range wholly below the video's (2.8–3.2 kg), the fit against the true states (oracle loss) ends on
+    the range's upper end: result.json's warnings and the command's last lines say so; the echo of an estimate
+    with no iterations says what was read, not 'loss A -> A in 0 iterations'."""
+    from risp_tasks.cli import cli
+    from risp_tasks.tasks import sysid
+
+    model, video = quad
+    monkeypatch.setattr(sysid, "parameter_ranges", lambda sim: {"mass": (2.0, 2.2)})
+    args = ["sysid", video, "--model", model, "--actions", _stem(video) + ".actions.csv", "--loss", "oracle",
+            "--truth", _stem(video) + ".truth.json", "--lr", "0.1", "--iterations", "10", "--no-plots", "--quiet",
+            "--out", str(tmp_path / "s")]
+    out = CliRunner().invoke(cli, args, catch_exceptions=False).output
+    r = json.loads((tmp_path / "s" / "result.json").read_text())
+    assert r["estimates"]["ranges"]["mass"] == [2.0, 2.2] and r["estimates"]["parameters"]["mass"] == 2.2
+    said = [w for w in r["warnings"] if w.startswith("mass = ") and "end of its range" in w]
+    assert len(said) == 1 and "upper end" in said[0] and f"warning: {said[0]}" in out, out
+    est = CliRunner().invoke(cli, ["estimate", video, "--model", model, "--no-plots", "--quiet",
+                                   "--out", str(tmp_path / "e")], catch_exceptions=False).output
+    assert "6 frames read by the network; results:" in est and "0 iterations" not in est, est

@@ -32,10 +32,13 @@ CAMERA_GEOMETRY = {"rotation", "r", "rvec", "t", "tvec", "translation", "quatern
 def models_newest_first(runs: str = "runs") -> list[str]:
     """The ``model.pt`` files under ``runs/`` (one level of run folders), most recently written first (ties in path
     order, not the file system's listing order); RispError when there is none."""
+    if not os.path.isdir(runs):
+        raise RispError(f"no folder {runs}/ here to look for a trained model in: train one with `risp-train fit "
+                        f"SHARDS` (it writes runs/…), pass --runs FOLDER or --model M")
     found = glob.glob(os.path.join(runs, "*", "model.pt")) + glob.glob(os.path.join(runs, "model.pt"))
     if not found:
         raise RispError(f"no trained model under {runs}/ (looked for {runs}/*/model.pt); train one with "
-                        "`risp-train fit SHARDS --out runs/NAME` or pass --model")
+                        "`risp-train fit SHARDS` (it writes runs/…) or pass --model")
     return sorted(found, key=lambda p: (os.path.getmtime(p), p), reverse=True)
 
 

@@ -107,6 +107,23 @@ def _check_action_range(path: str, sim, file_actions: np.ndarray) -> None:
                         f"give: the columns f0..f3 are thrusts in newtons per rotor (docs/tasks.md §Actions CSV)")
 
 
+def bound_warnings(estimates: dict) -> list[str]:
+    """One line per identified parameter that ended on an end of its range: the projection after each step held it
+    there, so the video asked for a value at or beyond that end and the figure is a bound, not an estimate."""
+    lines = []
+    for name, value in estimates.get("parameters", {}).items():
+        low, high = estimates.get("ranges", {}).get(name, (None, None))
+        if low is None or high is None or not high > low:
+            continue
+        x = (value - low) / (high - low)
+        if x <= 1e-9 or x >= 1 - 1e-9:
+            end = "lower" if x <= 1e-9 else "upper"
+            lines.append(f"{name} = {value:.4g} ended on the {end} end of its range [{low:g}, {high:g}] (the paper's "
+                         f"sampling range, where the optimiser keeps it): the fit asked for "
+                         f"{'less' if end == 'lower' else 'more'}, so read it as a bound, not an estimate")
+    return lines
+
+
 def _check_truth_timeline(cfg: TaskConfig, truth: dict, ref) -> None:
     """A truth file's frame count and rate must be the video's (a truth without ``video_sha256``, as make-video
     wrote before 2026-11-29, was compared row by row with another video's frames)."""
@@ -334,7 +351,8 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
         result["view"], warning = _view(cfg, renderer, loss_frames, initial_states, final_states)
     stops = [f"{phase}: {h['stopped']}" for phase, h in (("warm start", warm), ("optimisation", history))
              if h is not None and h.get("stopped")]
-    result["warnings"] = input_notes + warnings + stops + ([warning] if warning else [])
+    result["warnings"] = (input_notes + warnings + stops + ([warning] if warning else [])
+                          + bound_warnings(result["estimates"]))
     folder = ResultFolder(out, cfg.overwrite)
     try:
         folder.write_json("result.json", result)
