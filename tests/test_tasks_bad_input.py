@@ -201,9 +201,17 @@ def test_perceptual_weights_file_missing_or_not_vgg(quad, tmp_path):
     assert "junk.pth" in line and "not a torchvision vgg16 state dict" in line
 
 
-def test_cube_has_no_actions_to_imitate(tmp_path_factory, tmp_path):
+def test_cube_has_no_actions_to_imitate(tmp_path_factory, tmp_path, monkeypatch):
+    """Said before a frame is decoded (a long video used to be read, with its progress bar, first)."""
+    from risp_tasks.tasks import run
+
     model = shared_model(tmp_path_factory, "cube")
     video = shared_video(tmp_path_factory, "cube")
+
+    def decoded(*args, **kwargs):
+        raise AssertionError("the video was decoded before the error")
+
+    monkeypatch.setattr(run, "_reference", decoded)
     line = _invoke(["imitate", video, "--model", model], tmp_path)
     assert "cube has no actions" in line and "most recent" not in line
 

@@ -179,6 +179,21 @@ def check_samples(cfg: TaskConfig, resolution: int) -> None:
                             f"pixels, the model's), beyond Mitsuba's limit of 2^32 per render: lower {option}")
 
 
+def _check_system_before_decoding(cfg: TaskConfig, env_name: str, chosen: str, made: str | None) -> None:
+    """Before a frame is decoded: a make-video file whose tag (read from its header) names another system than the
+    model's, and a system without actions asked to imitate, be controlled or given an actions file — one line each,
+    ``chosen`` saying when the model was the newest under runs/ rather than given."""
+    from ..sims import get_simulator
+
+    if made is not None and made != env_name:  # a make-video file names its system; real footage names none
+        raise RispError(f"{cfg.video}: a {made} video (make-video's tag in the file), but the model is a {env_name} "
+                        f"model{chosen}")
+    if get_simulator(env_name).action_dim == 0 and (cfg.actions is not None or cfg.task in ("imitate", "control")):
+        what = f"{cfg.actions}: the {env_name} has no actions" if cfg.actions is not None else \
+            f"the {env_name} has no actions to {cfg.task}; {cfg.task} works for: quadrotor, hand, rod"
+        raise RispError(what + chosen)
+
+
 def run_task(cfg: TaskConfig, echo=print) -> dict:
     """Run ``cfg.task``; returns the result dict (also written to ``<out>/result.json``)."""
     if cfg.task not in TASKS:
@@ -198,9 +213,12 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
     from risp_data.envs import get_environment
 
     from ..sims import get_simulator
-    from ..video import made_for, sha256_file
+    from ..video import comment_tag, made_for, sha256_file
     from .simulate import timeline
 
+    chosen = "" if cfg.model is not None else (f" (the most recent model under {cfg.runs}/, {model_path}, is a "
+                                               f"{env_name} model: give --model of a run for the video's system)")
+    _check_system_before_decoding(cfg, env_name, chosen, made_for(comment_tag(cfg.video)) if cfg.video else None)
     env = get_environment(env_name)
     drawn = render_environment(env_name, cfg.mesh)  # what the renderer draws (a bad mesh: one line, no work done)
     features = None
@@ -212,12 +230,6 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
     # what the inputs' readers did that the user should know (e.g. --source-fps replacing the file's rate): with
     # the result's warnings at the end, not before a later error line
     input_notes = list(ref.video.notes) if ref is not None else []
-    chosen = "" if cfg.model is not None else (f" (the most recent model under {cfg.runs}/, {model_path}, is a "
-                                               f"{env_name} model: give --model of a run for the video's system)")
-    made = made_for(ref.video.comment) if ref is not None else None
-    if made is not None and made != env_name:  # a make-video file names its system; real footage names none
-        raise RispError(f"{cfg.video}: a {made} video (make-video's tag in the file), but the model is a {env_name} "
-                        f"model{chosen}")
     if cfg.task in ("sysid", "imitate") and len(frames) < 2:  # nothing moves in one frame: the start would be the result
         raise RispError(f"{cfg.video}: {cfg.task} needs at least 2 frames (the initial state and its velocity are read "
                         f"from the first two), got {len(frames)} after --every {cfg.every}"
@@ -226,10 +238,6 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
     frames_t = torch.from_numpy(frames)
     predicted, predicted_targets = predict_frames(predictor, frames_t, progress=cfg.progress)
     file_actions = None
-    if sim.action_dim == 0 and (cfg.actions is not None or cfg.task in ("imitate", "control")):
-        what = f"{cfg.actions}: the {env_name} has no actions" if cfg.actions is not None else \
-            f"the {env_name} has no actions to {cfg.task}; {cfg.task} works for: quadrotor, hand, rod"
-        raise RispError(what + chosen)
     if cfg.actions is not None:
         file_actions = read_actions(cfg.actions, env_name, n_source, fps,
                                     f" at --fps {cfg.fps:g}" if cfg.fps is not None else "")
