@@ -104,6 +104,10 @@ ONLY_FOR = {"--grow-horizon": ("sysid", "imitate"), "--action-knots": ("imitate"
             "--initial-state": ("control",), "--horizon": ("control",)}
 
 
+#: "sysid, imitate: " at the start of a shared option's help: whose option it is, dropped in those tasks' own help
+TASKS_PREFIX = re.compile(r"^((?:estimate|sysid|imitate|control)(?:, (?:estimate|sysid|imitate|control))*): ")
+
+
 def _task_options(task: str):
     """Options shared by the tasks (docs/cli-task.md); defaults are the paper's (RMSProp, lr 3e-3, momentum 0.5).
     ``task``'s --help lists those it uses (:data:`ONLY_FOR`)."""
@@ -124,8 +128,8 @@ def _task_options(task: str):
                      "--truth; pixelwise: render(sim) vs video; perceptual: F(render(sim)) vs F(video)"),
         click.option("--residual", type=click.Choice(("l2", "l1")), default=None,
                      help="render/state/oracle losses: squared (l2, the paper's) or absolute (l1, robust to the "
-                          "network's occasional large misreadings) differences [default: l1 in sysid, l2 "
-                          "otherwise] (docs/tasks.md §Residual norm)"),
+                          "network's occasional large misreadings) differences "
+                          f"[default: {'l1' if task == 'sysid' else 'l2'}] (docs/tasks.md §Residual norm)"),
         click.option("--perceptual-weights", default=None, help="local torchvision vgg16 state dict for --loss "
                      "perceptual (default: the built-in filter bank)"),
         click.option("--init", type=click.Choice(("default", "random", "track")), default="default", show_default=True,
@@ -134,7 +138,8 @@ def _task_options(task: str):
         click.option("--optimizer", type=click.Choice(("rmsprop", "adam", "sgd")), default="rmsprop", show_default=True),
         click.option("--lr", type=float, default=3e-3, show_default=True),
         click.option("--momentum", type=float, default=0.5, show_default=True),
-        click.option("--iterations", type=int, default=None, help="optimisation iterations [default: 100; estimate: 0]"),
+        click.option("--iterations", type=int, default=None, help="optimisation iterations " + (
+            "[default: 0: the network's readings as they are]" if task == "estimate" else "[default: 100]")),
         click.option("--warm-start", type=int, default=0, show_default=True,
                      help="--loss render: run this many state-loss iterations first (docs/tasks.md §Warm start)"),
         click.option("--grow-horizon", type=int, default=0, show_default=True, **shown("--grow-horizon"),
@@ -162,10 +167,10 @@ def _task_options(task: str):
         click.option("--horizon", type=int, default=None, **shown("--horizon"),
                      help="control: frames to reach the pictured state [default: 10]"),
         click.option("--seed", type=int, default=0, show_default=True),
-        click.option("--every", type=int, default=1, show_default=True, **shown("--every"), help="keep every k-th frame (not control)"),
+        click.option("--every", type=int, default=1, show_default=True, **shown("--every"), help="keep every k-th frame"),
         click.option("--fps", type=float, default=None, help="resample the video to this frame rate (a divisor of the "
                      "video's own); control: the simulation's frame rate [default 10]"),
-        click.option("--source-fps", type=float, default=None, **shown("--source-fps"), help="frame rate of a PNG folder; on a file, replaces its own rate (not control)"),
+        click.option("--source-fps", type=float, default=None, **shown("--source-fps"), help="frame rate of a PNG folder; on a file, replaces its own rate"),
         click.option("--actions", default=None, **shown("--actions"), help="sysid, estimate: actions CSV (t + f0..f3 [N] / u0.. ; one row "
                      "per frame)"),
         click.option("--truth", default=None, help="ground-truth JSON (oracle loss, error report)"),
@@ -187,6 +192,10 @@ def _task_options(task: str):
     def decorate(f):
         for opt in reversed(opts):
             f = opt(f)
+        for param in getattr(f, "__click_params__", []):  # "sysid, imitate: …" in sysid's own help says nothing
+            said = TASKS_PREFIX.match(param.help or "")
+            if said and task in said.group(1).split(", "):
+                param.help = param.help[said.end():]
         return f
     return decorate
 

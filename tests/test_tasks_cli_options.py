@@ -27,6 +27,24 @@ def test_help_lists_the_options_a_task_uses(task):
         assert (option in res.output) == (task in users), (task, option)
 
 
+@pytest.mark.parametrize("task, residual, iterations", [("estimate", "l2", "0: the network's readings as they are"),
+                                                         ("sysid", "l1", "100"), ("imitate", "l2", "100"),
+                                                         ("control", "l2", "100")])
+def test_help_gives_each_tasks_own_defaults(task, residual, iterations):
+    """A task's --help states its own defaults, not every task's ('l1 in sysid, l2 otherwise'), and drops the
+    'sysid, imitate:' that names whose option it is where it is the task's own."""
+    from risp_tasks.cli import TASKS_PREFIX
+
+    res = CliRunner().invoke(cli, [task, "--help"], terminal_width=400)
+    text = " ".join(res.output.split())
+    assert f"differences [default: {residual}]" in text and f"optimisation iterations [default: {iterations}]" in text
+    assert "otherwise]" not in text and "estimate: 0]" not in text
+    command = cli.commands[task]
+    for param in command.params:
+        said = TASKS_PREFIX.match(param.help or "")
+        assert not (said and task in said.group(1).split(", ")), (task, param.name, param.help)
+
+
 @pytest.mark.parametrize("task, option", [(t, o) for o, users in ONLY_FOR.items() for t in TASKS if t not in users])
 def test_another_task_s_option_is_refused_in_one_line(task, option, tmp_path):
     target = str(tmp_path / ("goal.png" if task == "control" else "video.mp4"))
