@@ -24,7 +24,7 @@ import numpy as np
 
 from .atomic import LOCK_FILE, probe_writable, remove_temporaries
 from .atomic import folder_lock as atomic_folder_lock
-from .errors import RispError
+from .errors import RispError, message_line
 from .processes import end_pool_workers, exit_with, start_time
 from .ray_support import ray_errors, require_ray
 from .threads import available_cpus
@@ -356,13 +356,19 @@ def _zarr_store_ok(folder: str, manifest: dict[str, Any]) -> bool:
     if not (os.path.exists(os.path.join(store, "zarr.json"))
             and all(os.path.exists(os.path.join(store, name, "zarr.json")) for name in shapes)):
         return False
-    try:
-        import zarr
+    import zarr
 
+    try:
         root = zarr.open_group(store, mode="r")
         return all(tuple(root[name].shape) == tuple(shape) for name, shape in shapes.items())
-    except Exception:  # noqa: BLE001 - whatever zarr raises on damaged metadata (JSON, validation, key errors)
-        return False
+    except zarr.errors.UnknownCodecError as e:  # this zarr lacks the store's codec: the library, not the data
+        raise RispError(f"zarr store {store}: {message_line(e)} (zarr {zarr.__version__} cannot read it; the store "
+                        "was left as it is: use the zarr version that wrote it)") from None
+    except (ValueError, KeyError, TypeError, IndexError):  # damaged metadata: bad JSON (ValueError), failed
+        return False  # validation (zarr's errors are ValueErrors), missing or mistyped fields
+    except OSError as e:  # permissions, too many open files, …: not a damaged store, and nothing may be deleted
+        raise RispError(f"zarr store {store}: cannot read its metadata ({e.strerror or message_line(e)}); the store "
+                        "was left as it is") from None
 
 
 def _remove_temporaries(folder: str) -> None:

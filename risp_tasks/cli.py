@@ -411,6 +411,13 @@ def table(ctx, table, preset, repeats, quick, out, envs, methods, reg, perceptua
     with open(report["files"][0]) as f:
         click.echo(f.read())
     click.echo(f"wrote {report['files'][0]} and {report['files'][1]}")
+    failed = report.get("failed_cells") or []
+    if failed:
+        from risp_data.errors import RispError
+
+        shown = ", ".join(failed[:5]) + (f" and {len(failed) - 5} more" if len(failed) > 5 else "")
+        raise RispError(f"{len(failed)} cell(s) failed ({shown}): N/A in the table, their tracebacks in "
+                        f"{report['files'][0]}; the same command retries them")
 
 
 def _refuse_unread(ctx: click.Context, table: str) -> None:

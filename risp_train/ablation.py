@@ -130,6 +130,7 @@ def _render_pooled_locked(job, pool: list, record: dict, variant: str, progress:
     from risp_data.generate import make_renderer, prepare_folder, render_sample
     from risp_data.shards.manifest import save_manifest
     from risp_data.shards.writer import write_shard
+    from risp_data.threads import available_cpus, drjit_threads, torch_threads
 
     manifest = prepare_folder(job, variant, psi_pool=record)
     if manifest.get("psi_pool") != record:  # on disk before the first shard's marker: a kill in between leaves a
@@ -140,9 +141,12 @@ def _render_pooled_locked(job, pool: list, record: dict, variant: str, progress:
     if not todo:
         return job.out
     env = get_environment(job.env)
-    renderer = make_renderer(job)
     total = sum(job.shard_range(i)[1] - job.shard_range(i)[0] for i in todo)
-    with tqdm(total=total, unit="sample", desc=f"render pool={len(pool)}", disable=not progress) as bar:
+    # (Mitsuba was set up by render_pooled.) As risp-data's in-process render: Dr.Jit on the CPUs this process may use (not its default of every core of
+    # the machine), one torch thread; the caller's counts come back afterwards
+    with torch_threads(1), drjit_threads(available_cpus()), \
+            tqdm(total=total, unit="sample", desc=f"render pool={len(pool)}", disable=not progress) as bar:
+        renderer = make_renderer(job)
         for shard in todo:
             samples = []
             for i in range(*job.shard_range(shard)):

@@ -490,6 +490,40 @@ def test_a_damaged_zarr_store_is_made_anew_and_rendered_again(rendered, tmp_path
     _ok(CliRunner().invoke(cli, ["inspect", str(out), "--png", str(tmp_path / "c.png")]))
 
 
+@pytest.mark.parametrize("trouble", [PermissionError(13, "Permission denied"), OSError(24, "Too many open files")])
+def test_a_zarr_store_that_cannot_be_read_now_is_left_alone(rendered, tmp_path, monkeypatch, trouble):
+    """An error of the machine (permissions, file handles) while reading the store's metadata on resume is not a
+    damaged store: one line, and every finished shard stays (it used to be taken for damage: every shard's files
+    deleted and rendered again). A codec this zarr does not know is said as such, also without deleting."""
+    import shutil
+
+    import zarr
+
+    out = tmp_path / "cube"
+    shutil.copytree(rendered, out)
+    def files():
+        return sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file() and p.name != ".lock")
+
+    before = files()
+    assert len(list(out.glob("wds/*.tar"))) == 3 and len(list(out.glob("complete/*.json"))) == 3
+
+    def refuse(*args, **kwargs):
+        raise trouble
+
+    monkeypatch.setattr(zarr, "open_group", refuse)
+    _error_line(_render(out, n=5), "the store was left as it is")
+    assert files() == before
+
+    def unknown(*args, **kwargs):
+        raise zarr.errors.UnknownCodecError("codec 'zstd-x' not available")
+
+    monkeypatch.setattr(zarr, "open_group", unknown)
+    _error_line(_render(out, n=5), "cannot read it; the store was left as it is")
+    assert files() == before
+    monkeypatch.undo()
+    _assert_same(_samples(out), _samples(rendered))
+
+
 def test_a_marker_left_by_hand_is_ignored_and_its_shard_rendered(rendered, tmp_path):
     import json
     import shutil

@@ -446,9 +446,31 @@ def test_failed_cell_is_stored_and_retried(cache, tmp_path, monkeypatch):
     monkeypatch.setitem(cells_mod.CELLS, "estimation", boom)
     report = run_table(cfg, cache=cache, echo=lambda *_: None)
     assert report["cells"]["cube"]["average"]["na"] == "failed: RuntimeError: disk on fire"
+    assert report["failed_cells"] == ["cube/average/r0"]
     monkeypatch.undo()
     report = run_table(cfg, cache=cache, echo=lambda *_: None)
-    assert math.isfinite(report["cells"]["cube"]["average"]["mean"])
+    assert math.isfinite(report["cells"]["cube"]["average"]["mean"]) and report["failed_cells"] == []
+
+
+def test_a_table_with_failed_cells_is_written_and_the_command_exits_non_zero(tmp_path, monkeypatch):
+    """A cell that raised is N/A in the table (the run goes on), but the command then ends with one error line and
+    status 1, so that a script or CI sees it (it exited 0)."""
+    import risp_tasks.tables.grid as grid
+    from risp_tasks.cli import cli
+
+    md, js = tmp_path / "table.md", tmp_path / "table.json"
+    md.write_text("| method | cube |\n")
+    js.write_text("{}")
+    for failed, status in ((["cube/average/r0", "cube/random/r1"], 1), ([], 0)):
+        monkeypatch.setattr(grid, "run_table", lambda cfg, echo: {"files": [str(md), str(js)], "failed_cells": failed})
+        r = CliRunner().invoke(cli, ["table", "--table", "estimation", "--quick", "--out", str(tmp_path / "t")])
+        assert r.exit_code == status, r.output
+        assert "| method | cube |" in r.output and f"wrote {md} and {js}" in r.output
+        last = r.output.strip().splitlines()[-1]
+        if failed:
+            assert last.startswith("Error: 2 cell(s) failed (cube/average/r0, cube/random/r1)") and str(md) in last
+        else:
+            assert last == f"wrote {md} and {js}"
 
 
 def test_a_damaged_cell_file_is_computed_again(cache, tmp_path):

@@ -119,3 +119,34 @@ def test_a_pooled_render_killed_at_its_first_shard_resumes(tmp_path, monkeypatch
     monkeypatch.setattr(writer, "write_shard", real)
     render_pooled(job, pool, progress=False)
     assert [s["meta"]["psi_pool_index"] for s in iter_wds(out)] == [0, 1, 0, 1]
+
+
+def test_the_pooled_render_sets_its_thread_counts_and_gives_them_back(tmp_path, monkeypatch):
+    """As risp-data's in-process render: Dr.Jit on the CPUs the process may use (here made 1), not its default of
+    every core of the machine, and one torch thread while rendering; the caller's counts come back afterwards."""
+    import drjit as dr
+    import torch
+
+    import risp_data.generate as gen
+    import risp_data.threads as threads
+    from risp_data.generate import RenderJob
+    from risp_train.ablation import config_pool, render_pooled
+
+    monkeypatch.setattr(threads, "available_cpus", lambda: 1)
+    before = dr.thread_count(), torch.get_num_threads()
+    seen = []
+    real = gen.render_sample
+    monkeypatch.setattr(gen, "render_sample", lambda *a, **k: (seen.append((dr.thread_count(),
+                                                                             torch.get_num_threads())),
+                                                               real(*a, **k))[1])
+    torch.set_num_threads(2)
+    dr.set_thread_count(2)
+    try:
+        job = RenderJob(env="cube", n=2, out=str(tmp_path / "p"), domain="train", formats=("wds",), resolution=8,
+                        spp=1, seed=0, workers=1, shard_size=2, jacobian=True)
+        render_pooled(job, config_pool("cube", 1, 0), progress=False)
+        assert len(seen) == 2 and all(s == (1, 1) for s in seen), seen
+        assert dr.thread_count() == 2 and torch.get_num_threads() == 2
+    finally:
+        dr.set_thread_count(before[0])
+        torch.set_num_threads(before[1])

@@ -210,6 +210,9 @@ def run_table(cfg: TableConfig, cache: str | None = None, on_cell: Callable[[Cel
     shown, earlier = widened(cfg, folder)
     report = write_report(shown, folder, results + earlier)
     _write_config(shown, folder)  # the configuration of the table.md beside it, not of this run's subset alone
+    # this run's cells that raised (stored as N/A with their traceback, retried by the next run): the command
+    # writes the table and then exits non-zero, so that a script or CI sees them
+    report["failed_cells"] = [c.name for c, r in zip(cells, results) if r.get("failed")]
     return report
 
 
