@@ -233,6 +233,32 @@ def test_corrupt_and_truncated_zarr_shard_named(tmp_path):
         ZarrDataset(str(tmp_path))
 
 
+def test_the_machines_errors_are_not_called_corrupt_data(tmp_path, monkeypatch):
+    """Out of memory, or a store this user may not read, is the machine's trouble: it reaches the command's own
+    one-line messages as it is (risp_data.cli_util), not as 'corrupt … (repair it)', which would send the user to
+    re-render good data."""
+    import zarr
+
+    import risp_data.shards.wds as wds
+
+    _write(str(tmp_path))
+
+    def refuse(*args, **kwargs):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(zarr, "open_group", refuse)
+    with pytest.raises(PermissionError):
+        ZarrDataset(str(tmp_path))[0]
+    monkeypatch.undo()
+
+    def full(*args, **kwargs):
+        raise MemoryError
+
+    monkeypatch.setattr(wds, "decode_exr", full)
+    with pytest.raises(MemoryError):
+        next(iter_wds(str(tmp_path)))
+
+
 def test_missing_or_corrupt_manifest(tmp_path):
     with pytest.raises(RispError, match="not found"):
         load_manifest(str(tmp_path / "nope"))

@@ -193,7 +193,7 @@ def decode_wds_sample(sample: dict[str, Any], jacobian: bool = True, resolution:
                                   resolution)
         if state.shape != (len(meta["state_names"]),) or psi.shape != (len(meta["psi_names"]),):
             raise ValueError(f"state/psi shapes {state.shape}/{psi.shape} disagree with the names in its json")
-    except RispError:
+    except (RispError, MemoryError):  # MemoryError: the machine's, not the bytes' (cli_util says it)
         raise
     except Exception as e:  # OpenEXR, numpy and json raise many types on corrupt bytes
         raise RispError(f"corrupt webdataset sample ({_where(sample)}): {type(e).__name__}: {e}") from None
@@ -232,8 +232,9 @@ def wds_urls(folder: str) -> list[str]:
 
 
 def raise_with_url(exn: Exception) -> bool:
-    """webdataset handler: turn a tar-level failure into one RispError naming the shard file."""
-    if isinstance(exn, RispError):
+    """webdataset handler: turn a tar-level failure into one RispError naming the shard file (out of memory is the
+    machine's, not the file's: raised as it is, for the command's own line)."""
+    if isinstance(exn, (RispError, MemoryError)):
         raise exn
     url = next((a for a in reversed(getattr(exn, "args", ())) if isinstance(a, str) and a.endswith(".tar")), None)
     msg = str(exn.args[0]) if getattr(exn, "args", None) else type(exn).__name__

@@ -192,6 +192,8 @@ class ZarrDataset:
         try:
             group = zarr.open_group(path, mode="r")
             arrays = {name: group[name] for name in _DIMS if name in group}
+        except (MemoryError, PermissionError):  # the machine's, not the store's: said as such (cli_util), no repair
+            raise
         except Exception as e:
             raise RispError(f"corrupt zarr store {path}: {type(e).__name__}: {message_line(e)}"
                             f"{repair_hint(self.folder)}") from None
@@ -236,6 +238,8 @@ class ZarrDataset:
                 continue
             try:
                 out[name] = np.asarray(arr[g])
+            except (MemoryError, PermissionError):  # the machine's, not the file's (cli_util says them)
+                raise
             except Exception as e:
                 rel = shard_file(self.folder, name, shard, arr.ndim)
                 raise RispError(
