@@ -6,7 +6,7 @@ libLLVM (:func:`risp_data.llvm.ensure_llvm`), then imports Mitsuba lazily.  Noth
 
 from __future__ import annotations
 
-from .errors import RispError
+from .errors import RispError, message_line
 from .llvm import ensure_llvm
 
 VARIANTS: tuple[str, ...] = ("llvm_ad_rgb", "cuda_ad_rgb")
@@ -20,14 +20,19 @@ def _cuda_driver_present() -> bool:
     return ctypes.util.find_library("cuda") is not None
 
 
-def _cuda_usable() -> bool:
-    """True when Dr.Jit can drive a CUDA device (no exception, at least one device)."""
+def _cuda_problem() -> str | None:
+    """None when Dr.Jit can drive a CUDA device, else why not: its own error's first line, or that it found none."""
     try:
         import drjit as dr
 
-        return bool(dr.has_backend(dr.JitBackend.CUDA))
-    except Exception:  # noqa: BLE001 - any failure simply means "no GPU"
-        return False
+        return None if dr.has_backend(dr.JitBackend.CUDA) else "none was found"
+    except Exception as e:  # noqa: BLE001 - any failure means "no GPU"; its words go into the explicit request's error
+        return f"{type(e).__name__}: {message_line(e)}"
+
+
+def _cuda_usable() -> bool:
+    """True when Dr.Jit can drive a CUDA device (no exception, at least one device)."""
+    return _cuda_problem() is None
 
 
 def init_mitsuba(variant: str | None = None) -> str:
@@ -60,8 +65,9 @@ def init_mitsuba(variant: str | None = None) -> str:
             raise llvm_error
         else:
             variant = "llvm_ad_rgb"
-    if variant == "cuda_ad_rgb" and not _cuda_usable():
-        raise RispError("variant 'cuda_ad_rgb' needs a usable CUDA GPU; none was found (use llvm_ad_rgb)")
+    problem = _cuda_problem() if variant == "cuda_ad_rgb" else None
+    if problem is not None:  # asked for by name: say what Dr.Jit said, not only that no GPU was usable
+        raise RispError(f"variant 'cuda_ad_rgb' needs a usable CUDA GPU; {problem} (use llvm_ad_rgb)")
     if mi.variant() != variant:
         try:
             mi.set_variant(variant)

@@ -136,6 +136,10 @@ def test_init_mitsuba_without_llvm(monkeypatch):
         mitsuba_setup.init_mitsuba()
     with pytest.raises(RispError, match="needs a usable CUDA GPU"):
         mitsuba_setup.init_mitsuba("cuda_ad_rgb")
+    # asked for by name, the error quotes Dr.Jit's own reason (it said only "none was found")
+    monkeypatch.setattr(mitsuba_setup, "_cuda_problem", lambda: "RuntimeError: cuInit() failed: CUDA_ERROR_NO_DEVICE")
+    with pytest.raises(RispError, match=r"needs a usable CUDA GPU; RuntimeError: cuInit\(\) failed: CUDA_ERROR_NO_DEVICE"):
+        mitsuba_setup.init_mitsuba("cuda_ad_rgb")
 
 
 def _fd_check(r, state, config, seed):
