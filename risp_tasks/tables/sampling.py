@@ -67,10 +67,10 @@ def landscape(cfg, art, repeat: int) -> dict:
             per_frame.append(((env.state_to_target(states) - goal) ** 2).sum(-1).numpy())
         with atomic_write(path, "wb", suffix=".npz") as f:
             np.savez(f, grid=grid, per_frame=np.stack(per_frame))  # (G, T)
-    data = np.load(path)
-    per_frame = data["per_frame"]
+    with np.load(path) as data:  # closed at once (a table run opens one per repeat)
+        grid, per_frame = data["grid"], data["per_frame"]
     n = per_frame.shape[1]
-    return {"grid": data["grid"], "true": float(truth["params"]["log10_E"]),
+    return {"grid": grid, "true": float(truth["params"]["log10_E"]),
             "losses": {s: per_frame[:, scheme_frames(s, n)].mean(1) for s in SCHEMES}}
 
 
