@@ -215,8 +215,10 @@ def test_corrupt_tar_member_named(tmp_path):
         verify_checksums(str(tmp_path))
     # the reader on its own (no checksum pass) still names the shard and the key
     raw = [r for r in wds.WebDataset([str(p)], shardshuffle=False)]
-    with pytest.raises(RispError, match=r"shard-000001\.tar key s00000002"):
+    with pytest.raises(RispError, match=r"shard-000001\.tar key s00000002") as e:
         decode_wds_sample(raw[0])
+    # and how to repair it, as every other reader's error says (the trainer's read gave no hint)
+    assert str(e.value).endswith(f"; repair: risp-data verify --repair {tmp_path}"), str(e.value)
     with pytest.raises(RispError, match="shard-000001.tar"):
         list(iter_wds(str(tmp_path)))
 

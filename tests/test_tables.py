@@ -174,7 +174,8 @@ def test_regularizer_comparison(cache, tmp_path):
         err, sec = report["cells"]["cube"][reg], report["seconds_per_epoch"]["cube"][reg]
         assert math.isfinite(err["mean"]) and sec["mean"] > 0, (reg, err, sec)
         cell = json.load(open(cell_path(report["folder"], Cell("cube", reg, 0))))
-        assert cell["timed_epochs"] == 1, cell  # the cube's γ starts at half the run: the second of 2 epochs
+        # --quick ramps γ in from the first step (the cube's own start is half the run): both epochs are timed
+        assert cell["timed_epochs"] == 2, cell
     # issue 8: per state group in its unit, not only the L1 that mixes metres and radians
     assert set(report["groups"]) == {"cube position [m]", "cube attitude [deg]"}
     for reg in cfg.methods:
@@ -221,6 +222,9 @@ def test_rod_temporal_sampling_ablation(cache, tmp_path):
     # the schemes see different frames, so their landscapes differ
     assert cells[0]["losses"] != cells[3]["losses"]
     assert os.path.getsize(os.path.join(report["folder"], "sampling.png")) > 1000
+    # its key names the sizes it reads: not test images or iterations, which --table sampling refuses as options
+    sizes = next(ln for ln in open(report["files"][0]).read().splitlines() if ln.startswith("- Sizes: "))
+    assert "test images" not in sizes and "iterations" not in sizes and "video frames" in sizes, sizes
 
 
 class Killed(Exception):
@@ -254,6 +258,41 @@ def test_killed_and_resumed_run_gives_the_same_table(cache, tmp_path):
         assert a["values"] == pytest.approx(b["values"], rel=1e-9, abs=1e-12), m
     strip = lambda text: [ln for ln in text.splitlines() if not ln.startswith("- Compute")]  # noqa: E731
     assert strip(open(whole["files"][0]).read()) == strip(open(resumed["files"][0]).read())
+
+
+def test_quick_networks_reach_the_regularizer():
+    """--quick trains a few steps: with the quadrotor's and the cube's late start (half the run) its `ours` was
+    `ours-no-grad`'s network. Quick ramps γ in from the first step; the full presets keep the per-environment start."""
+    from risp_tasks.tables.artifacts import network_identity, train_config
+    from risp_train.config import resolved_gamma_start
+
+    quick = make_config("estimation", quick=True, out="x", envs=("quadrotor",))
+    full = make_config("estimation", out="x", envs=("quadrotor",))
+    assert resolved_gamma_start(train_config(quick, "reg"), "quadrotor") == 0.0
+    assert resolved_gamma_start(train_config(full, "reg"), "quadrotor") == 0.5
+    assert train_config(quick, "none").gamma_start == 0.0 and train_config(full, "none").gamma_start is None
+    assert network_identity(quick, "quadrotor", "reg") != network_identity(quick, "quadrotor", "none")
+
+
+def test_a_killed_runs_task_cell_folders_are_removed_by_the_next_run(cache, tmp_path):
+    """A task cell works in .tmp-<pid>@<host>-cell-*; a run killed by a signal left them (with a task's inputs in
+    them) for good. The next run deletes those of dead processes (and unowned old-style ones), not a live one's."""
+    import subprocess
+    import sys
+
+    from risp_data.atomic import temp_prefix
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    dead_pid = int(dead.stdout)
+    cfg = make_config("estimation", quick=True, out=str(tmp_path), envs=("cube",), methods=("average",), **TINY)
+    host = temp_prefix().split("@")[1]
+    left = [tmp_path / f".tmp-{dead_pid}@{host}cell-abc", tmp_path / ".tmp-cell-old"]
+    live = tmp_path / f"{temp_prefix()}cell-live"
+    for d in (*left, live):
+        d.mkdir()
+        (d / "goal.json").write_text("{}")
+    run_table(cfg, cache=str(tmp_path), echo=lambda *_: None)
+    assert not any(d.exists() for d in left) and (live / "goal.json").exists()
 
 
 def test_a_subset_run_keeps_the_rows_earlier_runs_finished_in_the_shared_table(cache, tmp_path):
@@ -568,6 +607,7 @@ def test_the_key_holds_only_what_a_table_reads_and_the_task_defaults():
     (["--table", "control", "--envs", "hand,hand"], "Error: --envs names an entry twice: hand,hand"),
     (["--table", "sysid", "--methods", "ours,ours"], "Error: --methods names an entry twice: ours,ours"),
     (["--table", "sysid", "--repeats", "1001"], "Error: --repeats must be <= 1000"),
+    (["--table", "sampling", "--envs", "rod,cube"], "Error: --table sampling is the rod's temporal-sampling ablation"),
     (["--table", "estimation", "--perceptual-weights", "/nonexistent/vgg.pth"],
      "Error: /nonexistent/vgg.pth: perceptual weights file not found"),
 ])

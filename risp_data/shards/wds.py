@@ -165,6 +165,15 @@ def _where(sample: dict[str, Any]) -> str:
     return f"shard {sample.get('__url__', '<unknown shard>')} key {sample.get('__key__', '<unknown key>')}"
 
 
+def _repair(sample: dict[str, Any]) -> str:
+    """The repair hint for a bad sample of ``FOLDER/wds/shard-*.tar`` (its ``__url__``), as the other readers give
+    it; "" when the sample does not say where it came from."""
+    url = sample.get("__url__")
+    if not isinstance(url, str) or os.path.basename(os.path.dirname(url)) != WDS_DIR:
+        return ""
+    return repair_hint(os.path.dirname(os.path.dirname(url)) or ".")
+
+
 def decode_wds_sample(sample: dict[str, Any], jacobian: bool = True, resolution: int | None = None) -> dict[str, Any]:
     """Decode a raw webdataset sample (bytes per member) into arrays; RispError naming shard and key.
 
@@ -196,7 +205,8 @@ def decode_wds_sample(sample: dict[str, Any], jacobian: bool = True, resolution:
     except (RispError, MemoryError):  # MemoryError: the machine's, not the bytes' (cli_util says it)
         raise
     except Exception as e:  # OpenEXR, numpy and json raise many types on corrupt bytes
-        raise RispError(f"corrupt webdataset sample ({_where(sample)}): {type(e).__name__}: {e}") from None
+        raise RispError(f"corrupt webdataset sample ({_where(sample)}): {type(e).__name__}: {e}"
+                        f"{_repair(sample)}") from None
     return {
         "key": sample.get("__key__", ""),
         "image": image,

@@ -20,6 +20,8 @@ import tempfile
 import numpy as np
 import torch
 
+from risp_data.atomic import temp_prefix
+
 from .artifacts import Artifacts
 from .config import repeat_seed
 from ..tasks.features import feature_extractor
@@ -134,7 +136,7 @@ def _task_run(cfg, art: Artifacts, task: str, env_name: str, method: str, repeat
     from risp_tasks.tasks.config import NETWORK_LOSSES
 
     residual = cfg.residual if loss in NETWORK_LOSSES else "l2"
-    with tempfile.TemporaryDirectory(prefix=".tmp-cell-", dir=art.root) as tmp:
+    with tempfile.TemporaryDirectory(prefix=temp_prefix() + "cell-", dir=art.root) as tmp:
         tcfg = TaskConfig(task=task, video=video or ref["video"], out=os.path.join(tmp, "result"), model=model,
                           loss=loss, init=init, iterations=iterations, seed=repeat_seed(cfg.seed, repeat),
                           actions=ref["actions"] if task == "sysid" else None, truth=truth or ref["truth"],
@@ -197,7 +199,7 @@ def control(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> dic
         s0 = torch.tensor(truth["sim_states"][0], dtype=torch.float64)[None]
     else:  # large states (the rod) are not stored: its reference videos start at rest, as initial_sim_state does
         s0 = initial_sim_state(sim, torch.tensor(truth["env_states"][0], dtype=torch.float64), None, truth["fps"])
-    with tempfile.TemporaryDirectory(prefix=".tmp-cell-", dir=art.root) as tmp:
+    with tempfile.TemporaryDirectory(prefix=temp_prefix() + "cell-", dir=art.root) as tmp:
         goal_png, init_json, goal_json = (os.path.join(tmp, n) for n in ("goal.png", "initial.json", "goal.json"))
         frame = read_video(ref["video"], resolution=cfg.resolution).frames[horizon]
         Image.fromarray(to_uint8(frame)).save(goal_png)

@@ -117,6 +117,10 @@ def validate(cfg: TableConfig) -> None:
     for env in cfg.envs:
         if env not in ENV_NAMES:
             raise RispError(f"unknown environment {env!r}; choose from: {', '.join(ENV_NAMES)}")
+    others = [env for env in cfg.envs if env != "rod"]
+    if cfg.table == "sampling" and others:  # every cell would be N/A: refused before a folder is made
+        raise RispError(f"--table sampling is the rod's temporal-sampling ablation (the paper's): --envs rod, "
+                        f"not {','.join(others)}")
     from .sampling import SCHEMES
 
     rows, what = {"regularizers": (REGULARIZERS, "regularizer"), "sampling": (SCHEMES, "sampling scheme")}.get(

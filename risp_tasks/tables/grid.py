@@ -19,7 +19,7 @@ import traceback
 from dataclasses import dataclass, replace
 from typing import Callable
 
-from risp_data.atomic import write_text_atomic
+from risp_data.atomic import remove_temporaries, write_text_atomic
 from risp_data.errors import RispError, message_line
 from risp_data.numbers import is_finite_number
 from risp_data.processes import end_pool_workers
@@ -184,6 +184,8 @@ def run_table(cfg: TableConfig, cache: str | None = None, on_cell: Callable[[Cel
     if cfg.executor == "ray":  # before anything is written: without the extra the run cannot start
         require_ray()
     os.makedirs(folder, exist_ok=True)
+    # a killed run's task-cell folders (.tmp-<pid>@<host>-cell-*): its process is gone; a running one's are kept
+    remove_temporaries(cache or cfg.out)
     if not os.path.exists(os.path.join(folder, "config.json")):  # a first run killed before its report has one
         _write_config(cfg, folder)
     cells = grid(cfg)

@@ -123,13 +123,21 @@ def markdown(report: dict) -> str:
         if report["table"] in ("sysid", "imitation", "control"):
             lines += [f"- Residual of the network-space losses: `{cfg.get('residual', 'l2')}` (`render`, `state`, "
                       "`oracle`; `pixelwise` and `perceptual` are squared image/feature differences)."]
+    from .grid import UNUSED_BY
     from .sampling import SAMPLING_FRAMES
 
-    frames = SAMPLING_FRAMES if report["rows"] == "scheme" else cfg["frames"]
-    # the regularizer table trains and evaluates networks: no videos, no optimisation
-    tasks = "" if regs else f"{frames} video frames, {cfg['iterations']} optimisation iterations, "
-    lines += [f"- Sizes: {cfg['n_train']} training samples, {cfg['n_test']} test images per repeat, "
-              f"{tasks}spp {cfg['spp']}, {cfg['resolution']}×{cfg['resolution']}, seed {cfg['seed']}.",
+    unused = set(UNUSED_BY.get(report["table"], ()))  # the sizes this table does not read are not its sizes
+    sizes = [f"{cfg['n_train']} training samples"]
+    if "n_test" not in unused:
+        sizes.append(f"{cfg['n_test']} test images per repeat")
+    if report["rows"] == "scheme":  # the sampling ablation's videos have their own fixed length
+        sizes.append(f"{SAMPLING_FRAMES} video frames")
+    elif "frames" not in unused:
+        sizes.append(f"{cfg['frames']} video frames")
+    if "iterations" not in unused:
+        sizes.append(f"{cfg['iterations']} optimisation iterations")
+    lines += [f"- Sizes: {', '.join(sizes)}, spp {cfg['spp']}, {cfg['resolution']}×{cfg['resolution']}, "
+              f"seed {cfg['seed']}.",
               f"- Compute: {report['seconds']:.0f} s summed over cells (max 1-min load average "
               f"{report['loadavg_max']:.1f}: timings taken under load).",
               f"- † Paper numbers: {report['paper_source']}."]
