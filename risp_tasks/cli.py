@@ -365,7 +365,8 @@ def make_video(env, out, frames, fps, resolution, spp, domain, params, effect, c
 # ---- BEGIN table command (owned by risp_tasks/tables; docs/tables.md) ----------------------------------------
 @cli.command()
 @click.option("--table", "table", required=True,
-              help="estimation | sysid | imitation | control (the paper's); regularizers | sampling (rod ablation)")
+              help="estimation | sysid | imitation | control (the paper's); regularizers (the regularizer "
+                   "comparison, every system) | sampling (the rod's temporal-sampling ablation)")
 @click.option("--preset", default="cpu", show_default=True, help="cpu (this machine) | paper (a GPU machine)")
 @click.option("--repeats", type=int, default=4, show_default=True, help="random looks / initial guesses per cell")
 @click.option("--quick", is_flag=True, help="smoke version: tiny data, 1 epoch, 3 iterations (minutes)")

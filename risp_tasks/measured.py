@@ -392,7 +392,7 @@ def columns_read(env: str, sidecar: Sidecar) -> frozenset[str]:
 def _validated_rows(reader, header: list[str], path: Path, known: frozenset[str]) -> np.ndarray:
     """Row by row; a non-number in a column not in ``known`` (a log's flight-mode text, a trailing comma's empty
     column) makes that column NaN (read_csv_columns then leaves it out), elsewhere it is an error naming the cell."""
-    rows = []
+    rows = []  # errors name the data row (as _check_finite does) and the file's line (the header is line 1)
     for i, row in enumerate(reader, start=2):
         if not row or all(not c.strip() for c in row):
             continue
@@ -404,7 +404,8 @@ def _validated_rows(reader, header: list[str], path: Path, known: frozenset[str]
                 vals.append(float(c))
             except ValueError:
                 if col in known:
-                    raise RispError(f"{path}: line {i}, column {col}: not a number ({c!r})") from None
+                    raise RispError(f"{path}: data row {len(rows) + 1} (line {i}), column {col}: not a number "
+                                    f"({c!r})") from None
                 vals.append(float("nan"))
         rows.append(vals)
     return np.asarray(rows, dtype=np.float64).reshape(-1, len(header))
@@ -428,7 +429,8 @@ def _check_finite(cols: dict, path: Path) -> None:
     for name, v in cols.items():
         bad = np.flatnonzero(~np.isfinite(v))
         if bad.size:
-            raise RispError(f"{path}: column {name} has NaN/inf at data row {bad[0] + 1}")
+            raise RispError(f"{path}: column {name} has NaN/inf at data row {bad[0] + 1} (the first row after the "
+                            "header is data row 1)")
 
 
 def _check_time(t: np.ndarray, path: Path) -> None:

@@ -10,6 +10,7 @@ from risp_tasks.diagnose import candidates as cands
 from risp_tasks.diagnose.adapter import Observer
 from risp_tasks.diagnose.fit import _jacobian, channel_sigma, estimate_noise, grid_start, make_segments, residuals
 from risp_tasks.diagnose.run import split_trajectories
+from risp_data.errors import RispError
 from risp_tasks.diagnose.select import Score, decide, estimate_force_note, estimate_note
 from risp_tasks.diagnose.synth import SynthConfig, make_synthetic
 from risp_tasks.measured import load_measured
@@ -61,6 +62,20 @@ def test_split_by_trajectories_is_seeded_and_by_time_for_one_file(quad_data):
     fit, held, info = split_trajectories(trajs[:1], 0.25, seed=3)
     assert info["mode"] == "time" and fit[0].n == 90 and held[0].n == 30
     assert held[0].t[0] == pytest.approx(fit[0].t[-1] + 0.01)
+    # too short to split: the error says how many samples it needs, and the fewest it needs does split
+    short = trajs[0].slice(0, 25, "")
+    with pytest.raises(RispError, match=r"too short \(25 samples\).*at least 10 samples each at --held-out 0.3: "
+                                        r"it needs (\d+)") as e:
+        split_trajectories([short], 0.3, seed=3)
+    need = int(str(e.value).split("it needs ")[1].split()[0])
+    fit_need, held_need, _ = split_trajectories([trajs[0].slice(0, need, "")], 0.3, seed=3)
+    assert fit_need[0].n >= 10 and held_need[0].n >= 10
+    with pytest.raises(RispError, match="too short"):
+        split_trajectories([trajs[0].slice(0, need - 1, "")], 0.3, seed=3)
+    # a part shorter than the segment horizon is named, with its length
+    model, k = cands.build_model("quadrotor", (), trajs[0].sidecar, trajs[0].dt)
+    with pytest.raises(RispError, match=r"segment horizon \(40 samples\): the longest, .*\[held-out\], has 30;"):
+        make_segments(model.sim, [held[0]], horizon=40, k=k, params=model.base)
 
 
 def _drop_rows(src, dst, rows):

@@ -329,7 +329,13 @@ def test_columns_no_reader_uses_do_not_block_reading(tmp_path):
     fields[1] = "oops"  # a read column (x) with text
     rows[3] = ",".join(fields)
     p.write_text("\n".join(rows) + "\n")
-    with pytest.raises(RispError, match=r"line 4, column x: not a number \('oops'\)"):
+    with pytest.raises(RispError, match=r"data row 3 \(line 4\), column x: not a number \('oops'\)"):
+        load_measured([str(p)], "cube")
+    # a NaN is named by the same data-row count (it said 'data row' here and 'line' there, one apart)
+    fields[1] = "nan"
+    rows[3] = ",".join(fields)
+    p.write_text("\n".join(rows) + "\n")
+    with pytest.raises(RispError, match=r"column x has NaN/inf at data row 3 \(the first row after the header"):
         load_measured([str(p)], "cube")
 
 

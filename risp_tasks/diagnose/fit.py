@@ -137,7 +137,9 @@ def make_segments(sim, trajs: list[Trajectory], horizon: int, k: int, stride: in
             raise RispError(f"no segment of {horizon + 1} evenly spaced samples: every one crosses a dropped sample or "
                             f"strays more than {STEP_TOLERANCE:.0%} of a step from the fixed-rate grid (the simulator "
                             f"steps at a fixed rate); resample the data to a fixed rate or use a smaller --horizon")
-        raise RispError(f"no trajectory is longer than the segment horizon ({horizon} samples); use a smaller --horizon")
+        longest = max(trajs, key=lambda tr: tr.n)
+        raise RispError(f"no trajectory is longer than the segment horizon ({horizon} samples): the longest, "
+                        f"{longest.name}, has {longest.n}; use a smaller --horizon")
     idx = np.arange(len(pairs))
     if max_segments is not None and len(idx) > max_segments:
         if rng is None:

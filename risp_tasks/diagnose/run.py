@@ -57,6 +57,10 @@ class DiagnoseConfig:
 # ------------------------------------------------------------------------------------------------
 # split
 # ------------------------------------------------------------------------------------------------
+#: the fewest samples each part of a trajectory split by time may have
+MIN_PART = 10
+
+
 def split_trajectories(trajs: list[Trajectory], held_out: float, seed: int) -> tuple[list[Trajectory], list[Trajectory], dict]:
     """Whole trajectories (seeded permutation) when there are several, else the last part of the one."""
     if not 0.0 < held_out < 1.0:
@@ -72,8 +76,11 @@ def split_trajectories(trajs: list[Trajectory], held_out: float, seed: int) -> t
         return [trajs[i] for i in fit], [trajs[i] for i in held], info
     tr = trajs[0]
     cut = int(round((1.0 - held_out) * tr.n))
-    if cut < 10 or tr.n - cut < 10:
-        raise RispError(f"{tr.path}: too short ({tr.n} samples) to split by time into fitting and held-out parts")
+    if cut < MIN_PART or tr.n - cut < MIN_PART:
+        need = next(n for n in range(2 * MIN_PART, 10**9) if MIN_PART <= int(round((1.0 - held_out) * n)) <= n - MIN_PART)
+        raise RispError(f"{tr.path}: too short ({tr.n} samples) to split by time into fitting and held-out parts of "
+                        f"at least {MIN_PART} samples each at --held-out {held_out:g}: it needs {need} (or give several "
+                        "trajectories, which are split whole)")
     info = {"mode": "time", "fit": [f"{tr.name}[0:{cut}]"], "held_out": [f"{tr.name}[{cut}:{tr.n}]"],
             "split_time_s": float(tr.t[cut]), "held_out_fraction": held_out, "seed": int(seed)}
     return [tr.slice(0, cut, "[fit]")], [tr.slice(cut, tr.n, "[held-out]")], info
