@@ -361,3 +361,18 @@ def test_held_out_errors_convert_thrusts_at_the_models_own_k_f(quad_data):
     assert rms[1] < 1.2 * rms[0], rms
     roll = [rollout_error(model.sim, obs, x, trajs, k, 10, seed=0)["normalized"] for x in (p, q)]
     assert roll[1] < 1.2 * roll[0], roll
+
+
+@pytest.mark.parametrize("env", ["hand", "rod"])
+def test_a_fixed_step_simulator_refuses_a_sample_interval_it_cannot_step(env):
+    """The hand and the rod integrate with a fixed 10 ms step (their module's DT): a 30 Hz log used to get an
+    instance step of 11.1 ms that they never read, and ran 30 ms of simulation per 33.3 ms sample without a word."""
+    from risp_tasks.diagnose.adapter import matched_simulator
+    from risp_tasks.sims import get_simulator
+
+    sim = get_simulator(env)
+    assert matched_simulator(sim, 0.02)[1] == 2 and matched_simulator(sim, 0.0100001)[1] == 1
+    with pytest.raises(RispError, match=rf"the {env} simulator steps a fixed 0.01 s: the data's sample interval "
+                                        r"0.0333333 s is not a whole number of steps"):
+        matched_simulator(sim, 1 / 30)
+    assert sim.dt == 0.01  # the instance is left as it was

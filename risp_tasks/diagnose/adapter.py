@@ -33,22 +33,27 @@ _QUAT = ("qw", "qx", "qy", "qz")
 _EULER = ("yaw", "pitch", "roll")
 
 
-def substeps(sim, sample_dt: float) -> int:
-    """Simulator steps per measured sample: k = round(Δ / dt) (at least 1).
+#: how far k whole steps of a fixed-step simulator may miss the sample interval Δ (as the tasks' frame rule,
+#: risp_tasks.tasks.simulate.FRAME_TIME_TOLERANCE): beyond it the simulated clock would drift from the data's
+FIXED_STEP_TOLERANCE = 2e-3
 
-    When k·dt differs from Δ by more than 0.5 %, :func:`matched_simulator` rescales the simulator's step
-    to Δ / k (a documented adapter; the step size stays within a factor of about 1.4 of the native one).
-    """
+
+def substeps(sim, sample_dt: float) -> int:
+    """Simulator steps per measured sample: k = round(Δ / dt) (at least 1)."""
     return max(1, int(round(sample_dt / sim.dt)))
 
 
 def matched_simulator(sim, sample_dt: float):
-    """Return ``(sim, k)`` with ``k`` simulator steps per sample interval exactly."""
+    """``(sim, k)`` with ``k`` steps of a simulator whose step is fixed (those without a ``dt`` option: the hand and
+    the rod integrate with their module's DT) per sample interval Δ; RispError when k·dt misses Δ by more than
+    FIXED_STEP_TOLERANCE.  (It used to set ``sim.spec.dt`` to Δ/k, which these simulators never read: a 30 Hz log
+    was simulated at 3 × 10 ms = 30 ms per 33.3 ms sample, silently.)"""
     k = substeps(sim, sample_dt)
-    if abs(k * sim.dt - sample_dt) > 5e-3 * sample_dt:
-        # the simulators read their step from ``self.spec.dt``; an instance-level spec with the matched
-        # step keeps the class spec untouched
-        sim.spec = dataclasses.replace(sim.spec, dt=sample_dt / k)
+    if abs(k * sim.dt - sample_dt) > FIXED_STEP_TOLERANCE * sample_dt:
+        fitting = ", ".join(f"{1.0 / (j * sim.dt):.4g}" for j in (1, 2, 3, 4, 5, 10))
+        raise RispError(f"the {sim.env} simulator steps a fixed {sim.dt:g} s: the data's sample interval "
+                        f"{sample_dt:.6g} s is not a whole number of steps (within {FIXED_STEP_TOLERANCE:.1%}); resample "
+                        f"the data to a multiple of {sim.dt:g} s ({fitting}, … Hz)")
     return sim, k
 
 

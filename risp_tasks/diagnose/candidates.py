@@ -92,7 +92,7 @@ def check_supported(env: str, sidecar: Sidecar) -> None:
         from risp_tasks.sims.rod import GRAVITY
     elif env in ("quadrotor", "cube"):
         from risp_tasks.sims._rigid import GRAVITY
-    else:  # the hand's joints are modelled without gravity
+    else:  # the hand's base model has no gravity (its `gravity` effect is a candidate): nothing fixed to check
         return
 
     g = sidecar.get("gravity")
