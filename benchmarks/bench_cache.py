@@ -1,7 +1,7 @@
 """Training from memory vs streaming the shards: wall time of whole ``fit`` runs (docs/PERFORMANCE.md,
 §Training data in memory).
 
-    python benchmarks/bench_cache.py SHARDS [--epochs 2] [--rounds 2] [--reg stochastic] [--limit-steps 0]
+    python benchmarks/bench_cache.py SHARDS [--epochs 2] [--rounds 2] [--reg stochastic] [--configs NAME,…]
 
 Runs short ``fit``s of the ``cpu`` preset on SHARDS in one process, interleaving the configurations (a shared
 machine's speed drifts, so every round runs each once):

@@ -109,6 +109,8 @@ def main(argv: list[str] | None = None) -> None:
     n = args.job_n or (64 if args.quick else 256)
     runs = args.job_runs or (2 if args.quick else 3)
     small = 8
+    if n <= 4 * small:  # the marginal rate divides by the time between the two sizes: they must differ well
+        raise SystemExit(f"--job-n must be above {4 * small} (the start-up job renders {small}), got {n}")
     print(f"# job: risp-data render --env cube --n {n} --workers 2 --shard-size {n // 4} (64x64, 16 spp), and --n {small} "
           f"--shard-size {small // 2} for the fixed start-up cost; {runs} rounds, paths alternated; {load()}")
     secs: dict[tuple[str, int], list[float]] = {(p, m): [] for p in ("fast", "legacy") for m in (small, n)}
