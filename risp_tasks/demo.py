@@ -170,6 +170,8 @@ def _read_json(path: Path) -> dict | None:
 
 
 def _write_summary(out: Path, cfg: DemoConfig, log: list[dict]) -> None:
+    from risp_tasks.tasks.sysid import bound_warnings  # a value its range's end held: a bound, not an estimate
+
     total = sum(c["seconds"] for c in log)
     # written whole or not at all (a killed demo leaves no half-written summary that looks complete)
     write_text_atomic(str(out / "demo.json"), json.dumps({"config": asdict(cfg), "seed": cfg.seed, "commands": log,
@@ -220,8 +222,8 @@ def _write_summary(out: Path, cfg: DemoConfig, log: list[dict]) -> None:
                          f"{random_guess_error(true, *MASS_RANGE):.3f} on average "
                          f"(loss `{res.get('config', {}).get('loss')}`, residual "
                          f"`{res.get('config', {}).get('residual')}`, {len(res.get('loss', []))} iterations)")
-            lines += [f"  - note: {w}" for w in res.get("warnings", []) if w.startswith(f"{pname} = ")
-                      and "end of its range" in w]  # run.bound_warnings: a value the range's end held
+            lines += [f"  - note: {w}" for w in bound_warnings(res.get("estimates") or {})
+                      if w.startswith(f"{pname} = ")]
         lines.append("")
     rep = _read_json(out / "diagnose" / "report.json")
     if rep:

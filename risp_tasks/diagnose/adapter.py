@@ -33,27 +33,18 @@ _QUAT = ("qw", "qx", "qy", "qz")
 _EULER = ("yaw", "pitch", "roll")
 
 
-#: how far k whole steps of a fixed-step simulator may miss the sample interval Δ (as the tasks' frame rule,
-#: risp_tasks.tasks.simulate.FRAME_TIME_TOLERANCE): beyond it the simulated clock would drift from the data's
-FIXED_STEP_TOLERANCE = 2e-3
-
-
-def substeps(sim, sample_dt: float) -> int:
-    """Simulator steps per measured sample: k = round(Δ / dt) (at least 1)."""
-    return max(1, int(round(sample_dt / sim.dt)))
-
-
 def matched_simulator(sim, sample_dt: float):
     """``(sim, k)`` with ``k`` steps of a simulator whose step is fixed (those without a ``dt`` option: the hand and
-    the rod integrate with their module's DT) per sample interval Δ; RispError when k·dt misses Δ by more than
-    FIXED_STEP_TOLERANCE.  (It used to set ``sim.spec.dt`` to Δ/k, which these simulators never read: a 30 Hz log
-    was simulated at 3 × 10 ms = 30 ms per 33.3 ms sample, silently.)"""
-    k = substeps(sim, sample_dt)
-    if abs(k * sim.dt - sample_dt) > FIXED_STEP_TOLERANCE * sample_dt:
-        fitting = ", ".join(f"{1.0 / (j * sim.dt):.4g}" for j in (1, 2, 3, 4, 5, 10))
+    the rod integrate with their module's DT) per sample interval Δ; RispError when k·dt misses Δ by more than the
+    tasks' frame rule allows (``risp_tasks.sims.whole_steps``).  (It used to set ``sim.spec.dt`` to Δ/k, which these
+    simulators never read: a 30 Hz log was simulated at 3 × 10 ms = 30 ms per 33.3 ms sample, silently.)"""
+    from ..sims import STEP_TOLERANCE, step_rates, whole_steps
+
+    k = whole_steps(sim, sample_dt)
+    if k is None:
         raise RispError(f"the {sim.env} simulator steps a fixed {sim.dt:g} s: the data's sample interval "
-                        f"{sample_dt:.6g} s is not a whole number of steps (within {FIXED_STEP_TOLERANCE:.1%}); resample "
-                        f"the data to a multiple of {sim.dt:g} s ({fitting}, … Hz)")
+                        f"{sample_dt:.6g} s is not a whole number of steps (within {STEP_TOLERANCE:.1%}); resample "
+                        f"the data to a multiple of {sim.dt:g} s ({step_rates(sim)}, … Hz)")
     return sim, k
 
 
@@ -317,4 +308,4 @@ class Observer:
         return out
 
 
-__all__ = ["Observer", "matched_simulator", "measured_columns", "sim_actions", "sim_states", "substeps"]
+__all__ = ["Observer", "matched_simulator", "measured_columns", "sim_actions", "sim_states"]

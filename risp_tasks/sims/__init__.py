@@ -39,4 +39,21 @@ def available_effects(env: str) -> dict[str, Effect]:
     return dict(module.SPEC.available_effects)
 
 
-__all__ = ["Effect", "Simulator", "SimulatorSpec", "available_effects", "get_simulator"]
+#: how far k whole steps of a simulator's fixed step may miss an interval (a video frame, a measured sample): beyond it
+#: the simulated clock drifts from the data's (a 2 % slack let 7–14 fps videos drift 1–2 %)
+STEP_TOLERANCE = 2e-3
+
+
+def whole_steps(sim, interval: float) -> int | None:
+    """k = round(interval / dt) when k ≥ 1 steps of ``sim``'s step span ``interval`` within STEP_TOLERANCE, else None."""
+    k = int(round(interval / sim.dt))
+    return k if k >= 1 and abs(k * sim.dt - interval) <= STEP_TOLERANCE * interval else None
+
+
+def step_rates(sim) -> str:
+    """The rates [1/s] whose interval is a whole number of ``sim``'s steps (1, 2, 3, 4, 5, 10 steps), for errors."""
+    return ", ".join(f"{1.0 / (j * sim.dt):.4g}" for j in (1, 2, 3, 4, 5, 10))
+
+
+__all__ = ["Effect", "STEP_TOLERANCE", "Simulator", "SimulatorSpec", "available_effects", "get_simulator", "step_rates",
+           "whole_steps"]

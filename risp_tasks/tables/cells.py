@@ -115,6 +115,12 @@ def estimation(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> 
 # ------------------------------------------------------------------------------------------ tasks
 
 
+def _cell_folder(art: Artifacts):
+    """A task cell's scratch folder under the table's root, named for its process (``.tmp-<pid>@<host>-cell-*``):
+    removed when the cell ends, and by the next run (risp_data.atomic.remove_temporaries) when a kill left it."""
+    return tempfile.TemporaryDirectory(prefix=temp_prefix() + "cell-", dir=art.root)
+
+
 def _task_run(cfg, art: Artifacts, task: str, env_name: str, method: str, repeat: int, video: str | None = None,
               truth: str | None = None, start: str = "random", **task_kw) -> dict:
     """One risp_tasks.tasks run of ``method`` on repeat k's reference video; the result dict."""
@@ -136,7 +142,7 @@ def _task_run(cfg, art: Artifacts, task: str, env_name: str, method: str, repeat
     from risp_tasks.tasks.config import NETWORK_LOSSES
 
     residual = cfg.residual if loss in NETWORK_LOSSES else "l2"
-    with tempfile.TemporaryDirectory(prefix=temp_prefix() + "cell-", dir=art.root) as tmp:
+    with _cell_folder(art) as tmp:
         tcfg = TaskConfig(task=task, video=video or ref["video"], out=os.path.join(tmp, "result"), model=model,
                           loss=loss, init=init, iterations=iterations, seed=repeat_seed(cfg.seed, repeat),
                           actions=ref["actions"] if task == "sysid" else None, truth=truth or ref["truth"],
@@ -199,7 +205,7 @@ def control(cfg, art: Artifacts, env_name: str, method: str, repeat: int) -> dic
         s0 = torch.tensor(truth["sim_states"][0], dtype=torch.float64)[None]
     else:  # large states (the rod) are not stored: its reference videos start at rest, as initial_sim_state does
         s0 = initial_sim_state(sim, torch.tensor(truth["env_states"][0], dtype=torch.float64), None, truth["fps"])
-    with tempfile.TemporaryDirectory(prefix=temp_prefix() + "cell-", dir=art.root) as tmp:
+    with _cell_folder(art) as tmp:
         goal_png, init_json, goal_json = (os.path.join(tmp, n) for n in ("goal.png", "initial.json", "goal.json"))
         frame = read_video(ref["video"], resolution=cfg.resolution).frames[horizon]
         Image.fromarray(to_uint8(frame)).save(goal_png)

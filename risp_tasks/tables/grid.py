@@ -185,7 +185,7 @@ def run_table(cfg: TableConfig, cache: str | None = None, on_cell: Callable[[Cel
         require_ray()
     os.makedirs(folder, exist_ok=True)
     # a killed run's task-cell folders (.tmp-<pid>@<host>-cell-*): its process is gone; a running one's are kept
-    remove_temporaries(cache or cfg.out)
+    remove_temporaries(Artifacts(cfg, cache).root)
     if not os.path.exists(os.path.join(folder, "config.json")):  # a first run killed before its report has one
         _write_config(cfg, folder)
     cells = grid(cfg)

@@ -21,6 +21,7 @@ from .inputs import (load_model, look_note, model_env, models_newest_first, read
 from .loop import Timer, make_loss, optimize
 from .reference import truth_path
 from .results import ResultFolder, check_free, plot_loss, plot_trajectories, save_strip, versions
+from .sysid import bound_warnings
 
 STRIP_FRAMES = 6
 
@@ -105,23 +106,6 @@ def _check_action_range(path: str, sim, file_actions: np.ndarray) -> None:
     if worst > limit:
         raise RispError(f"{path}: rotor thrusts up to {worst:.4g} N, above the {limit:.4g} N the simulated rotors can "
                         f"give: the columns f0..f3 are thrusts in newtons per rotor (docs/tasks.md §Actions CSV)")
-
-
-def bound_warnings(estimates: dict) -> list[str]:
-    """One line per identified parameter that ended on an end of its range: the projection after each step held it
-    there, so the video asked for a value at or beyond that end and the figure is a bound, not an estimate."""
-    lines = []
-    for name, value in estimates.get("parameters", {}).items():
-        low, high = estimates.get("ranges", {}).get(name, (None, None))
-        if low is None or high is None or not high > low:
-            continue
-        x = (value - low) / (high - low)
-        if x <= 1e-9 or x >= 1 - 1e-9:
-            end = "lower" if x <= 1e-9 else "upper"
-            lines.append(f"{name} = {value:.4g} ended on the {end} end of its range [{low:g}, {high:g}] (the paper's "
-                         f"sampling range, where the optimiser keeps it): the fit asked for "
-                         f"{'less' if end == 'lower' else 'more'}, so read it as a bound, not an estimate")
-    return lines
 
 
 def _check_truth_timeline(cfg: TaskConfig, truth: dict, ref) -> None:

@@ -16,18 +16,18 @@ from risp_data.errors import RispError
 ACTION_SCALE = {"quadrotor": 60.0, "hand": 0.5, "rod": 40.0}
 
 
-#: How far k·dt may miss a frame's duration 1/fps: 33.3 fps against 3 steps of 10 ms is 0.1 % off; a 2 % slack let
-#: 7, 9.8, 11 and 14 fps through, whose simulated time then drifted from the video's by 1–2 % (biasing velocities
-#: and the identified stiffness) without a word.
-FRAME_TIME_TOLERANCE = 2e-3
 
 
 def steps_per_frame(sim, fps: float) -> int:
-    k = int(round(1.0 / (fps * sim.dt)))
-    if k < 1 or abs(k * sim.dt * fps - 1) > FRAME_TIME_TOLERANCE:
-        fitting = ", ".join(f"{1.0 / (j * sim.dt):.4g}" for j in (1, 2, 3, 4, 5, 10))
+    """k whole simulator steps per frame, 1/fps within the sims' STEP_TOLERANCE (33.3 fps against 3 steps of 10 ms
+    is 0.1 % off; a 2 % slack let 7, 9.8, 11 and 14 fps through, whose simulated time then drifted from the video's
+    by 1–2 %, biasing velocities and the identified stiffness, without a word)."""
+    from ..sims import step_rates, whole_steps
+
+    k = whole_steps(sim, 1.0 / fps)
+    if k is None:
         raise RispError(f"{fps:g} frames per second do not fit the {sim.env} simulator's fixed step of {sim.dt:g} s "
-                        f"(1/fps must be a multiple of it: {fitting}, … fps); a video at another rate can be "
+                        f"(1/fps must be a multiple of it: {step_rates(sim)}, … fps); a video at another rate can be "
                         f"resampled with --fps, one whose file states a rate slightly off (24.9 for 25) given its own "
                         f"with --source-fps")
     return k

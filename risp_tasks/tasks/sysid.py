@@ -59,6 +59,23 @@ class FreeParameters:
                 "ranges": {n: list(self.ranges[n]) for n in self.names}}
 
 
+def bound_warnings(estimates: dict) -> list[str]:
+    """One line per identified parameter that ended on an end of its range: the projection after each step (FreeParameters.project) held it
+    there, so the video asked for a value at or beyond that end and the figure is a bound, not an estimate."""
+    lines = []
+    for name, value in estimates.get("parameters", {}).items():
+        low, high = estimates.get("ranges", {}).get(name, (None, None))
+        if low is None or high is None or not high > low:
+            continue
+        x = (value - low) / (high - low)
+        if x <= 1e-9 or x >= 1 - 1e-9:
+            end = "lower" if x <= 1e-9 else "upper"
+            lines.append(f"{name} = {value:.4g} ended on the {end} end of its range [{low:g}, {high:g}] (the paper's "
+                         f"sampling range, where the optimiser keeps it): the fit asked for "
+                         f"{'less' if end == 'lower' else 'more'}, so read it as a bound, not an estimate")
+    return lines
+
+
 def build(ctx: Context) -> Problem:
     sim, names = ctx.sim, IDENTIFIED[ctx.sim.env]
     if ctx.cfg.init == "random":
