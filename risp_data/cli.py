@@ -11,7 +11,15 @@ import time
 import click
 
 from .cli_util import RispGroup, run_cli
+from .envs import ENV_NAMES
+from .psi import DOMAINS
 from .threads import available_cpus
+
+# the option choices (click lists them in --help and refuses others in one line); literals here because the modules
+# that own them import Mitsuba, which --help should not wait for — tests/test_data_cli.py checks they agree
+FORMAT_CHOICES = ("wds", "zarr", "both")
+EXECUTORS = ("local", "ray")  # risp_data.generate.EXECUTORS
+JACOBIAN_PATHS = ("fast", "legacy")  # risp_data.render.JACOBIAN_PATHS
 
 
 @click.group(cls=RispGroup)
@@ -21,20 +29,23 @@ def cli():
 
 
 @cli.command()
-@click.option("--env", "env", required=True, help="Environment: quadrotor, cube, hand or rod.")
+@click.option("--env", "env", type=click.Choice(ENV_NAMES), required=True, help="Environment.")
 @click.option("--n", "n", required=True, type=int, help="Number of samples (> 0).")
 @click.option("--out", "out", default=None, help="Output folder (created; resumed if it holds this job) [shards/ENV-DOMAIN].")
-@click.option("--format", "fmt", default="both", show_default=True, help="wds, zarr or both.")
+@click.option("--format", "fmt", type=click.Choice(FORMAT_CHOICES), default="both", show_default=True,
+              help="Shard format(s) to write.")
 @click.option("--res", "resolution", default=64, show_default=True, type=int, help="Image width = height in pixels.")
 @click.option("--spp", default=16, show_default=True, type=int, help="Samples per pixel.")
-@click.option("--domain", default="train", show_default=True, help="train or target.")
+@click.option("--domain", type=click.Choice(DOMAINS), default="train", show_default=True,
+              help="Look distribution (docs/rendering.md).")
 @click.option("--seed", default=0, show_default=True, type=int, help="Run seed (>= 0); sample i uses SeedSequence(seed, spawn_key=(i,)).")
 @click.option("--workers", default=None, type=int, help="Parallel workers (default: the CPUs this process may use, its affinity mask).")
 @click.option("--shard-size", default=256, show_default=True, type=int, help="Samples per shard (= per task).")
-@click.option("--executor", default="local", show_default=True, help="local (process pool) or ray (needs risp[ray]).")
+@click.option("--executor", type=click.Choice(EXECUTORS), default="local", show_default=True,
+              help="local (process pool) or ray (needs risp[ray]).")
 @click.option("--no-jacobian", is_flag=True, help="Store images only (evaluation shards).")
 @click.option("--variant", default=None, help="Mitsuba variant: llvm_ad_rgb or cuda_ad_rgb (default: cuda if usable).")
-@click.option("--jacobian-path", default="fast", show_default=True,
+@click.option("--jacobian-path", type=click.Choice(JACOBIAN_PATHS), default="fast", show_default=True,
               help="fast (merged colour tangents, emitter-split primal) or legacy (one tangent pass per psi; "
                    "kept for one release). Same J to float32 rounding (docs/rendering.md).")
 @click.option("--full-jacobian", is_flag=True,
@@ -53,9 +64,7 @@ def render(env, n, out, fmt, resolution, spp, domain, seed, workers, shard_size,
 
     if no_jacobian and full_jacobian:  # one asks for no Jacobians, the other for all their channels
         raise RispError("--full-jacobian sets how Jacobians are stored; --no-jacobian renders none (give one of them)")
-    formats = {"both": ("wds", "zarr"), "wds": ("wds",), "zarr": ("zarr",)}.get(fmt)
-    if formats is None:
-        raise RispError(f"--format must be wds, zarr or both; got {fmt!r}")
+    formats = {"both": ("wds", "zarr"), "wds": ("wds",), "zarr": ("zarr",)}[fmt]  # click.Choice checked fmt
     job = RenderJob(
         env=env,
         n=n,

@@ -16,9 +16,10 @@ import os
 import click
 
 from risp_data.cli_util import RispGroup, run_cli
+from risp_data.envs import ENV_NAMES
 from risp_data.errors import RispError
 
-from .defaults import DEFAULT_REG
+from .defaults import DEFAULT_REG, PRESET_CHOICES, REG_CHOICES
 
 
 @click.group(cls=RispGroup)
@@ -30,11 +31,11 @@ def cli():
 @cli.command()
 @click.argument("shards", type=click.Path())
 @click.option("--out", default=None, type=click.Path(file_okay=False), help="Run folder (checkpoints, logs, plots) [runs/DATASET-REG-sSEED].")
-@click.option("--reg", default=DEFAULT_REG, show_default=True, help="Regularizer: none, surrogate, exact or stochastic.")
+@click.option("--reg", type=click.Choice(REG_CHOICES), default=DEFAULT_REG, show_default=True, help="Regularizer (docs/training.md).")
 @click.option("--gamma", type=float, default=None, help="Final weight γ of the calibrated regularizer (dimensionless) [per environment, docs/training.md].")
 @click.option("--gamma-ramp", type=float, default=0.5, show_default=True, help="γ ramps linearly from 0 over this fraction of the steps after its start.")
 @click.option("--gamma-start", type=float, default=None, help="γ is 0 before this fraction of all steps, then ramps [per environment: quadrotor and cube 0.5, else 0].")
-@click.option("--preset", default=None, help="paper (ResNet-18 w64, 100 epochs, lr 1e-2) or cpu (w16, 20 epochs, lr 3e-3) [paper with a CUDA GPU, else cpu].")
+@click.option("--preset", type=click.Choice(PRESET_CHOICES), default=None, help="paper (ResNet-18 w64, 100 epochs, lr 1e-2) or cpu (w16, 20 epochs, lr 3e-3) [paper with a CUDA GPU, else cpu].")
 @click.option("--epochs", type=int, default=None, help="Epochs [preset].")
 @click.option("--batch-size", type=int, default=None, help="Images per step and process [preset: 16].")
 @click.option("--lr", type=float, default=None, help="Adam learning rate, cosine-decayed to 0 [preset].")
@@ -210,7 +211,7 @@ def eval_cmd(model, shards, metric, seed, batch_size, limit, fmt, out, threads, 
 
 
 @cli.command()
-@click.option("--env", required=True, help="Environment: quadrotor, cube, hand or rod.")
+@click.option("--env", type=click.Choice(ENV_NAMES), required=True, help="Environment.")
 @click.option("--out", required=True, type=click.Path(file_okay=False), help="Ablation folder (shards, runs, results).")
 @click.option("--pools", default="1,10,per-sample", show_default=True, help="Rendering-configuration pool sizes (comma-separated; per-sample = a new one per sample).")
 @click.option("--regs", default="none,surrogate,exact,stochastic", show_default=True, help="Regularizers to compare (comma-separated).")
@@ -219,7 +220,7 @@ def eval_cmd(model, shards, metric, seed, batch_size, limit, fmt, out, threads, 
 @click.option("--res", "resolution", type=int, default=64, show_default=True, help="Image resolution.")
 @click.option("--spp", type=int, default=8, show_default=True, help="Samples per pixel.")
 @click.option("--shard-size", type=int, default=64, show_default=True)
-@click.option("--preset", default="cpu", show_default=True, help="Training preset (paper or cpu).")
+@click.option("--preset", type=click.Choice(PRESET_CHOICES), default="cpu", show_default=True, help="Training preset.")
 @click.option("--epochs", type=int, default=None, help="Epochs [preset].")
 @click.option("--batch-size", type=int, default=None, help="Batch size [preset].")
 @click.option("--width", type=int, default=None, help="ResNet-18 width [preset].")

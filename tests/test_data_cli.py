@@ -287,19 +287,32 @@ def test_a_render_that_will_not_fit_on_its_disk_stops_keeping_its_shards(tmp_pat
 @pytest.mark.parametrize(
     "args, message",
     [
-        (["--env", "cubee"], "unknown environment 'cubee'"),
-        (["--domain", "space"], "unknown domain 'space'"),
+        (["--env", "cubee"], "Invalid value for '--env': 'cubee' is not one of 'quadrotor', 'cube', 'hand', 'rod'"),
+        (["--domain", "space"], "Invalid value for '--domain': 'space' is not one of 'train', 'target'"),
         (["--n", "0"], "--n must be a positive integer"),
         (["--n", "-3"], "--n must be a positive integer"),
-        (["--format", "hdf5"], "--format must be"),
+        (["--format", "hdf5"], "Invalid value for '--format': 'hdf5' is not one of 'wds', 'zarr', 'both'"),
+        (["--executor", "slurm"], "Invalid value for '--executor': 'slurm' is not one of 'local', 'ray'"),
+        (["--jacobian-path", "slow"], "Invalid value for '--jacobian-path': 'slow' is not one of 'fast', 'legacy'"),
     ],
 )
-def test_bad_arguments(tmp_path, args, message):  # without Ray: test_ray_executor_without_ray_is_one_line
+def test_bad_arguments(tmp_path, capsys, args, message):  # without Ray: test_ray_executor_without_ray_is_one_line
     options = {"--env": "cube", "--n": "2", "--res": "8", "--spp": "2", "--out": str(tmp_path / "o")}
     options.update(zip(args[::2], args[1::2]))
-    r = CliRunner().invoke(cli, ["render", *[a for kv in options.items() for a in kv]])
-    _error_line(r, message)
+    _entry_point_error(["render", *[a for kv in options.items() for a in kv]], capsys, message)
     assert not (tmp_path / "o").exists()
+
+
+def _entry_point_error(argv, capsys, pattern):
+    """The console script's behaviour (run_cli, not CliRunner): one 'Error:' line on stderr, status 1."""
+    from risp_data.cli_util import run_cli
+
+    with pytest.raises(SystemExit) as info:
+        run_cli(cli, argv)
+    captured = capsys.readouterr()
+    lines = [ln for ln in (captured.out + captured.err).splitlines() if ln.strip()]
+    assert info.value.code == 1 and len(lines) == 1 and lines[0].startswith("Error: "), lines
+    assert pattern in lines[0], lines[0]
 
 
 def test_contradicting_jacobian_flags_and_a_huge_fd_step_are_refused(tmp_path):
@@ -317,12 +330,26 @@ def test_contradicting_jacobian_flags_and_a_huge_fd_step_are_refused(tmp_path):
         verify_folder(VerifyConfig(folder=str(tmp_path), samples=2, eps=2.0, tol=1e-3, checksums=False, repair=False))
 
 
-def test_bad_name_with_the_default_folder(tmp_path, monkeypatch):
+def test_render_choices_are_the_modules_own_and_listed_in_help():
+    """The CLI's literal choices (kept so that --help does not import Mitsuba) are the names the job accepts."""
+    from risp_data import cli as data_cli
+    from risp_data.generate import EXECUTORS
+    from risp_data.render import JACOBIAN_PATHS
+    from risp_data.shards.writer import FORMATS
+
+    assert data_cli.EXECUTORS == EXECUTORS and data_cli.JACOBIAN_PATHS == JACOBIAN_PATHS
+    assert set(data_cli.FORMAT_CHOICES) == set(FORMATS) | {"both"}
+    r = CliRunner().invoke(cli, ["render", "--help"])
+    assert r.exit_code == 0
+    help_text = " ".join(r.output.split())
+    for listed in ("quadrotor|cube|hand|rod", "train|target", "wds|zarr|both", "local|ray", "fast|legacy"):
+        assert listed in help_text, listed
+
+
+def test_bad_name_with_the_default_folder(tmp_path, monkeypatch, capsys):
     """Without --out, a bad name is the only line: no 'output folder' announced, no shards/ made."""
     monkeypatch.chdir(tmp_path)
-    r = CliRunner().invoke(cli, ["render", "--env", "cubee", "--n", "2"])
-    _error_line(r, "unknown environment 'cubee'")
-    assert "output folder" not in r.output
+    _entry_point_error(["render", "--env", "cubee", "--n", "2"], capsys, "Invalid value for '--env': 'cubee' is not one of")
     assert not (tmp_path / "shards").exists()
 
 

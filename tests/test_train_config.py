@@ -74,3 +74,23 @@ def test_gamma_with_no_regularizer_is_refused(tmp_path, extra):
     r = CliRunner().invoke(cli, ["fit", str(tmp_path / "shards"), "--reg", "none", "--out", str(tmp_path / "run"), *extra])
     assert r.exit_code == 1 and "--reg none trains without one" in r.output, r.output
     assert not (tmp_path / "run").exists()
+
+
+def test_cli_choices_are_the_modules_own_and_listed_in_help():
+    """risp-train's --reg / --preset / --env choices (literals so that --help does not import torch) are the names
+    the trainer accepts, and --help lists them."""
+    from click.testing import CliRunner
+
+    from risp_data.envs import ENV_NAMES
+    from risp_train.cli import cli
+    from risp_train.config import PRESETS
+    from risp_train.defaults import PRESET_CHOICES, REG_CHOICES
+    from risp_train.regularizers import REGULARIZERS
+
+    assert REG_CHOICES == REGULARIZERS and set(PRESET_CHOICES) == set(PRESETS)
+    for command, listed in (("fit", ("none|surrogate|exact|stochastic", "paper|cpu")),
+                            ("ablation", ("|".join(ENV_NAMES), "paper|cpu"))):
+        r = CliRunner().invoke(cli, [command, "--help"])
+        assert r.exit_code == 0
+        text = " ".join(r.output.split())
+        assert all(words in text for words in listed), (command, text)

@@ -243,7 +243,7 @@ def test_clear_errors(shards, tmp_path):
     r = runner.invoke(cli, ["fit", shards["held_out"], "--out", str(tmp_path / "r4"), "--reg", "exact", "--quiet"])
     assert r.exit_code != 0 and "Jacobians" in r.output and "--reg none" in r.output, r.output
     r = runner.invoke(cli, ["fit", shards["held_out"], "--out", str(tmp_path / "r5"), "--reg", "bogus"])
-    assert r.exit_code != 0 and "unknown --reg" in r.output
+    assert r.exit_code != 0 and "Invalid value for '--reg': 'bogus' is not one of 'none', 'surrogate'" in r.output
     r = runner.invoke(cli, ["fit", shards["train"], "--out", str(tmp_path / "r5b"), "--gamma-start", "1.5"])
     assert r.exit_code != 0 and "--gamma-start must be in [0, 1)" in r.output and not os.path.exists(tmp_path / "r5b")
     # checkpoint from another environment
