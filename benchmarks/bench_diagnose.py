@@ -26,8 +26,8 @@ HIDDEN = {"quadrotor": "air_drag", "cube": "friction", "hand": "joint_damping", 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--envs", default="quadrotor,cube,hand", help="comma-separated environments")
-    ap.add_argument("--trajectories", type=int, default=10)
-    ap.add_argument("--samples", type=int, default=300)
+    ap.add_argument("--trajectories", type=int, default=None, help="trajectories per environment (10; --quick 3)")
+    ap.add_argument("--samples", type=int, default=None, help="samples per trajectory (300; --quick 100)")
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--quick", action="store_true", help="3 trajectories × 100 samples")
     ap.add_argument("--seed", type=int, default=0)
@@ -35,8 +35,9 @@ def main() -> None:
     args = ap.parse_args()
     if args.scale:
         return scale([float(x) for x in args.scale.split(",")], args.seed)
-    if args.quick:
-        args.trajectories, args.samples = 3, 100
+    # --quick sets the sizes not given: an explicit --trajectories / --samples wins
+    args.trajectories = args.trajectories or (3 if args.quick else 10)
+    args.samples = args.samples or (100 if args.quick else 300)
 
     from risp_tasks.diagnose.run import DiagnoseConfig, diagnose
     from risp_tasks.diagnose.synth import SynthConfig, make_synthetic

@@ -27,7 +27,7 @@ def main() -> None:
     ap.add_argument("--res", type=int, default=64)
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--width", type=int, default=64)
-    ap.add_argument("--rounds", type=int, default=7)
+    ap.add_argument("--rounds", type=int, default=None, help="timed rounds (7; --quick 3)")
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--stem", default="auto", help="auto (model.stem_for_resolution), imagenet, stride2 or small")
     ap.add_argument("--shards", default=None)
@@ -35,7 +35,7 @@ def main() -> None:
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
-    rounds = 3 if args.quick else args.rounds
+    rounds = args.rounds or (3 if args.quick else 7)  # an explicit --rounds wins over --quick
 
     from risp_data.envs import get_environment
     from risp_data.psi import psi_names

@@ -918,3 +918,18 @@ def test_an_unknown_residual_is_refused_before_anything_is_made(tmp_path):
     assert not os.path.exists(tmp_path / "t")
     with pytest.raises(RispError, match="unknown residual 'l3'; choose one of: l2, l1"):
         make_config("sysid", residual="l3")
+
+
+def test_a_serial_runs_bars_do_not_nest_and_time_only_cells(tmp_path, capsys):
+    """A serial run makes the data sets first with their own bars, then starts the cells' bar: nested inside it
+    they wrote cursor-movement codes into a log file (stderr not a terminal here), and the cells' time left
+    counted the rendering."""
+    tiny = dict(TINY, progress=True)
+    cfg = make_config("estimation", quick=True, out=str(tmp_path / "t"), envs=("cube",), methods=("average", "random"),
+                      **tiny)
+    run_table(cfg, cache=str(tmp_path / "cache"), echo=lambda *_: None)
+    err = capsys.readouterr().err
+    assert "\x1b[A" not in err, "a nested progress bar moved the cursor"
+    rendered, first_cell = err.find("render cube/"), err.find("estimation cube/")
+    assert 0 <= rendered < first_cell, err[:2000]
+    assert err.rfind("render cube/") < first_cell  # no render bar once the cells' bar has started

@@ -197,17 +197,18 @@ def run_table(cfg: TableConfig, cache: str | None = None, on_cell: Callable[[Cel
     elif jobs > 1 and len(todo) > 1:
         _run_processes(cfg, todo, folder, cache, on_cell, jobs)
     else:
-        prepared: set[str] = set()
-        with single_threaded(), tqdm(todo, unit="cell", desc=cfg.table, disable=not cfg.progress) as bar:
-            for cell in bar:
-                if cell.env not in prepared:  # as with --jobs: made once, before the cells; a failure ends the run
-                    bar.set_description(f"{cfg.table} {cell.env}: data and networks")
-                    prepare(_for_todo(cfg, todo, cell.env), cell.env, cache)
-                    prepared.add(cell.env)
-                bar.set_description(f"{cfg.table} {cell.name}")
-                result = compute_cell(cfg, cell, folder, cache)
-                if on_cell is not None:
-                    on_cell(cell, result)
+        with single_threaded():
+            # every environment's data sets and networks first (a failure ends the run before any cell), with
+            # their own progress bars: inside the cells' bar they would nest, which a log file gets as cursor
+            # codes, and the cells' rate and time left would count the hours of rendering and training
+            for env in dict.fromkeys(c.env for c in todo):
+                prepare(_for_todo(cfg, todo, env), env, cache)
+            with tqdm(todo, unit="cell", desc=cfg.table, disable=not cfg.progress) as bar:
+                for cell in bar:
+                    bar.set_description(f"{cfg.table} {cell.name}")
+                    result = compute_cell(cfg, cell, folder, cache)
+                    if on_cell is not None:
+                        on_cell(cell, result)
     results = [_done(cfg, folder, c) or _failed(folder, c) for c in cells]
     shown, earlier = widened(cfg, folder)
     report = write_report(shown, folder, results + earlier)
@@ -399,6 +400,8 @@ def _run_processes(cfg: TableConfig, todo: list[Cell], folder: str, cache: str |
                     if future in preparing:
                         env = preparing.pop(future)
                         future.result()  # a data set or network that cannot be made ends the run
+                        if not pending and bar.n == 0:  # the first cells start: time left is timed from here,
+                            bar.reset()                  # not from the rendering and training before them
                         bar.set_description(f"{cfg.table} {env}: data and networks ready")
                         pending.update({pool.submit(compute_cell, cfg, c, folder, cache): c for c in by_env[env]})
                         continue
