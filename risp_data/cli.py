@@ -12,12 +12,12 @@ import click
 
 from .cli_util import RispGroup, run_cli
 from .envs import ENV_NAMES
-from .psi import DOMAINS
 from .threads import available_cpus
 
 # the option choices (click lists them in --help and refuses others in one line); literals here because the modules
-# that own them import Mitsuba, which --help should not wait for — tests/test_data_cli.py checks they agree
+# that own them import Mitsuba or numpy, which --help should not wait for — tests/test_data_cli.py checks they agree
 FORMAT_CHOICES = ("wds", "zarr", "both")
+DOMAINS = ("train", "target")  # risp_data.psi.DOMAINS (psi imports numpy)
 EXECUTORS = ("local", "ray")  # risp_data.generate.EXECUTORS
 JACOBIAN_PATHS = ("fast", "legacy")  # risp_data.render.JACOBIAN_PATHS
 

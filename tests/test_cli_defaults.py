@@ -105,13 +105,14 @@ def test_eval_with_a_negative_seed_or_batch_is_one_error_line(tmp_path):
 
 def test_help_does_not_import_torch_or_mitsuba():
     """`risp-task --help`, `risp-train --help`, `risp --help` took 1.3–2 s, nearly all of it importing torch for the
-    --env choices and the default regularizer; the command modules now import neither torch nor Mitsuba."""
+    --env choices and the default regularizer; the command modules now import neither torch nor Mitsuba (nor numpy:
+    the option choices are literals)."""
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     code = ("import sys, cli, risp_data.cli, risp_train.cli, risp_tasks.cli, risp_tasks.demo\n"
             "from click.testing import CliRunner\n"
             "out = CliRunner().invoke(cli.cli, ['--help']).output\n"
             "assert all(name in out for name in ('data', 'train', 'task', 'demo')), out\n"
-            "print(sorted(m for m in ('torch', 'mitsuba', 'drjit') if m in sys.modules))")
+            "print(sorted(m for m in ('torch', 'mitsuba', 'drjit', 'numpy') if m in sys.modules))")
     r = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == "[]", r.stdout

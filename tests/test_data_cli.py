@@ -334,10 +334,11 @@ def test_render_choices_are_the_modules_own_and_listed_in_help():
     """The CLI's literal choices (kept so that --help does not import Mitsuba) are the names the job accepts."""
     from risp_data import cli as data_cli
     from risp_data.generate import EXECUTORS
+    from risp_data.psi import DOMAINS
     from risp_data.render import JACOBIAN_PATHS
     from risp_data.shards.writer import FORMATS
 
-    assert data_cli.EXECUTORS == EXECUTORS and data_cli.JACOBIAN_PATHS == JACOBIAN_PATHS
+    assert data_cli.EXECUTORS == EXECUTORS and data_cli.JACOBIAN_PATHS == JACOBIAN_PATHS and data_cli.DOMAINS == DOMAINS
     assert set(data_cli.FORMAT_CHOICES) == set(FORMATS) | {"both"}
     r = CliRunner().invoke(cli, ["render", "--help"])
     assert r.exit_code == 0
