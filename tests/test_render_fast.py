@@ -115,7 +115,7 @@ def test_plan_falls_back_where_a_step_would_not_be_exact():
     assert plan.emitter == () and 2 in plan.single
 
 
-def test_render_job_paths_agree_and_bad_path_is_one_error_line(tmp_path):
+def test_render_job_paths_agree_and_bad_path_is_one_error_line(tmp_path, capsys):
     """``risp-data render --jacobian-path fast|legacy``: the same samples to float32 rounding; an unknown
     path is refused with one error line before anything is written."""
     from click.testing import CliRunner
@@ -136,9 +136,14 @@ def test_render_job_paths_agree_and_bad_path_is_one_error_line(tmp_path):
         for j in range(f[i]["jacobian"].shape[0]):
             Jf, Jl = f[i]["jacobian"][j], l[i]["jacobian"][j]
             assert np.linalg.norm(Jf - Jl) <= RTOL * np.linalg.norm(Jl)
-    r = render(tmp_path / "x", "slow")
-    lines = [ln for ln in r.output.splitlines() if ln.strip()]
-    assert r.exit_code == 1 and len(lines) == 1 and "--jacobian-path" in lines[0], r.output
+    # the console script's path (run_cli: click's usage lines become one line, exit 1)
+    from risp_data.cli_util import run_cli
+
+    with pytest.raises(SystemExit) as info:
+        run_cli(cli, ["render", "--env", "hand", "--n", "2", "--jacobian-path", "slow", "--out", str(tmp_path / "x")])
+    captured = capsys.readouterr()
+    lines = [ln for ln in (captured.out + captured.err).splitlines() if ln.strip()]
+    assert info.value.code == 1 and len(lines) == 1 and "--jacobian-path" in lines[0], lines
     assert not (tmp_path / "x").exists()
 
 
