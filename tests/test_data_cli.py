@@ -305,14 +305,10 @@ def test_bad_arguments(tmp_path, capsys, args, message):  # without Ray: test_ra
 
 def _entry_point_error(argv, capsys, pattern):
     """The console script's behaviour (run_cli, not CliRunner): one 'Error:' line on stderr, status 1."""
-    from risp_data.cli_util import run_cli
+    from tests.cli_helpers import console_error_line
 
-    with pytest.raises(SystemExit) as info:
-        run_cli(cli, argv)
-    captured = capsys.readouterr()
-    lines = [ln for ln in (captured.out + captured.err).splitlines() if ln.strip()]
-    assert info.value.code == 1 and len(lines) == 1 and lines[0].startswith("Error: "), lines
-    assert pattern in lines[0], lines[0]
+    line = console_error_line(cli, argv, capsys)
+    assert pattern in line, line
 
 
 def test_contradicting_jacobian_flags_and_a_huge_fd_step_are_refused(tmp_path):

@@ -16,8 +16,6 @@ from risp_data.errors import RispError
 ACTION_SCALE = {"quadrotor": 60.0, "hand": 0.5, "rod": 40.0}
 
 
-
-
 def steps_per_frame(sim, fps: float) -> int:
     """k whole simulator steps per frame, 1/fps within the sims' STEP_TOLERANCE (33.3 fps against 3 steps of 10 ms
     is 0.1 % off; a 2 % slack let 7, 9.8, 11 and 14 fps through, whose simulated time then drifted from the video's

@@ -60,8 +60,9 @@ class FreeParameters:
 
 
 def bound_warnings(estimates: dict) -> list[str]:
-    """One line per identified parameter that ended on an end of its range: the projection after each step (FreeParameters.project) held it
-    there, so the video asked for a value at or beyond that end and the figure is a bound, not an estimate."""
+    """One line per identified parameter that ended on an end of its range: the projection after each step
+    (FreeParameters.project) held it there, so the video asked for a value at or beyond that end and the figure is a
+    bound, not an estimate."""
     lines = []
     for name, value in estimates.get("parameters", {}).items():
         low, high = estimates.get("ranges", {}).get(name, (None, None))
