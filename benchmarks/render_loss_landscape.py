@@ -1,8 +1,8 @@
 """Where the sysid losses have their minimum: landscapes over one identified parameter (docs/RESULTS.md §Where the
-rod's render loss has its minimum).
+render loss has its minimum).
 
     PYTHONPATH=. python benchmarks/render_loss_landscape.py MODEL v200.mp4 [v201.mp4 …] [--grid 25] [--every 2]
-        [--variants state,nominal,seeds,looks] [--k 4] [--primal-spp 4] [--plot landscapes.png] [--json out.json]
+        [--variants state,nominal,seeds,looks] [--k 4] [--spp 4] [--primal-spp 4] [--plot landscapes.png] [--json out.json]
 
 For each make-video reference video (its ``<stem>.truth.json`` beside it: commands, start, parameter, which no
 solver reads) the system is simulated with the true commands and start for every value θ of the identified
@@ -66,7 +66,7 @@ def main() -> None:
     ap.add_argument("--every", type=int, default=2)
     ap.add_argument("--variants", default=",".join(VARIANTS))
     ap.add_argument("--k", type=int, default=4, help="renders averaged by the seeds and looks variants")
-    ap.add_argument("--spp", type=int, default=4)
+    ap.add_argument("--spp", type=int, default=4, help="samples per pixel of the renders (sysid's default --spp)")
     ap.add_argument("--primal-spp", type=int, default=None, help="of the renders N reads (default --spp)")
     ap.add_argument("--plot", default=None)
     ap.add_argument("--json", default=None)
@@ -84,9 +84,9 @@ def main() -> None:
     from risp_data.envs import get_environment
     from risp_data.psi import sample_rendering
     from risp_tasks.sims import get_simulator
-    from risp_tasks.tasks.simulate import frame_states, steps_per_frame
+    from risp_tasks.tasks.simulate import frame_states, steps_per_frame, to_sim_actions
     from risp_tasks.tasks.sysid import IDENTIFIED, parameter_ranges
-    from risp_tasks.video import read_video
+    from risp_tasks.video import read_video, sha256_file
 
     torch.set_num_threads(1)
     dr.set_thread_count(1)
@@ -116,6 +116,8 @@ def main() -> None:
         truth = truth_of(video)
         if truth["env"] != env_name:
             raise SystemExit(f"{video}: a {truth['env']} video, the model is {env_name}'s")
+        if truth.get("video_sha256") and truth["video_sha256"] != sha256_file(video):
+            raise SystemExit(f"{video}: its truth file was written for another video (video_sha256 differs)")
         frames = torch.as_tensor(read_video(video, resolution=predictor.resolution).frames)
         keep = list(range(0, len(frames), args.every))
         goal = read(frames)[keep]
@@ -126,8 +128,8 @@ def main() -> None:
         for value in grid:
             params = sim.default_params()
             params[0, sim.param_index(name)] = float(value)
-            with torch.no_grad():
-                states = frame_states(sim, params, s0, actions, len(frames), k)[keep]
+            with torch.no_grad():  # the file's actions in simulator units (quadrotor thrusts [N] -> u = f / k_f)
+                states = frame_states(sim, params, s0, to_sim_actions(sim, params, actions), len(frames), k)[keep]
 
             def residual(targets):
                 return float((targets - goal).abs().sum(-1).mean())
