@@ -53,11 +53,6 @@ def start_of(truth: dict, sim):
     return initial_sim_state(sim, first, second, truth["fps"])
 
 
-def random_guess_error(true: float, low: float, high: float) -> float:
-    """E|U − true| for U uniform on [low, high)."""
-    return ((true - low) ** 2 + (high - true) ** 2) / (2 * (high - low))
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("model")
@@ -86,6 +81,7 @@ def main() -> None:
     from risp_tasks.sims import get_simulator
     from risp_tasks.tasks.simulate import frame_states, steps_per_frame, to_sim_actions
     from risp_tasks.tasks.sysid import IDENTIFIED, parameter_ranges
+    from risp_tasks.demo import random_guess_error
     from risp_tasks.video import read_video, sha256_file
 
     torch.set_num_threads(1)
