@@ -132,9 +132,13 @@ def _task_options(task: str):
                           f"[default: {'l1' if task == 'sysid' else 'l2'}] (docs/tasks.md §Residual norm)"),
         click.option("--perceptual-weights", default=None, help="local torchvision vgg16 state dict for --loss "
                      "perceptual (default: the built-in filter bank)"),
-        click.option("--init", type=click.Choice(("default", "random", "track")), default="default", show_default=True,
-                     help="initial guess" + (" (track, quadrotor only: a tracking controller along the estimated path)"
-                                             if task == "imitate" else "; track is imitate's")),
+        click.option("--init", type=click.Choice(("default", "random", "track", "scan")), default="default",
+                     show_default=True,
+                     help="initial guess" + (" (track, quadrotor only: a tracking controller along the estimated path; "
+                                             "scan is sysid's)" if task == "imitate" else
+                                             " (scan: the best of 17 points per parameter of the state loss over "
+                                             "its range, then the descent from there; track is imitate's)"
+                                             if task == "sysid" else "; track is imitate's, scan sysid's")),
         click.option("--optimizer", type=click.Choice(("rmsprop", "adam", "sgd")), default="rmsprop", show_default=True),
         click.option("--lr", type=float, default=3e-3, show_default=True),
         click.option("--momentum", type=float, default=0.5, show_default=True),

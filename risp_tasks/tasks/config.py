@@ -8,7 +8,7 @@ from dataclasses import asdict, dataclass
 from risp_data.errors import RispError
 
 LOSSES: tuple[str, ...] = ("render", "state", "oracle", "pixelwise", "perceptual")
-INITS: tuple[str, ...] = ("default", "random", "track")
+INITS: tuple[str, ...] = ("default", "random", "track", "scan")
 RESIDUALS: tuple[str, ...] = ("l2", "l1")  # how a frame's difference in the network's target space is weighed
 NETWORK_LOSSES: tuple[str, ...] = ("render", "state", "oracle")  # the losses that take a residual norm
 
@@ -137,7 +137,13 @@ class TaskConfig:
                 raise RispError(f"{option} must be {rule}, got {value:g}")
         if self.init == "track" and self.task != "imitate":
             raise RispError(f"--init track is imitate's (a tracking controller along the video's estimated path), "
-                            f"not {self.task}'s; choose default or random")
+                            f"not {self.task}'s; choose default{', random or scan' if self.task == 'sysid' else ' or random'}")
+        if self.init == "scan" and self.task != "sysid":
+            raise RispError(f"--init scan is sysid's (a coarse scan of the loss over the parameters' ranges), not "
+                            f"{self.task}'s; choose default or random")
+        if self.init == "scan" and self.loss not in ("state", "render"):
+            raise RispError(f"--init scan scans the state loss (the network's readings of the video), which --loss "
+                            f"{self.loss} does not use: choose --init default or random")
         if self.actions and self.task == "imitate":
             raise RispError("--actions: imitate finds the actions itself (give known commands to sysid or estimate; "
                             "known physical parameters to imitate with --params)")

@@ -112,6 +112,31 @@ def plot_loss(path: str, history: list[float], title: str, last: float | None = 
     save_figure(fig, path, seed=seed, what="risp-task: loss per iteration")
 
 
+def plot_scan(path: str, scan: dict, final: dict, truth: dict | None = None, *, seed: int | None) -> None:
+    """``sysid --init scan``: the state loss over each scanned parameter's grid (one panel per parameter), the
+    chosen start, the final estimate and, where known, the truth."""
+    from risp_data.figures import subplots
+
+    names = scan["parameters"]
+    fig, axes = subplots(1, len(names), figsize=(3.2 * len(names), 2.8), squeeze=False)
+    for j, name in enumerate(names):
+        ax = axes[0][j]
+        grid, loss = np.asarray(scan["grid"][j]), np.asarray(scan["loss"][j], np.float64)
+        ax.plot(grid, loss, ".-", lw=1, label="state loss on the grid")
+        best = int(np.argmin(loss))
+        ax.plot([grid[best]], [loss[best]], "o", color="C1", label="start of the descent")
+        ax.axvline(final[name], color="C2", lw=1, label="estimate")
+        if truth is not None and name in truth:
+            ax.axvline(truth[name], color="k", ls="--", lw=1, label="truth")
+        ax.set_xlabel(name, fontsize=8)
+        ax.tick_params(labelsize=7)
+    axes[0][0].set_ylabel("loss", fontsize=8)
+    axes[0][0].legend(fontsize=6)
+    fig.suptitle("sysid --init scan" + (" (one pass of coordinate search)" if len(names) > 1 else ""), fontsize=9)
+    fig.tight_layout()
+    save_figure(fig, path, seed=seed, what="risp-task sysid: the scanned start")
+
+
 def plot_trajectories(path: str, names, t, curves: dict[str, np.ndarray], *, seed: int | None) -> None:
     """One panel per state component; ``curves``: label -> (T, S) (NaN rows are skipped)."""
     from risp_data.figures import subplots

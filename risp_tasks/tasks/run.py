@@ -20,7 +20,7 @@ from .inputs import (load_model, look_note, model_env, models_newest_first, read
                      read_truth, render_environment)
 from .loop import Timer, make_loss, optimize
 from .reference import truth_path
-from .results import ResultFolder, check_free, plot_loss, plot_trajectories, save_strip, versions
+from .results import ResultFolder, check_free, plot_loss, plot_scan, plot_trajectories, save_strip, versions
 from .sysid import bound_warnings
 
 STRIP_FRAMES = 6
@@ -249,6 +249,11 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
                   file_actions=file_actions, truth=truth, rng=task_rng(cfg.seed))
     problem = importlib.import_module(f"{__package__}.{cfg.task}").build(ctx)
     warnings = problem.info.pop("warnings", [])  # the task's own (control's initial state), kept for result.json
+    if "init_scan" in problem.info:  # sysid --init scan: where the descent starts, and why
+        scan = problem.info["init_scan"]
+        echo(f"--init scan: starting from {', '.join(f'{n} = {v:.4g}' for n, v in problem.estimates()['initial_parameters'].items())}"
+             f" (the least state loss of {scan['points']} points per parameter over its range"
+             f"{'; one pass of coordinate search' if len(scan['parameters']) > 1 else ''})")
     if cfg.fit_params is None and problem.info.get("fitted_parameters"):  # imitate's default for this environment
         echo(f"identifying the {env_name}'s {', '.join(problem.info['fitted_parameters'])} with the actions "
              "(--params to give them, --no-fit-params for the nominal ones)")
@@ -361,6 +366,9 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
         if cfg.plots:
             _plots(folder, cfg, env, ctx, loss_frames, initial_states, final_states, truth, history, renderer,
                    truth_fps=ref.source_fps if ref is not None else fps)
+            if "init_scan" in problem.info:
+                plot_scan(folder.path("init_scan.png"), problem.info["init_scan"],
+                          result["estimates"]["parameters"], (truth or {}).get("params"), seed=cfg.seed)
         result["out"] = folder.commit()
     except BaseException:
         folder.discard()

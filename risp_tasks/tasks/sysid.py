@@ -2,8 +2,9 @@
 
 Identified parameters (paper's ranges): quadrotor mass [2.8, 3.2) kg, cube log10 k_n [5.5, 6.5), hand per-finger
 joint stiffness [0, 1), rod log10 E [4, 7).  Each is optimised in normalised coordinates x ∈ [0, 1],
-θ = low + (high − low)·x (clamped after every step), starting from the middle of the range (``--init default``)
-or a seeded uniform draw (``--init random``).  The initial state comes from the network's estimates of the
+θ = low + (high − low)·x (clamped after every step), starting from the middle of the range (``--init default``),
+a seeded uniform draw (``--init random``) or the best point of a coarse scan of the state loss over the range
+(``--init scan``: :func:`scan_start`, a global start for the local descent).  The initial state comes from the network's estimates of the
 first two frames (docs/tasks.md §Initial state) — fixed, or with ``--fit-initial-state`` identified jointly with
 the parameters (:class:`~risp_tasks.tasks.simulate.InitialState`); actions from ``--actions``.
 """
@@ -15,7 +16,7 @@ import torch
 from risp_data.errors import RispError
 
 from .context import Context
-from .loop import Problem
+from .loop import Problem, make_loss
 from .simulate import InitialState, frame_states, to_sim_actions
 
 IDENTIFIED = {"quadrotor": ("mass",), "cube": ("log10_kn",),
@@ -77,14 +78,52 @@ def bound_warnings(estimates: dict) -> list[str]:
     return lines
 
 
+#: Grid of ``--init scan`` per identified parameter: x = 0, 1/16, …, 1 (the rod's log10 E in steps of 0.1875).
+SCAN_POINTS = 17
+
+
+def scan_start(loss, states_at, m: int, points: int = SCAN_POINTS, progress: bool = False
+               ) -> tuple[torch.Tensor, dict]:
+    """``--init scan``: the start x₀ ∈ [0, 1]^m of the local descent, from the loss evaluated on a grid.
+
+    One parameter (quadrotor, cube, rod): x₀ = argmin over x ∈ {0, 1/(G−1), …, 1} of L(s(x)).  Several (the hand's
+    five stiffnesses): one pass of coordinate search from x = ½ — coordinate j in turn takes the grid value that
+    minimises L with the others held at their current values (the fingers move nearly independently, so the
+    loss is close to a sum of one-parameter terms).  G·m rollouts without gradients.  ``loss(states) -> scalar``;
+    ``states_at(x) -> (n_source, S)`` the simulated states with parameters x.  Returns x₀ and what was scanned
+    (the grid, the loss at every grid point per coordinate)."""
+    from tqdm import tqdm
+
+    grid = torch.linspace(0.0, 1.0, points, dtype=torch.float64)
+    x = torch.full((m,), 0.5, dtype=torch.float64)
+    scanned = []
+    bar = tqdm(total=points * m, desc="scanning the start", unit="rollout", disable=not progress, leave=False)
+    with torch.no_grad(), bar:
+        for j in range(m):
+            values = []
+            for g in grid:
+                bar.update()
+                trial = x.clone()
+                trial[j] = g
+                value = float(loss(states_at(trial)))
+                values.append(value if value == value else float("inf"))  # a NaN rollout is never the start
+            best = min(range(points), key=values.__getitem__)
+            if values[best] == float("inf"):
+                raise RispError("--init scan: the loss is not finite anywhere on the scanned grid (check --actions "
+                                "and the video)")
+            x[j] = grid[best]
+            scanned.append(values)
+    return x, {"grid_x": grid.tolist(), "loss": scanned}
+
+
 def build(ctx: Context) -> Problem:
     sim, names = ctx.sim, IDENTIFIED[ctx.sim.env]
     if ctx.cfg.init == "random":
         x0 = torch.from_numpy(ctx.rng.random(len(names)))
-    elif ctx.cfg.init == "default":
+    elif ctx.cfg.init in ("default", "scan"):
         x0 = torch.full((len(names),), 0.5, dtype=torch.float64)
     else:
-        raise RispError("sysid takes --init default or random")
+        raise RispError("sysid takes --init default, random or scan")
     free = FreeParameters(sim, sim.default_params(), x0)
     if sim.action_dim and ctx.file_actions is None:
         raise RispError(f"sysid of the {sim.env} needs its commands: pass --actions A.csv")
@@ -96,5 +135,21 @@ def build(ctx: Context) -> Problem:
         actions = None if file_actions is None else to_sim_actions(sim, p, file_actions)
         return frame_states(sim, p, s0(), actions, ctx.n_source, ctx.k)
 
+    info = s0.info()
+    if ctx.cfg.init == "scan":  # the state loss (N's readings of the video) whatever --loss: rollouts only
+        loss = make_loss("state", ctx.env, ctx.keep, ctx.predicted_targets, None, None, residual=ctx.cfg.residual)
+
+        def states_at(x):
+            with torch.no_grad():
+                free.x.copy_(x)
+            return states()
+
+        x0, scanned = scan_start(loss, states_at, len(names), progress=ctx.cfg.progress)
+        free.x0 = x0
+        with torch.no_grad():
+            free.x.copy_(x0)
+        info = {**info, "init_scan": {"parameters": list(names), "points": SCAN_POINTS, **scanned,
+                                      "grid": [[float(lo + (hi - lo) * g) for g in scanned["grid_x"]]
+                                               for lo, hi in (parameter_ranges(sim)[n] for n in names)]}}
     return Problem(variables={"x": free.x, **s0.variables}, states=states,
-                   estimates=lambda: {**free.estimates(), **s0.info()}, project=free.project, info=s0.info())
+                   estimates=lambda: {**free.estimates(), **s0.info()}, project=free.project, info=info)
