@@ -25,7 +25,8 @@ def test_one_parameter_scan_finds_the_global_minimum_past_a_local_one():
 
     x0, scanned = scan_start(loss, lambda x: x.view(1, 1).clone(), 1)
     assert x0.shape == (1,) and float(x0[0]) == pytest.approx(0.25)
-    assert len(scanned["grid_x"]) == SCAN_POINTS and len(scanned["loss"]) == 1 and len(scanned["loss"][0]) == SCAN_POINTS
+    assert len(scanned["grid_x"]) == SCAN_POINTS and len(scanned["loss"]) == 1
+    assert len(scanned["loss"][0]) == SCAN_POINTS
     assert scanned["grid_x"][0] == 0.0 and scanned["grid_x"][-1] == 1.0
     assert min(scanned["loss"][0]) == scanned["loss"][0][4]  # 4/16 = 0.25
 
@@ -46,6 +47,31 @@ def test_several_parameters_take_one_pass_of_coordinate_search():
     assert len(calls) == 27 and len(scanned["loss"]) == 3
     assert all(float(c[1]) == 0.5 and float(c[2]) == 0.5 for c in calls[:9])  # the first sweep holds the others at ½
     assert all(float(c[0]) == 0.125 for c in calls[9:])  # later sweeps keep what the earlier ones chose
+
+
+def test_a_loss_blind_to_a_parameter_leaves_it_in_the_middle():
+    """Ties go to the grid point nearest the current value: a flat loss (e.g. the cube's contact stiffness in a
+    clip without contact) keeps x = ½ rather than moving to the range's end, which bound_warnings would then call
+    a bound the video asked for."""
+    from risp_tasks.tasks.sysid import scan_start
+
+    x0, _ = scan_start(lambda s: torch.tensor(1.0, dtype=torch.float64), lambda x: x.view(1, -1).clone(), 2)
+    assert torch.equal(x0, torch.full((2,), 0.5, dtype=torch.float64))
+
+
+def test_a_rollout_the_simulator_refuses_is_never_the_start():
+    """The rod's Newton solve raises RispError where it cannot converge: that grid point counts as +inf, the scan
+    goes on."""
+    from risp_data.errors import RispError
+    from risp_tasks.tasks.sysid import scan_start
+
+    def states_at(x):
+        if float(x[0]) < 0.2:
+            raise RispError("rod: Newton's method did not converge")
+        return x.view(1, 1).clone()
+
+    x0, scanned = scan_start(lambda s: (s[0, 0] - 0.0) ** 2, states_at, 1)
+    assert float(x0[0]) == pytest.approx(4 / 16) and scanned["loss"][0][:4] == [float("inf")] * 4
 
 
 def test_a_nan_rollout_is_never_the_start_and_nan_everywhere_is_an_error():
@@ -107,17 +133,21 @@ def test_sysid_scan_starts_at_the_grid_point_of_least_state_loss(quad, tmp_path)
     drawn in init_scan.png."""
     model, video = quad
     stem = os.path.splitext(video)[0]
-    kw = dict(model=model, actions=stem + ".actions.csv", truth=stem + ".truth.json", loss="state", iterations=1)
+    # --every 2: the scan compares the frames the descent does (a scan over every frame would not match r["loss"][0])
+    kw = dict(model=model, actions=stem + ".actions.csv", truth=stem + ".truth.json", loss="state", iterations=1,
+              every=2)
     r = _run("sysid", video, tmp_path / "scan", init="scan", **kw)
     scan = r["info"]["init_scan"]
     losses = np.asarray(scan["loss"][0])
     best = int(np.argmin(losses))
-    assert scan["parameters"] == ["mass"] and len(scan["grid"][0]) == len(losses) == 17
+    assert scan["parameters"] == ["mass"] and len(scan["grid"][0]) == len(losses) == 17 and scan["seconds"] > 0
+    assert best != 8  # the fixture's best point is not the middle start's, so the start below is the scan's doing
     assert r["initial"]["parameters"]["mass"] == pytest.approx(scan["grid"][0][best])
+    true_mass = json.load(open(stem + ".truth.json"))["params"]["mass"]
+    assert r["errors"]["parameter_error_initial"]["mass"] == pytest.approx(abs(scan["grid"][0][best] - true_mass))
     assert r["loss"][0] == pytest.approx(losses[best], rel=1e-9)
     d = _run("sysid", video, tmp_path / "middle", init="default", plots=False, **kw)
     assert d["loss"][0] == pytest.approx(losses[8], rel=1e-9) and r["loss"][0] <= d["loss"][0]
-    assert "parameter_error_initial" in r["errors"]
     assert os.path.isfile(tmp_path / "scan" / "init_scan.png")
     assert json.load(open(tmp_path / "scan" / "result.json"))["config"]["init"] == "scan"
 
@@ -134,6 +164,17 @@ def test_scan_outside_sysid_or_with_a_loss_that_does_not_read_the_network_is_one
 
     with pytest.raises(RispError, match=message):
         TaskConfig(video="v.mp4", init="scan", **kw)
+
+
+def test_render_mode_runs_its_warm_start_and_render_descent_from_the_scanned_start(quad, tmp_path):
+    """--loss render --warm-start: the scan (state loss) sets the start, the warm start begins there (its first
+    loss is the scan's least value), then one render iteration."""
+    model, video = quad
+    stem = os.path.splitext(video)[0]
+    r = _run("sysid", video, tmp_path / "render", model=model, actions=stem + ".actions.csv", loss="render",
+             init="scan", warm_start=2, iterations=1, spp=1, plots=False)
+    assert r["warm_start"]["loss"][0] == pytest.approx(min(r["info"]["init_scan"]["loss"][0]), rel=1e-9)
+    assert len(r["loss"]) == 1 and np.isfinite(r["final_loss"])
 
 
 def test_the_cli_refuses_scan_for_imitate_in_one_line(tmp_path):

@@ -136,14 +136,16 @@ class TaskConfig:
             if not ok:
                 raise RispError(f"{option} must be {rule}, got {value:g}")
         if self.init == "track" and self.task != "imitate":
+            others = "default, random or scan" if self.task == "sysid" else "default or random"
             raise RispError(f"--init track is imitate's (a tracking controller along the video's estimated path), "
-                            f"not {self.task}'s; choose default{', random or scan' if self.task == 'sysid' else ' or random'}")
+                            f"not {self.task}'s; choose {others}")
         if self.init == "scan" and self.task != "sysid":
+            others = "default, random or track" if self.task == "imitate" else "default or random"
             raise RispError(f"--init scan is sysid's (a coarse scan of the loss over the parameters' ranges), not "
-                            f"{self.task}'s; choose default or random")
+                            f"{self.task}'s; choose {others}")
         if self.init == "scan" and self.loss not in ("state", "render"):
             raise RispError(f"--init scan scans the state loss (the network's readings of the video), which --loss "
-                            f"{self.loss} does not use: choose --init default or random")
+                            f"{self.loss} does not use: give --loss state or render, or --init default or random")
         if self.actions and self.task == "imitate":
             raise RispError("--actions: imitate finds the actions itself (give known commands to sysid or estimate; "
                             "known physical parameters to imitate with --params)")

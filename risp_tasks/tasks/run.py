@@ -251,7 +251,8 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
     warnings = problem.info.pop("warnings", [])  # the task's own (control's initial state), kept for result.json
     if "init_scan" in problem.info:  # sysid --init scan: where the descent starts, and why
         scan = problem.info["init_scan"]
-        echo(f"--init scan: starting from {', '.join(f'{n} = {v:.4g}' for n, v in problem.estimates()['initial_parameters'].items())}"
+        start = problem.estimates()["initial_parameters"]
+        echo(f"--init scan: starting from {', '.join(f'{n} = {v:.4g}' for n, v in start.items())}"
              f" (the least state loss of {scan['points']} points per parameter over its range"
              f"{'; one pass of coordinate search' if len(scan['parameters']) > 1 else ''})")
     if cfg.fit_params is None and problem.info.get("fitted_parameters"):  # imitate's default for this environment

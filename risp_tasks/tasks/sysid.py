@@ -4,12 +4,15 @@ Identified parameters (paper's ranges): quadrotor mass [2.8, 3.2) kg, cube log10
 joint stiffness [0, 1), rod log10 E [4, 7).  Each is optimised in normalised coordinates x ∈ [0, 1],
 θ = low + (high − low)·x (clamped after every step), starting from the middle of the range (``--init default``),
 a seeded uniform draw (``--init random``) or the best point of a coarse scan of the state loss over the range
-(``--init scan``: :func:`scan_start`, a global start for the local descent).  The initial state comes from the network's estimates of the
-first two frames (docs/tasks.md §Initial state) — fixed, or with ``--fit-initial-state`` identified jointly with
-the parameters (:class:`~risp_tasks.tasks.simulate.InitialState`); actions from ``--actions``.
+(``--init scan``: :func:`scan_start`, a global start for the local descent).  The initial state comes from the
+network's estimates of the first two frames (docs/tasks.md §Initial state) — fixed, or with
+``--fit-initial-state`` identified jointly with the parameters (:class:`~risp_tasks.tasks.simulate.InitialState`);
+actions from ``--actions``.
 """
 
 from __future__ import annotations
+
+import time
 
 import torch
 
@@ -86,12 +89,15 @@ def scan_start(loss, states_at, m: int, points: int = SCAN_POINTS, progress: boo
                ) -> tuple[torch.Tensor, dict]:
     """``--init scan``: the start x₀ ∈ [0, 1]^m of the local descent, from the loss evaluated on a grid.
 
-    One parameter (quadrotor, cube, rod): x₀ = argmin over x ∈ {0, 1/(G−1), …, 1} of L(s(x)).  Several (the hand's
-    five stiffnesses): one pass of coordinate search from x = ½ — coordinate j in turn takes the grid value that
+    One parameter (quadrotor, cube, rod): x₀ = argmin over x ∈ {0, 1/(G−1), …, 1} of L(s(x)).  Several (the
+    hand's five stiffnesses): one pass of coordinate search from x = ½ — coordinate j in turn takes the grid value that
     minimises L with the others held at their current values (the fingers move nearly independently, so the
-    loss is close to a sum of one-parameter terms).  G·m rollouts without gradients.  ``loss(states) -> scalar``;
-    ``states_at(x) -> (n_source, S)`` the simulated states with parameters x.  Returns x₀ and what was scanned
-    (the grid, the loss at every grid point per coordinate)."""
+    loss is close to a sum of one-parameter terms).  Ties go to the grid point nearest the current value (a loss
+    that does not see a parameter leaves it at ½ instead of moving it to the range's end).  G·m rollouts without
+    gradients; a grid point whose loss is NaN or whose rollout the simulator refuses (RispError, e.g. the rod's
+    Newton solve) counts as +∞, never the start.  ``loss(states) -> scalar``; ``states_at(x) -> (n_source, S)``
+    the simulated states with parameters x.  Returns x₀ and what was scanned (the grid, the loss at every grid
+    point per coordinate)."""
     from tqdm import tqdm
 
     grid = torch.linspace(0.0, 1.0, points, dtype=torch.float64)
@@ -105,9 +111,12 @@ def scan_start(loss, states_at, m: int, points: int = SCAN_POINTS, progress: boo
                 bar.update()
                 trial = x.clone()
                 trial[j] = g
-                value = float(loss(states_at(trial)))
+                try:
+                    value = float(loss(states_at(trial)))
+                except RispError:  # a parameter the simulator cannot roll out (e.g. the rod's Newton solve)
+                    value = float("nan")
                 values.append(value if value == value else float("inf"))  # a NaN rollout is never the start
-            best = min(range(points), key=values.__getitem__)
+            best = min(range(points), key=lambda i: (values[i], abs(float(grid[i] - x[j]))))
             if values[best] == float("inf"):
                 raise RispError("--init scan: the loss is not finite anywhere on the scanned grid (check --actions "
                                 "and the video)")
@@ -144,7 +153,9 @@ def build(ctx: Context) -> Problem:
                 free.x.copy_(x)
             return states()
 
+        started = time.perf_counter()
         x0, scanned = scan_start(loss, states_at, len(names), progress=ctx.cfg.progress)
+        scanned["seconds"] = time.perf_counter() - started
         free.x0 = x0
         with torch.no_grad():
             free.x.copy_(x0)
