@@ -60,7 +60,8 @@ class StateRenderer:
     ``config``: the look ψ (and its aux); None gives the domain's nominal look
     (:func:`risp_data.psi.nominal_rendering`).  ``spp``: samples per pixel of the gradient pass;
     ``primal_spp`` (None: ``spp``) those of the images returned, which a render loss's network reads
-    (docs/tasks.md §Primal spp).  ``boundary_max_depth``: path length of the flat boundary term's radiances
+    (docs/tasks.md §Primal spp).  :meth:`set_look` may change the look between calls: each frame's backward pass
+    runs in the look its forward pass was rendered in.  ``boundary_max_depth``: path length of the flat boundary term's radiances
     (None: ``BOUNDARY_PATHS``, else the primal's).  Frame t of a call is rendered with the random stream
     ``frame_seed(seed, t)``, so the same (states, seed) give the same images; the gradient pass uses an
     independent stream (Mitsuba's ``seed_grad``), which keeps the gradient estimate unbiased.
@@ -163,10 +164,13 @@ class StateRenderer:
         # device
         backend = torch.device("cuda") if self.renderer.variant.startswith("cuda") else torch.device("cpu")
 
+        renderer = self
+
         class RenderFrame(torch.autograd.Function):
             @staticmethod
             def forward(ctx, seed, *verts):
                 ctx.seed = seed
+                ctx.look = renderer.config  # the backward differentiates the look this frame was rendered in
                 ctx.save_for_backward(*verts)
                 with _quiet(mi):
                     image = primal(dict(zip(materials, [v.to(backend) for v in verts])), seed)
@@ -175,6 +179,8 @@ class StateRenderer:
             @staticmethod
             def backward(ctx, grad_image):
                 verts = ctx.saved_tensors
+                if renderer.config is not ctx.look:  # a loss that reads several looks (set_look between frames)
+                    renderer.set_look(ctx.look)
                 with _quiet(mi):
                     grads = vjp(dict(zip(materials, [v.to(backend) for v in verts])),
                                 grad_image.to(backend).contiguous(), ctx.seed)

@@ -183,6 +183,10 @@ def _task_options(task: str):
         click.option("--spp", type=int, default=4, show_default=True, help="samples per pixel of the differentiable renderer's gradient pass"),
         click.option("--primal-spp", type=int, default=None, help="samples per pixel of the rendered frames the network reads "
                      "(render loss) or the image losses compare [default: --spp] (docs/tasks.md §Primal spp)"),
+        click.option("--looks", type=int, default=1, show_default=True,
+                     help="--loss render: average the network's readings of each rendered frame over this many random "
+                          "train-domain looks (1: the nominal look alone; K times the rendering; docs/tasks.md "
+                          "§Several looks)"),
         click.option("--gradient", type=click.Choice(("flat", "mitsuba")), default="flat", show_default=True,
                      help="boundary term of the renderer's gradient: risp's for flat-shaded meshes, or Mitsuba's own "
                           "(cheaper, biased at creases and shadows; docs/tasks.md §Render-mode gradients)"),

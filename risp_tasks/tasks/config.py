@@ -88,6 +88,9 @@ class TaskConfig:
     # samples per pixel of the rendered frames the losses compare (the image N reads with --loss render); None: spp,
     # resolved here so that result.json records it (docs/tasks.md §Primal spp)
     primal_spp: int | None = None
+    # render loss: N's readings of each simulated frame averaged over this many random train-domain looks drawn from
+    # --seed (loop.make_loss; docs/tasks.md §Several looks); 1: the train domain's nominal look alone (the paper's)
+    looks: int = 1
     gradient: str = "flat"  # boundary term of the renderer's gradient: flat (risp_data.flat_projective) | mitsuba
     threads: int = 1
     render_threads: int = 0  # Dr.Jit's CPU threads where the task renders (0: the CPUs this process may use)
@@ -127,6 +130,7 @@ class TaskConfig:
                 ("--horizon", self.horizon, self.horizon is None or self.horizon >= 1, ">= 1"),
                 ("--spp", self.spp, self.spp >= 1, ">= 1"),
                 ("--primal-spp", self.primal_spp, self.primal_spp >= 1, ">= 1"),
+                ("--looks", self.looks, self.looks >= 1, ">= 1"),
                 ("--render-threads", self.render_threads, self.render_threads >= 0, ">= 0 (0: automatic)"),
                 ("--fps", self.fps, self.fps is None or (math.isfinite(self.fps) and self.fps > 0),
                  "a finite number > 0"),
@@ -191,6 +195,10 @@ class TaskConfig:
             raise RispError(f"--warm-start must be >= 0, got {self.warm_start}")
         if self.warm_start and self.loss != "render":
             raise RispError(f"--warm-start is for --loss render (it runs the state loss first), not --loss {self.loss}")
+        if self.looks > 1 and self.loss != "render":
+            raise RispError(f"--looks averages the network's readings of the rendered frames (--loss render); "
+                            f"--loss {self.loss} " + ("reads no rendered frame" if self.loss in ("state", "oracle")
+                                                      else "compares images with the video, not readings"))
         if self.gradient not in ("flat", "mitsuba"):
             raise RispError(f"unknown --gradient {self.gradient!r}; choose one of: flat, mitsuba")
         if self.fit_initial_state is not None and self.task not in ("sysid", "imitate"):

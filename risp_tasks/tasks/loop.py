@@ -1,6 +1,8 @@
 """The one optimisation loop of every task, and the loss modes (docs/tasks.md §Losses).
 
-    L_render(θ)    = mean_t ‖N(R(s_t(θ))) − N(I_t)‖²   the paper's loss (target space of the network)
+    L_render(θ)    = mean_t ‖N(R(s_t(θ))) − N(I_t)‖²   the paper's loss (target space of the network); with
+                     ``--looks K`` > 1 N(R(·)) is replaced by (1/K) Σ_k N(R_k(·)), N's readings of the frame rendered in
+                     K random train-domain looks ψ_1…ψ_K averaged (docs/tasks.md §Several looks)
     L_state(θ)     = mean_t ‖τ(s_t(θ)) − N(I_t)‖²      no rendering in the loop (the paper's real-world pipeline)
     L_oracle(θ)    = mean_t ‖τ(s_t(θ)) − τ(s*_t)‖²     ground-truth states (evaluation only)
     L_pixelwise(θ) = mean over t, pixels, channels of (R(s_t(θ)) − I_t)²   ∇Sim's image loss (a baseline)
@@ -62,13 +64,18 @@ class Problem:
 
 def make_loss(mode: str, env, keep: list[int], ref_targets: torch.Tensor | None, truth_targets: torch.Tensor | None,
               ref_images: torch.Tensor | None, predictor=None, renderer=None, timer: Timer | None = None,
-              features=None, residual: str = "l2", render_seed: int = 0) -> Callable[..., torch.Tensor]:
+              features=None, residual: str = "l2", render_seed: int = 0, looks: list | None = None
+              ) -> Callable[..., torch.Tensor]:
     """loss(states (n_source, S), n=None) -> scalar for one of the modes above, on the frames ``keep`` (only their
     first ``n`` when given: the horizon curriculum); ``features``: F of the perceptual mode (a frozen torch module,
     images (B, H, W, 3) -> (B, D)); ``residual``: ``l2`` (squared) or ``l1`` (absolute) differences in the
     network's target space (render, state, oracle); ``render_seed``: the sampler seed of every render (the run's
-    --seed)."""
+    --seed); ``looks``: the render loss's looks (RenderConfigs) whose readings are averaged (None: the renderer's
+    own look alone)."""
     timer = timer or Timer()
+    if looks is not None and (mode != "render" or not looks):
+        raise RispError("several looks are for the render loss (N's readings averaged over the looks), "
+                        f"not the {mode} loss" if mode != "render" else "looks is empty")
     if residual not in RESIDUALS:
         raise RispError(f"unknown residual {residual!r}; choose one of: {', '.join(RESIDUALS)}")
 
@@ -97,12 +104,22 @@ def make_loss(mode: str, env, keep: list[int], ref_targets: torch.Tensor | None,
     # deterministic function of the state, so iterates — and the best-iterate rule — are compared on the same noise.
     # The seed is the run's, so that repeats with different --seed see independent render noise.
     if mode == "render":
+        def read(states):  # N(R(s)), in the renderer's current look
+            with timer.section("rendering"):
+                images = renderer(states, seed=render_seed)
+            with timer.section("network"):
+                return predictor.predict(images)[1]
+
         def render_loss(s, n=None):
             idx, sl = first(n)
-            with timer.section("rendering"):
-                images = renderer(s[idx], seed=render_seed)
-            with timer.section("network"):
-                targets = predictor.predict(images)[1]
+            if looks is None:
+                targets = read(s[idx])
+            else:  # (1/K) Σ_k N(R_k(s)); each frame's backward pass runs in its own look (StateRenderer)
+                readings = []
+                for look in looks:
+                    renderer.set_look(look)
+                    readings.append(read(s[idx]))
+                targets = torch.stack(readings).mean(0)
             return target_error(targets.to(s.dtype), ref_targets[sl].to(s.dtype))
         return render_loss
     if mode == "pixelwise":

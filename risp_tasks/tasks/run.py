@@ -130,6 +130,21 @@ def task_rng(seed: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence([int(seed), TASK_STREAM]))
 
 
+LOOKS_STREAM = 0x100C  # the render loss's random looks (--looks K > 1), a stream apart from --init random's
+
+
+def render_looks(env_name: str, count: int, seed: int) -> list | None:
+    """The looks whose readings the render loss averages (``--looks``): None for 1 (the renderer's nominal look),
+    else ``count`` random train-domain looks ψ_1…ψ_K drawn from SeedSequence(seed, LOOKS_STREAM) — fixed for the
+    whole descent, so that its iterates are compared on the same looks."""
+    if count <= 1:
+        return None
+    from risp_data.psi import sample_rendering
+
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), LOOKS_STREAM]))
+    return [sample_rendering(env_name, "train", rng) for _ in range(count)]
+
+
 PREDICT_BATCH = 256  # frames N reads at once: its activations for a whole long video at once did not fit in memory
 
 
@@ -290,9 +305,12 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
             truth_rows = ref.indices
         truth_targets = env.state_to_target(truth_states[truth_rows])
     timer = Timer()
+    looks = render_looks(env_name, cfg.looks, cfg.seed)
+    if looks is not None:  # written to result.json: the run names every look its loss read
+        problem.info["looks"] = [{"domain": "train", "psi": look.psi.tolist(), "aux": look.aux} for look in looks]
     loss = make_loss(cfg.loss, env, loss_frames, predicted_targets.double(), truth_targets, frames_t,
                      predictor=predictor, renderer=renderer, timer=timer, features=features, residual=cfg.residual,
-                     render_seed=cfg.seed)
+                     render_seed=cfg.seed, looks=looks)
     with torch.no_grad():
         initial_states = problem.states().detach().clone()
         initial_estimates = problem.estimates()
@@ -309,6 +327,8 @@ def run_task(cfg: TaskConfig, echo=print) -> dict:
                        frames=len(loss_frames), opt=warm["optimizer"] if warm else None)
     with torch.no_grad():
         final_states = problem.states().detach().clone()
+    if looks is not None:  # the plots' strip shows the train domain's nominal look, as without --looks
+        renderer.set_look(nominal_rendering(env_name, "train"))
 
     result = {
         "task": cfg.task, "env": env_name, "config": cfg.to_dict(), "seed": cfg.seed,
