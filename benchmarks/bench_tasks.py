@@ -3,6 +3,7 @@ spent in simulation, rendering and the network (issue 10; targets ≤ 3 s render
 
     python benchmarks/bench_tasks.py                       # every env, 8 frames, 64×64, spp 4, cpu-preset net
     python benchmarks/bench_tasks.py --envs quadrotor --repeats 5
+    python benchmarks/bench_tasks.py --envs rod --looks 4  # also render mode reading K random looks (--looks)
 
 One iteration = imitate's: roll the simulator out over 8 frames at 10 fps (k = 10 steps per frame; the cube,
 having no actions, differentiates its parameters instead), render the frames (render mode), run the
@@ -30,7 +31,8 @@ def _median_time(fn, repeats):
     return statistics.median(out)
 
 
-def bench_env(env_name: str, frames: int, res: int, spp: int, repeats: int, gradient: str = "flat") -> dict:
+def bench_env(env_name: str, frames: int, res: int, spp: int, repeats: int, gradient: str = "flat",
+              looks: int = 1) -> dict:
     from risp_data.diff_render import StateRenderer
     from risp_data.envs import get_environment
     from risp_train.model import ModelConfig, ResNet18, stem_for_resolution
@@ -78,11 +80,23 @@ def bench_env(env_name: str, frames: int, res: int, spp: int, repeats: int, grad
         x = images.clone().requires_grad_(True)
         predictor.predict(x)[1].sum().backward()
 
+    from risp_tasks.tasks.run import render_looks
+
+    several = render_looks(env_name, looks, 0)
+    nominal = renderer.config
+
     def iteration(mode):
         def run():
             s = simulate(variables())
             if mode == "render":
+                renderer.set_look(nominal)
                 pred = predictor.predict(renderer(s.float(), seed=0))[1]
+            elif mode == "looks":  # risp-task --looks K: N's readings averaged over K looks (loop.make_loss)
+                readings = []
+                for look in several:
+                    renderer.set_look(look)
+                    readings.append(predictor.predict(renderer(s.float(), seed=0))[1])
+                pred = torch.stack(readings).mean(0)
             else:
                 pred = env.state_to_target(s)
             ((pred.double() - goal.double()) ** 2).sum(-1).mean().backward()
@@ -94,6 +108,9 @@ def bench_env(env_name: str, frames: int, res: int, spp: int, repeats: int, grad
            "network": _median_time(network_only, repeats)}
     out["state"] = _median_time(iteration("state"), repeats)
     out["render"] = _median_time(iteration("render"), repeats)
+    if several is not None:  # warm-up in the looks, then timed
+        iteration("looks")()
+        out["looks"] = _median_time(iteration("looks"), repeats)
     return out
 
 
@@ -105,16 +122,19 @@ def main() -> None:
     ap.add_argument("--spp", type=int, default=4)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--gradient", default="flat", help="boundary term: flat (risp's) or mitsuba")
+    ap.add_argument("--looks", type=int, default=1, help="also time render mode reading this many looks (> 1)")
     args = ap.parse_args()
     torch.set_num_threads(1)
     print(f"load average before: {os.getloadavg()}")
     print(f"{'env':10s} {'state s/it':>10s} {'render s/it':>11s}   shares of a render-mode iteration (sim / render / net)")
     for env in args.envs.split(","):
-        r = bench_env(env, args.frames, args.res, args.spp, args.repeats, args.gradient)
+        r = bench_env(env, args.frames, args.res, args.spp, args.repeats, args.gradient, args.looks)
         parts = r["simulation"] + r["rendering"] + r["network"]
         print(f"{env:10s} {r['state']:10.3f} {r['render']:11.3f}   "
               f"{r['simulation'] / parts:5.0%} / {r['rendering'] / parts:5.0%} / {r['network'] / parts:5.0%}   "
-              f"(sim {r['simulation']:.3f} s, render {r['rendering']:.3f} s, net {r['network']:.3f} s)", flush=True)
+              f"(sim {r['simulation']:.3f} s, render {r['rendering']:.3f} s, net {r['network']:.3f} s)"
+              + (f"; --looks {args.looks}: {r['looks']:.3f} s/it ({r['looks'] / r['render']:.2f}× render)"
+                 if "looks" in r else ""), flush=True)
     print(f"load average after: {os.getloadavg()}")
 
 
