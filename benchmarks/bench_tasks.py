@@ -80,10 +80,13 @@ def bench_env(env_name: str, frames: int, res: int, spp: int, repeats: int, grad
         x = images.clone().requires_grad_(True)
         predictor.predict(x)[1].sum().backward()
 
+    from risp_tasks.tasks.loop import make_loss
     from risp_tasks.tasks.run import render_looks
 
     several = render_looks(env_name, looks, 0)
     nominal = renderer.config
+    looks_loss = make_loss("render", env, list(range(frames)), goal.double(), None, None, predictor=predictor,
+                           renderer=renderer, looks=several) if several is not None else None
 
     def iteration(mode):
         def run():
@@ -91,12 +94,9 @@ def bench_env(env_name: str, frames: int, res: int, spp: int, repeats: int, grad
             if mode == "render":
                 renderer.set_look(nominal)
                 pred = predictor.predict(renderer(s.float(), seed=0))[1]
-            elif mode == "looks":  # risp-task --looks K: N's readings averaged over K looks (loop.make_loss)
-                readings = []
-                for look in several:
-                    renderer.set_look(look)
-                    readings.append(predictor.predict(renderer(s.float(), seed=0))[1])
-                pred = torch.stack(readings).mean(0)
+            elif mode == "looks":  # risp-task --looks K: the tasks' own render loss, N's readings averaged over K looks
+                looks_loss(s.float()).backward()
+                return
             else:
                 pred = env.state_to_target(s)
             ((pred.double() - goal.double()) ** 2).sum(-1).mean().backward()

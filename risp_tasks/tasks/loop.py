@@ -73,9 +73,11 @@ def make_loss(mode: str, env, keep: list[int], ref_targets: torch.Tensor | None,
     --seed); ``looks``: the render loss's looks (RenderConfigs) whose readings are averaged (None: the renderer's
     own look alone)."""
     timer = timer or Timer()
-    if looks is not None and (mode != "render" or not looks):
-        raise RispError("several looks are for the render loss (N's readings averaged over the looks), "
-                        f"not the {mode} loss" if mode != "render" else "looks is empty")
+    if looks is not None and mode != "render":
+        raise RispError(f"several looks are for the render loss (N's readings averaged over the looks), not the "
+                        f"{mode} loss")
+    if looks is not None and not looks:
+        raise RispError("looks is empty: give at least one look, or None for the renderer's own")
     if residual not in RESIDUALS:
         raise RispError(f"unknown residual {residual!r}; choose one of: {', '.join(RESIDUALS)}")
 
