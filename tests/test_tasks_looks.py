@@ -120,3 +120,16 @@ def test_looks_other_than_one_need_the_render_loss(loss, said):
     with pytest.raises(RispError, match=r"--looks must be >= 1, got 0"):
         TaskConfig(task="sysid", video="v.mp4", loss="render", looks=0)
     assert TaskConfig(task="sysid", video="v.mp4", loss=loss, truth="t.json").looks == 1
+
+
+@pytest.mark.parametrize("args, said", [(["--loss", "state", "--looks", "2"], "--loss state reads no rendered frame"),
+                                        (["--loss", "render", "--looks", "0"], "--looks must be >= 1, got 0")])
+def test_a_bad_looks_on_the_command_line_is_one_line_and_writes_nothing(tmp_path, args, said):
+    from risp_tasks.cli import cli
+
+    out = tmp_path / "o"
+    res = CliRunner().invoke(cli, ["sysid", str(tmp_path / "v.mp4"), *args, "--out", str(out)])
+    assert res.exit_code != 0
+    lines = [line for line in res.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and said in lines[0], res.output
+    assert not out.exists()
