@@ -83,6 +83,8 @@ def test_the_render_loss_averages_the_readings_over_the_looks(tmp_path_factory):
     assert two != pytest.approx(one, rel=1e-3)
     with pytest.raises(RispError, match="several looks are for the render loss"):
         make_loss("pixelwise", env, [0, 1], None, None, None, renderer=renderer, looks=[a, b])
+    with pytest.raises(RispError, match="looks is empty"):
+        make_loss("render", env, [0, 1], goal, None, None, predictor=predictor, renderer=renderer, looks=[])
 
 
 def test_looks_are_drawn_from_the_seed_and_recorded(tmp_path_factory, tmp_path):
